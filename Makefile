@@ -1,0 +1,74 @@
+# fmusa: build the ScrewVertebra FMU, run the study, test, benchmark.
+# GNU make. `make test` and `make sweep` are the two entry points; both build what they need.
+
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+VPY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+FMU := dist/ScrewVertebra.fmu
+FMU_BUILD := build/fmu
+FMU_SO := $(FMU_BUILD)/binaries/linux64/ScrewVertebra.so
+SRC_STAMP := build/.fmu-sources
+FMU_C := fmu/fmi2.c fmu/model.c fmu/solver.c
+FMU_SRC := $(wildcard fmu/*.c) $(wildcard fmu/*.h)
+FMI_HEADERS := fmi2Functions.h fmi2FunctionTypes.h fmi2TypesPlatform.h
+CC := gcc
+CFLAGS := -std=c99 -O2 -fPIC -shared -Wall -Wextra -fvisibility=hidden
+
+.PHONY: all fmu sweep test bench clean
+.DELETE_ON_ERROR:
+
+all: fmu
+
+# ---------------------------------------------------------------- virtual environment
+$(STAMP): pyproject.toml
+	test -x $(VPY) || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install -e '.[test]'
+	touch $@
+
+$(VENV): $(STAMP)
+
+# ---------------------------------------------------------------- FMU
+# The FMU carries its C sources (plus the FMI 2 headers taken from fmpy) so that other tools, or
+# fmpy.build.build_platform_binary, can rebuild the binary from them.
+$(FMU_BUILD)/modelDescription.xml $(FMU_BUILD)/sources/variables.h &: fmu/generate.py fmu/variables.csv
+	$(PYTHON) fmu/generate.py $(FMU_BUILD)
+
+# The headers come from the installed fmpy: order-only on the venv, so reinstalling it does not
+# force a rebuild.
+$(SRC_STAMP): $(FMU_SRC) $(FMU_C) $(FMU_BUILD)/sources/variables.h | $(STAMP)
+	mkdir -p $(FMU_BUILD)/sources
+	cp $(FMU_SRC) $(FMU_BUILD)/sources/
+	cc_dir=$$($(VPY) -c 'import fmpy, os; print(os.path.join(os.path.dirname(fmpy.__file__), "c-code"))') && \
+	  for h in $(FMI_HEADERS); do cp "$$cc_dir/$$h" $(FMU_BUILD)/sources/; done
+	touch $@
+
+$(FMU_SO): $(SRC_STAMP)
+	mkdir -p $(dir $@)
+	$(CC) $(CFLAGS) -I$(FMU_BUILD)/sources -o $@ $(addprefix $(FMU_BUILD)/sources/,$(notdir $(FMU_C))) -lm
+
+$(FMU): $(FMU_SO) $(FMU_BUILD)/modelDescription.xml
+	mkdir -p $(dir $@)
+	rm -f $@
+	if command -v zip >/dev/null 2>&1; then \
+	  cd $(FMU_BUILD) && zip -q -r -X $(abspath $@) modelDescription.xml binaries sources; \
+	else \
+	  cd $(FMU_BUILD) && $(PYTHON) -m zipfile -c $(abspath $@) modelDescription.xml binaries sources; \
+	fi
+
+fmu: $(FMU)
+
+# ---------------------------------------------------------------- study, tests, benchmark
+sweep: $(STAMP) $(FMU)
+	$(VENV)/bin/fmusa pullout --out out/paper
+
+test: $(STAMP) $(FMU)
+	$(VENV)/bin/pytest -q -p no:cacheprovider tests
+
+bench: $(STAMP) $(FMU)
+	$(VPY) -m fmusa.bench --out out/bench/bench.json
+
+clean:
+	rm -rf build dist out

@@ -1,0 +1,398 @@
+/* Equations of the ScrewVertebra model: a rigid screw with 6 degrees of freedom in a fixed vertebra,
+ * joined by the diagonal matrix force element of Kramer & Bauer (eq. 1). fmu/MODEL.md derives them.
+ * All arithmetic on the state is complex so the solver can take exact derivatives (complex step):
+ * branches look only at real parts. */
+#include "model.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#define V(name) (mi->v[VR_##name])
+
+static const VarInfo VARS[] = {
+#define X(name, vr, type, caus, start) {name, vr, type, caus, start},
+    VARIABLES(X)
+#undef X
+};
+
+const VarInfo *model_variable(unsigned int vr)
+{
+    if (vr == 0 || vr > sizeof(VARS) / sizeof(VARS[0])) return NULL;
+    return &VARS[vr - 1];   /* value references are the 1-based rows of the table */
+}
+
+void model_set_start_values(ModelInstance *mi)
+{
+    memset(mi, 0, sizeof(*mi));
+    for (size_t i = 0; i < sizeof(VARS) / sizeof(VARS[0]); i++) mi->v[VARS[i].vr] = VARS[i].start;
+    V(t_eq) = -1.0;
+}
+
+/* ------------------------------------------------------------------ validation */
+
+static int check(int ok, char *msg, size_t len, const char *fmt, const char *name, double value)
+{
+    if (!ok) snprintf(msg, len, fmt, name, value);
+    return !ok;
+}
+
+int model_validate(const ModelInstance *mi, char *msg, size_t len)
+{
+    static const char *const nonneg[] = {"c_x", "c_y", "c_z", "c_alpha", "c_beta", "c_gamma",
+                                         "d_x", "d_y", "d_z", "d_alpha", "d_beta", "d_gamma", NULL};
+    static const int nonneg_vr[] = {VR_c_x, VR_c_y, VR_c_z, VR_c_alpha, VR_c_beta, VR_c_gamma,
+                                    VR_d_x, VR_d_y, VR_d_z, VR_d_alpha, VR_d_beta, VR_d_gamma};
+    static const char *const pos[] = {"m", "L_screw", "D_screw", "t_ramp", "eps_v_eq", "eps_a_eq", NULL};
+    static const int pos_vr[] = {VR_m, VR_L_screw, VR_D_screw, VR_t_ramp, VR_eps_v_eq, VR_eps_a_eq};
+    static const char *const fin[] = {"cg_x", "cg_y", "cg_z", "phi_inertia", "rI_x", "rI_y", "rI_z",
+                                      "F_max", "t_unload", "v_pull", NULL};
+    static const int fin_vr[] = {VR_cg_x, VR_cg_y, VR_cg_z, VR_phi_inertia, VR_rI_x, VR_rI_y, VR_rI_z,
+                                 VR_F_max, VR_t_unload, VR_v_pull};
+    for (int i = 0; pos[i]; i++)
+        if (check(isfinite(mi->v[pos_vr[i]]) && mi->v[pos_vr[i]] > 0.0, msg, len,
+                  "parameter %s = %g is invalid: it must be a finite number > 0", pos[i], mi->v[pos_vr[i]]))
+            return 1;
+    for (int i = 0; nonneg[i]; i++)
+        if (check(isfinite(mi->v[nonneg_vr[i]]) && mi->v[nonneg_vr[i]] >= 0.0, msg, len,
+                  "parameter %s = %g is invalid: stiffness and damping must be finite and >= 0",
+                  nonneg[i], mi->v[nonneg_vr[i]]))
+            return 1;
+    for (int i = 0; fin[i]; i++)
+        if (check(isfinite(mi->v[fin_vr[i]]), msg, len, "parameter %s = %g is invalid: it must be finite",
+                  fin[i], mi->v[fin_vr[i]]))
+            return 1;
+    if (check(isfinite(V(rtol)) && V(rtol) >= 1e-14 && V(rtol) <= 1e-2, msg, len,
+              "parameter %s = %g is invalid: use a tolerance between 1e-14 and 1e-2", "rtol", V(rtol)))
+        return 1;
+    if (check(isfinite(V(h_max)) && V(h_max) >= 0.0, msg, len,
+              "parameter %s = %g is invalid: use 0 (no limit) or a positive step in s", "h_max", V(h_max)))
+        return 1;
+    if (check(V(mode) == 1.0 || V(mode) == 2.0, msg, len,
+              "parameter %s = %g is invalid: use 1 (force-driven) or 2 (motion-driven)", "mode", V(mode)))
+        return 1;
+    if (check(!(V(unload) != 0.0 && V(t_unload) < V(t_ramp)), msg, len,
+              "parameter %s = %g is invalid: unloading must start after the ramp (t_unload >= t_ramp)",
+              "t_unload", V(t_unload)))
+        return 1;
+    int n = (int)V(tab_n);
+    if (check(V(tab_n) == 0.0 || (V(tab_n) >= 2.0 && V(tab_n) <= 16.0 && V(tab_n) == n), msg, len,
+              "parameter %s = %g is invalid: use 0 (linear c_y) or 2..16 table points", "tab_n", V(tab_n)))
+        return 1;
+    for (int k = 0; k < n; k++) {
+        char name[16];
+        double yk = mi->v[VR_tab_y_1 + k], Fk = mi->v[VR_tab_F_1 + k];
+        snprintf(name, sizeof name, "tab_y[%d]", k + 1);
+        if (check(isfinite(yk), msg, len, "parameter %s = %g is invalid: it must be finite", name, yk)) return 1;
+        if (k > 0 && check(yk > mi->v[VR_tab_y_1 + k - 1], msg, len,
+                           "parameter %s = %g is invalid: the table displacements must increase strictly "
+                           "(tab_y[k] > tab_y[k-1])", name, yk))
+            return 1;
+        snprintf(name, sizeof name, "tab_F[%d]", k + 1);
+        if (check(isfinite(Fk), msg, len, "parameter %s = %g is invalid: it must be finite", name, Fk)) return 1;
+    }
+    return 0;
+}
+
+/* ------------------------------------------------------------------ loads */
+
+static cplx pull_force(const ModelInstance *mi, cplx t)
+{
+    double tr = creal(t), F = V(F_max), T = V(t_ramp);
+    if (tr < 0.0) return 0.0;
+    if (V(unload) != 0.0 && tr >= V(t_unload)) {
+        if (tr >= V(t_unload) + T) return 0.0;
+        return F * (1.0 - (t - V(t_unload)) / T);
+    }
+    if (tr < T) return F * t / T;
+    return F;
+}
+
+static double next_breakpoint(void *ctx, double t)
+{
+    const ModelInstance *mi = ctx;
+    double kinks[3] = {V(t_ramp), V(unload) != 0.0 ? V(t_unload) : INFINITY,
+                       V(unload) != 0.0 ? V(t_unload) + V(t_ramp) : INFINITY};
+    double next = INFINITY;
+    for (int i = 0; i < 3; i++)
+        if (kinks[i] > t && kinks[i] < next) next = kinks[i];
+    return next;
+}
+
+static cplx input(const ModelInstance *mi, int vr, cplx t)
+{
+    return mi->v[vr] + mi->dv[vr] * (t - mi->t_inputs);
+}
+
+/* Axial spring force: c_y y, or the force-displacement table (linear beyond its ends). */
+static cplx axial_spring(const ModelInstance *mi, cplx y)
+{
+    int n = (int)V(tab_n);
+    if (n < 2) return V(c_y) * y;
+    const double *ty = &mi->v[VR_tab_y_1], *tf = &mi->v[VR_tab_F_1];
+    int k = 0;
+    while (k < n - 2 && creal(y) >= ty[k + 1]) k++;
+    double slope = (tf[k + 1] - tf[k]) / (ty[k + 1] - ty[k]);
+    return tf[k] + slope * (y - ty[k]);
+}
+
+/* ------------------------------------------------------------------ small complex algebra */
+
+static void mat3_vec(const cplx A[9], const cplx x[3], cplx y[3])
+{
+    for (int i = 0; i < 3; i++) y[i] = A[3 * i] * x[0] + A[3 * i + 1] * x[1] + A[3 * i + 2] * x[2];
+}
+
+static void mat3T_vec(const cplx A[9], const cplx x[3], cplx y[3])
+{
+    for (int i = 0; i < 3; i++) y[i] = A[i] * x[0] + A[3 + i] * x[1] + A[6 + i] * x[2];
+}
+
+static void mat3_mul(const cplx A[9], const cplx B[9], cplx C[9])
+{
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            C[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j];
+}
+
+static void cross(const cplx a[3], const cplx b[3], cplx c[3])
+{
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+/* Gaussian elimination with partial pivoting on the real parts; A is n x n row-major, b overwritten. */
+static int solve(int n, cplx *A, cplx *b)
+{
+    for (int c = 0; c < n; c++) {
+        int p = c;
+        for (int r = c + 1; r < n; r++)
+            if (fabs(creal(A[r * n + c])) > fabs(creal(A[p * n + c]))) p = r;
+        if (creal(A[p * n + c]) == 0.0) return 1;
+        if (p != c) {
+            for (int j = 0; j < n; j++) { cplx tmp = A[c * n + j]; A[c * n + j] = A[p * n + j]; A[p * n + j] = tmp; }
+            cplx tmp = b[c]; b[c] = b[p]; b[p] = tmp;
+        }
+        cplx inv = 1.0 / A[c * n + c];
+        for (int r = c + 1; r < n; r++) {
+            cplx f = A[r * n + c] * inv;
+            if (f == 0.0) continue;
+            for (int j = c; j < n; j++) A[r * n + j] -= f * A[c * n + j];
+            b[r] -= f * b[c];
+        }
+    }
+    for (int r = n - 1; r >= 0; r--) {
+        cplx s = b[r];
+        for (int j = r + 1; j < n; j++) s -= A[r * n + j] * b[j];
+        b[r] = s / A[r * n + r];
+    }
+    return 0;
+}
+
+/* ------------------------------------------------------------------ dynamics */
+
+/* Accelerations (and, in motion-driven mode, the reaction of the drive) at (t, u). */
+static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, cplx *F_pull,
+                    char *msg, size_t len)
+{
+    const cplx *q = u, *qd = u + NQ;
+    cplx ca = ccos(q[3]), sa = csin(q[3]), cb = ccos(q[4]), sb = csin(q[4]), cg = ccos(q[5]), sg = csin(q[5]);
+    if (fabs(creal(cb)) < 1e-6) {
+        snprintf(msg, len, "the Cardan angle beta reached %.6g rad (gimbal lock at +-pi/2): the rotational "
+                 "interface stiffness c_beta or the load is unphysical", creal(q[4]));
+        return 1;
+    }
+    /* R = Rx(alpha) Ry(beta) Rz(gamma) */
+    cplx Rx[9] = {1, 0, 0, 0, ca, -sa, 0, sa, ca};
+    cplx Ry[9] = {cb, 0, sb, 0, 1, 0, -sb, 0, cb};
+    cplx Rz[9] = {cg, -sg, 0, sg, cg, 0, 0, 0, 1};
+    cplx Rxy[9], R[9];
+    mat3_mul(Rx, Ry, Rxy);
+    mat3_mul(Rxy, Rz, R);
+    /* omega = G dtheta, dG dtheta */
+    cplx G[9] = {cb * cg, sg, 0, -cb * sg, cg, 0, sb, 0, 1};
+    const cplx *th = qd + 3;
+    cplx w[3], Gd[3];
+    mat3_vec(G, th, w);
+    Gd[0] = (-sb * cg * th[1] - cb * sg * th[2]) * th[0] + cg * th[2] * th[1];
+    Gd[1] = (sb * sg * th[1] - cb * cg * th[2]) * th[0] - sg * th[2] * th[1];
+    Gd[2] = cb * th[1] * th[0];
+
+    /* interface (eq. 1) */
+    cplx FI[3] = {-(V(c_x) * q[0] + V(d_x) * qd[0]), -(axial_spring(mi, q[1]) + V(d_y) * qd[1]),
+                  -(V(c_z) * q[2] + V(d_z) * qd[2])};
+    cplx QI[3] = {-(V(c_alpha) * q[3] + V(d_alpha) * qd[3]), -(V(c_beta) * q[4] + V(d_beta) * qd[4]),
+                  -(V(c_gamma) * q[5] + V(d_gamma) * qd[5])};
+    cplx GT[9] = {G[0], G[3], G[6], G[1], G[4], G[7], G[2], G[5], G[8]};
+    cplx tauI[3] = {QI[0], QI[1], QI[2]};
+    if (solve(3, GT, tauI)) {
+        snprintf(msg, len, "singular angular-velocity map at beta = %.6g rad", creal(q[4]));
+        return 1;
+    }
+    /* loads at the head (without the pull, which is handled as its own column) */
+    cplx FH[3] = {input(mi, VR_F_ext_x, t), input(mi, VR_F_ext_y, t), input(mi, VR_F_ext_z, t)};
+    cplx TE[3] = {input(mi, VR_T_ext_x, t), input(mi, VR_T_ext_y, t), input(mi, VR_T_ext_z, t)};
+    /* body vectors: b from the interaction point to the CG, h from the CG to the head */
+    cplx b[3] = {V(cg_x) - V(rI_x), V(cg_y) - V(rI_y), V(cg_z) - V(rI_z)};
+    cplx h[3] = {-V(cg_x), -V(cg_y), -V(cg_z)};
+    cplx FIb[3], FHb[3], TEb[3], eyb[3], ey[3] = {0, 1, 0};
+    mat3T_vec(R, FI, FIb);
+    mat3T_vec(R, FH, FHb);
+    mat3T_vec(R, TE, TEb);
+    mat3T_vec(R, ey, eyb);
+
+    cplx M[36] = {0}, g[6], B[6];
+    double m = V(m);
+    /* translation: m r'' - m R [b]x G theta'' = F_I + F_H - m R (Gd x b + w x (w x b)) */
+    cplx bxG[9], RbxG[9];
+    for (int j = 0; j < 3; j++) {
+        cplx col[3] = {G[j], G[3 + j], G[6 + j]}, c[3];
+        cross(b, col, c);
+        bxG[j] = c[0]; bxG[3 + j] = c[1]; bxG[6 + j] = c[2];
+    }
+    mat3_mul(R, bxG, RbxG);
+    cplx t1[3], t2[3], t3[3], cen[3], cenV[3];
+    cross(Gd, b, t1);
+    cross(w, b, t2);
+    cross(w, t2, t3);
+    for (int i = 0; i < 3; i++) cen[i] = t1[i] + t3[i];
+    mat3_vec(R, cen, cenV);
+    for (int i = 0; i < 3; i++) {
+        M[6 * i + i] = m;
+        for (int j = 0; j < 3; j++) M[6 * i + 3 + j] = -m * RbxG[3 * i + j];
+        g[i] = FI[i] + FH[i] - m * cenV[i];
+        B[i] = ey[i];
+    }
+    /* rotation about the CG in the screw frame: I G theta'' = torques - w x I w - I Gd */
+    cplx Ib[9], IG[9], Iw[3], wIw[3], IGd[3], mb[3] = {-b[0], -b[1], -b[2]}, tb[3], th_[3], thy[3];
+    for (int i = 0; i < 9; i++) Ib[i] = mi->inertia[i];
+    mat3_mul(Ib, G, IG);
+    mat3_vec(Ib, w, Iw);
+    cross(w, Iw, wIw);
+    mat3_vec(Ib, Gd, IGd);
+    cross(mb, FIb, tb);
+    cross(h, FHb, th_);
+    cross(h, eyb, thy);
+    for (int i = 0; i < 3; i++) {
+        for (int j = 0; j < 3; j++) M[6 * (3 + i) + 3 + j] = IG[3 * i + j];
+        g[3 + i] = tb[i] + th_[i] + tauI[i] + TEb[i] - wIw[i] - IGd[i];
+        B[3 + i] = thy[i];
+    }
+    if ((int)V(mode) == 2) {
+        /* y'' is prescribed (u[IX_VY] carries the drive's velocity, its derivative is 0 within a step),
+         * and the pull force is the unknown in its place */
+        cplx ay = 0.0;
+        for (int i = 0; i < 6; i++) {
+            g[i] -= M[6 * i + 1] * ay;
+            M[6 * i + 1] = -B[i];
+        }
+        if (solve(6, M, g)) goto singular;
+        *F_pull = g[1];
+        g[1] = ay;
+    } else {
+        cplx Fp = pull_force(mi, t);
+        for (int i = 0; i < 6; i++) g[i] += B[i] * Fp;
+        if (solve(6, M, g)) goto singular;
+        *F_pull = Fp;
+    }
+    for (int i = 0; i < 6; i++) acc[i] = g[i];
+    return 0;
+singular:
+    snprintf(msg, len, "singular mass matrix: check m and the inertia (L_screw, D_screw)");
+    return 1;
+}
+
+static int rhs(void *ctx, cplx t, const cplx *u, cplx *du, char *msg, size_t len)
+{
+    const ModelInstance *mi = ctx;
+    cplx Fp;
+    for (int i = 0; i < NQ; i++) du[i] = u[NQ + i];
+    return dynamics(mi, t, u, du + NQ, &Fp, msg, len);
+}
+
+/* ------------------------------------------------------------------ outputs */
+
+static int update_outputs(ModelInstance *mi, char *msg, size_t len)
+{
+    cplx uc[NX], acc[NQ], Fp;
+    for (int i = 0; i < NX; i++) uc[i] = mi->u[i];
+    if (dynamics(mi, mi->time, uc, acc, &Fp, msg, len)) return 1;
+    const double *u = mi->u;
+    static const int qvr[NQ] = {VR_x, VR_y, VR_z, VR_alpha, VR_beta, VR_gamma};
+    static const int vvr[NQ] = {VR_v_x, VR_v_y, VR_v_z, VR_w_alpha, VR_w_beta, VR_w_gamma};
+    for (int i = 0; i < NQ; i++) { mi->v[qvr[i]] = u[i]; mi->v[vvr[i]] = u[NQ + i]; }
+    V(a_y) = mi->solver.acc;   /* carried by the solver: no cancellation of F - c y */
+    V(F_x) = V(c_x) * u[0] + V(d_x) * u[6];
+    V(F_y) = creal(axial_spring(mi, u[1])) + V(d_y) * u[7];
+    V(F_z) = V(c_z) * u[2] + V(d_z) * u[8];
+    V(T_alpha) = V(c_alpha) * u[3] + V(d_alpha) * u[9];
+    V(T_beta) = V(c_beta) * u[4] + V(d_beta) * u[10];
+    V(T_gamma) = V(c_gamma) * u[5] + V(d_gamma) * u[11];
+    V(F_pull) = creal(Fp);
+    V(y_max) = mi->solver.pos_max;
+    V(v_y_max) = mi->solver.vel_max;
+    V(t_eq) = mi->solver.t_eq;
+    V(n_steps) = (double)mi->solver.n_steps;
+    return 0;
+}
+
+/* In motion-driven mode the drive sets y and its velocity at every communication point. */
+static void apply_drive(ModelInstance *mi)
+{
+    if ((int)V(mode) != 2) return;
+    if (V(use_y_in) != 0.0) {
+        mi->u[IX_Y] = V(y_in);
+        mi->u[IX_VY] = mi->dv[VR_y_in];
+    } else {
+        mi->u[IX_Y] = V(v_pull) * mi->time;
+        mi->u[IX_VY] = V(v_pull);
+    }
+    mi->solver.u[IX_Y] = mi->u[IX_Y];
+    mi->solver.u[IX_VY] = mi->u[IX_VY];
+}
+
+int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
+{
+    double m = V(m), r = 0.5 * V(D_screw), L = V(L_screw);
+    V(I_1) = V(I_3) = m * (3.0 * r * r + L * L) / 12.0;
+    V(I_2) = 0.5 * m * r * r;
+    /* I_B = Q diag(I_1, I_2, I_3) Q^T, Q = Rx(phi_inertia): principal axes of Table 1 */
+    double c = cos(V(phi_inertia)), s = sin(V(phi_inertia));
+    double Q[9] = {1, 0, 0, 0, c, -s, 0, s, c}, Id[3] = {V(I_1), V(I_2), V(I_3)};
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            double acc = 0.0;
+            for (int k = 0; k < 3; k++) acc += Q[3 * i + k] * Id[k] * Q[3 * j + k];
+            mi->inertia[3 * i + j] = acc;
+        }
+    mi->time = t0;
+    mi->t_inputs = t0;
+    memset(mi->u, 0, sizeof(mi->u));
+    Solver *sv = &mi->solver;
+    memset(sv, 0, sizeof(*sv));
+    sv->n = NX;
+    sv->ipos = IX_Y;
+    sv->ivel = IX_VY;
+    sv->rtol = V(rtol);
+    sv->h_max = V(h_max);
+    sv->eps_v = V(eps_v_eq);
+    sv->eps_a = V(eps_a_eq);
+    sv->rhs = rhs;
+    sv->breakpoint = next_breakpoint;
+    sv->ctx = mi;
+    apply_drive(mi);
+    if (solver_init(sv, t0, mi->u, msg, len)) return 1;
+    return update_outputs(mi, msg, len);
+}
+
+int model_do_step(ModelInstance *mi, double t_end, char *msg, size_t len)
+{
+    apply_drive(mi);
+    if (solver_advance(&mi->solver, t_end, msg, len)) return 1;
+    memcpy(mi->u, mi->solver.u, sizeof(mi->u));
+    mi->time = t_end;
+    memset(mi->dv, 0, sizeof(mi->dv));   /* input derivatives hold for one communication step */
+    mi->t_inputs = t_end;
+    return update_outputs(mi, msg, len);
+}

@@ -1,0 +1,49 @@
+/* The ScrewVertebra model: its variables, instance and equations (model.c). The FMI layer (fmi2.c)
+ * calls only the functions declared here. */
+#ifndef MODEL_H
+#define MODEL_H
+
+#include <stddef.h>
+
+typedef enum { TYPE_REAL, TYPE_INTEGER, TYPE_BOOLEAN } VarType;
+typedef enum { CAUS_PARAMETER, CAUS_CALCULATED, CAUS_INPUT, CAUS_OUTPUT } Causality;
+
+#include "variables.h"
+#include "solver.h"
+
+typedef struct {
+    const char *name;
+    int vr;
+    VarType type;
+    Causality causality;
+    double start;
+} VarInfo;
+
+/* The variable table (generated from fmu/variables.csv); vr -> entry, NULL for unknown vr. */
+const VarInfo *model_variable(unsigned int vr);
+
+/* State vector: q = (x, y, z, alpha, beta, gamma), then dq/dt. */
+enum { NQ = 6, NX = 12, IX_Y = 1, IX_VY = 7 };
+
+typedef struct ModelInstance {
+    double v[N_VR];          /* every variable by value reference (Integer and Boolean as 0/1 doubles) */
+    double dv[N_VR];         /* first derivatives of the inputs (fmi2SetRealInputDerivatives) */
+    double t_inputs;         /* time at which the inputs and their derivatives apply */
+    double time;
+    double u[NX];
+    double inertia[9];       /* I_B about the CG in the screw frame */
+    Solver solver;
+} ModelInstance;
+
+void model_set_start_values(ModelInstance *mi);
+
+/* 0 when every parameter is valid; otherwise 1 with msg naming the parameter and the fix. */
+int model_validate(const ModelInstance *mi, char *msg, size_t msglen);
+
+/* Compute calculated parameters, put the screw at rest, start the solver and fill the outputs. */
+int model_initialize(ModelInstance *mi, double t0, char *msg, size_t msglen);
+
+/* Advance from mi->time to t_end and update the outputs. */
+int model_do_step(ModelInstance *mi, double t_end, char *msg, size_t msglen);
+
+#endif

@@ -1,0 +1,55 @@
+/* Exponential Rosenbrock integrator with exact Jacobians (complex step), active-subspace reduction,
+ * dense output and the axial monitors. See solver.c for why this method. */
+#ifndef SOLVER_H
+#define SOLVER_H
+
+#include <complex.h>
+#include <stddef.h>
+
+#define SOLVER_NMAX 12
+
+typedef double complex cplx;
+
+/* Right-hand side du = f(t, u), evaluated in complex arithmetic so that the solver can take exact
+ * derivatives by the complex-step method. Must be complex-analytic: branch only on real parts.
+ * Returns 0 on success, nonzero (with msg filled) when the state is outside the model's domain. */
+typedef int (*solver_rhs_fn)(void *ctx, cplx t, const cplx *u, cplx *du, char *msg, size_t msglen);
+
+/* Next time > t at which the right-hand side has a kink in time (a load ramp starts or ends). */
+typedef double (*solver_breakpoint_fn)(void *ctx, double t);
+
+typedef struct {
+    int n;                       /* number of states */
+    int ipos, ivel;              /* monitored position and velocity (y, v_y); acceleration = du[ivel] */
+    double t;
+    double u[SOLVER_NMAX];
+    double umax[SOLVER_NMAX];    /* running max |u_i|: the scale of the relative error control */
+    double h;                    /* proposed next step */
+    double rtol;                 /* local error tolerance (nonlinear part) and dense-output tolerance */
+    double h_max;                /* 0: none */
+    double eps_v, eps_a;         /* equilibrium thresholds */
+    /* monitors */
+    double pos_max, vel_max, t_eq;
+    double acc;                  /* acceleration at t (du[ivel]) */
+    /* The derivative du/dt carried from step to step while the Jacobian stays the same (the linear
+     * regime): recomputing it from the state would cancel F - c y in double precision and leave an
+     * absolute noise of ~ulp(F)/m in the acceleration, far above the equilibrium threshold. */
+    double z[SOLVER_NMAX];
+    double J_prev[SOLVER_NMAX * SOLVER_NMAX];
+    int z_valid;
+    long n_steps, n_rejected, n_rhs;
+    solver_rhs_fn rhs;
+    solver_breakpoint_fn breakpoint;
+    void *ctx;
+} Solver;
+
+/* Set up at t0 with state u0; evaluates the acceleration and initialises the monitors. */
+int solver_init(Solver *s, double t0, const double *u0, char *msg, size_t msglen);
+
+/* Integrate to t_end. Returns 0 on success, 1 when a step could not be taken (msg says why). */
+int solver_advance(Solver *s, double t_end, char *msg, size_t msglen);
+
+/* phi_k(A) for k = 0..3 (phi_0 = exp), n x n row-major; exported for the unit tests. */
+void solver_phi(int n, const double *A, double *P0, double *P1, double *P2, double *P3);
+
+#endif

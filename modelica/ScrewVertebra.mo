@@ -1,0 +1,293 @@
+// ScrewVertebra: rigid anchor screw (6 DOF) in a rigidly fixed C4 vertebra, joined by the diagonal
+// spring-damper matrix force element of Kramer and Bauer (eq. 1, Sections 2.1-2.3, Table 1).
+//
+// This is the Modelica statement of fmu/MODEL.md; the co-simulation FMU (fmu/model.c) implements the
+// same equations. Its public variables (names, types, causalities, units, defaults, descriptions) are
+// the contract fmu/variables.csv, checked against this file by tests/test_modelica.py. Entry k of the
+// arrays tab_y and tab_F is the FMU variable tab_y[k] / tab_F[k] with description "<description> k".
+//
+// Frames: V is fixed to the vertebra (origin at the vertebra's interaction point, y = screw axis out of
+// the bone, the pullout direction). S is fixed to the screw (origin at the head centre H, y along the
+// screw axis towards the head). At rest S is parallel to V and the screw's interaction point P
+// coincides with the vertebra's. Coordinates q = (x, y, z, alpha, beta, gamma): (x, y, z) is the
+// displacement of P in V, (alpha, beta, gamma) are Cardan angles, R = Rx(alpha)*Ry(beta)*Rz(gamma)
+// maps S to V (singular at beta = +-pi/2).
+//
+// Assumptions (not given by the paper):
+//  - Principal moments of inertia: a solid cylinder of length L_screw and diameter D_screw with the
+//    screw's mass, I_1 = I_3 = m*(3*r^2 + L^2)/12, I_2 = m*r^2/2 (r = D_screw/2). Table 1 gives only
+//    the principal directions: e1 = (1, 0, 0), e2 = (0, 0.96, 0.28), e3 = (0, -0.28, 0.96) in S,
+//    i.e. a tilt phi_inertia = atan2(0.28, 0.96) about x; the inertia tensor about the centre of
+//    gravity is I_B = Q*diag(I_1, I_2, I_3)*Q^T with Q = Rx(phi_inertia).
+//  - No gravity (0.29 g weighs 2.8 mN against a 411 N pull).
+//  - The rotational stiffness and damping defaults (c_alpha, c_beta, c_gamma, d_alpha, d_beta,
+//    d_gamma) are assumptions: the paper gives no values.
+//  - The rotational part of eq. 1 acts on the Cardan angles as generalised forces
+//    Q_I = -(c_k*theta_k + d_k*der(theta_k)); the body torque tau_I satisfies G^T*tau_I = Q_I.
+//  - The translational force of eq. 1 acts on the screw at P; the pullout force at H along V's y axis.
+//  - With unload = true the pullout force falls linearly from F_max at t_unload (>= t_ramp) to 0 at
+//    t_unload + t_ramp; it is 0 before time 0.
+//
+// Differences to the FMU that are inherent to a Modelica tool:
+//  - rtol and h_max are the FMU's solver settings; a Modelica tool ignores them (set the tolerance in
+//    the simulation setup, see the experiment annotation).
+//  - n_steps (the FMU's count of internal solver steps) stays 0 here.
+//  - Inputs are used as given; the FMU extrapolates them inside a communication step with the
+//    derivatives set by fmi2SetRealInputDerivatives. In motion-driven mode with use_y_in = true the
+//    tool differentiates y_in twice (index reduction), so y_in must come from a smooth source.
+model ScrewVertebra
+  "Rigid pedicle/anchor screw (6 DOF) in a fixed C4 vertebra joined by a diagonal spring-damper matrix force element (Kramer and Bauer, eq. 1)"
+
+  // Mass properties (Table 1)
+  parameter Real m(unit="kg") = 0.00029 "Mass of the screw (Table 1)";
+  parameter Real L_screw(unit="m") = 0.017 "Screw length from head to tip (Table 1)";
+  parameter Real D_screw(unit="m") = 0.0027 "Screw diameter (Table 1)";
+  parameter Real cg_x(unit="m") = 0 "Centre of gravity x in the screw frame (origin at the head centre)";
+  parameter Real cg_y(unit="m") = -0.00703 "Centre of gravity y in the screw frame (Table 1)";
+  parameter Real cg_z(unit="m") = 0 "Centre of gravity z in the screw frame";
+  parameter Real phi_inertia(unit="rad") = atan2(0.28, 0.96) "Tilt of the principal axes of inertia about x (Table 1: cos 0.96 / sin 0.28)";
+  final parameter Real I_1(unit="kg.m2") = m*(3*(D_screw/2)^2 + L_screw^2)/12 "Principal moment about axis 1 (solid cylinder: m*(3*r^2+L^2)/12)";
+  final parameter Real I_2(unit="kg.m2") = m*(D_screw/2)^2/2 "Principal moment about axis 2 near the screw axis (solid cylinder: m*r^2/2)";
+  final parameter Real I_3(unit="kg.m2") = m*(3*(D_screw/2)^2 + L_screw^2)/12 "Principal moment about axis 3 (solid cylinder: m*(3*r^2+L^2)/12)";
+
+  // Interaction point P on the screw
+  parameter Real rI_x(unit="m") = 0 "Interaction point on the screw x in the screw frame";
+  parameter Real rI_y(unit="m") = -0.00703 "Interaction point on the screw y in the screw frame";
+  parameter Real rI_z(unit="m") = 0 "Interaction point on the screw z in the screw frame";
+
+  // Matrix force element (eq. 1), diagonal
+  parameter Real c_x(unit="N/m") = 823224 "Interface stiffness along x (eq. 1)";
+  parameter Real c_y(unit="N/m") = 823224 "Interface stiffness along the screw axis y (eq. 1)";
+  parameter Real c_z(unit="N/m") = 823224 "Interface stiffness along z (eq. 1)";
+  parameter Real c_alpha(unit="N.m/rad") = 10 "Interface rotational stiffness about x (eq. 1)";
+  parameter Real c_beta(unit="N.m/rad") = 1 "Interface rotational stiffness about y (eq. 1)";
+  parameter Real c_gamma(unit="N.m/rad") = 10 "Interface rotational stiffness about z (eq. 1)";
+  parameter Real d_x(unit="N.s/m") = 488 "Interface damping along x (eq. 1)";
+  parameter Real d_y(unit="N.s/m") = 488 "Interface damping along the screw axis y (eq. 1)";
+  parameter Real d_z(unit="N.s/m") = 488 "Interface damping along z (eq. 1)";
+  parameter Real d_alpha(unit="N.m.s/rad") = 0.01 "Interface rotational damping about x (eq. 1)";
+  parameter Real d_beta(unit="N.m.s/rad") = 0.01 "Interface rotational damping about y (eq. 1)";
+  parameter Real d_gamma(unit="N.m.s/rad") = 0.01 "Interface rotational damping about z (eq. 1)";
+
+  // Load case
+  parameter Integer mode = 1 "1: force-driven pullout; 2: motion-driven (axial displacement prescribed)"
+    annotation(Evaluate=true);
+  parameter Real F_max(unit="N") = 411 "Peak pullout force at the screw head along y";
+  parameter Real t_ramp(unit="s") = 10 "Duration of the linear force ramp from 0 to F_max";
+  parameter Boolean unload = false "Unload linearly to 0 over t_ramp starting at t_unload";
+  parameter Real t_unload(unit="s") = 20 "Start of unloading (used when unload is true)";
+  parameter Real v_pull(unit="m/s") = 2e-3/60 "Motion-driven pull velocity when use_y_in is false (2 mm/min)";
+  parameter Boolean use_y_in = false "Motion-driven: follow input y_in (with its derivative) instead of v_pull*time"
+    annotation(Evaluate=true);
+
+  // Optional axial force-displacement table replacing c_y*y
+  parameter Integer tab_n = 0 "Points in the axial force-displacement table (0: linear c_y; otherwise 2..16)";
+  parameter Real tab_y[16](each unit="m") = zeros(16) "Axial force-displacement table: displacement";
+  parameter Real tab_F[16](each unit="N") = zeros(16) "Axial force-displacement table: force";
+
+  // Equilibrium monitor (Table 2)
+  parameter Real eps_v_eq(unit="m/s") = 5e-08 "Equilibrium threshold on |v_y| (Table 2)";
+  parameter Real eps_a_eq(unit="m/s2") = 5e-09 "Equilibrium threshold on |a_y| (Table 2)";
+
+  // Solver settings of the FMU: a Modelica tool ignores them
+  parameter Real rtol = 1e-09 "Relative local error tolerance of the solver (nonlinear part and dense output)";
+  parameter Real h_max(unit="s") = 0 "Largest internal step (0: no limit beyond the communication step)";
+
+  // Inputs
+  input Real F_ext_x(unit="N", start=0) "External force at the screw head along x (vertebra frame)";
+  input Real F_ext_y(unit="N", start=0) "External force at the screw head along y (vertebra frame)";
+  input Real F_ext_z(unit="N", start=0) "External force at the screw head along z (vertebra frame)";
+  input Real T_ext_x(unit="N.m", start=0) "External torque on the screw about x (vertebra frame)";
+  input Real T_ext_y(unit="N.m", start=0) "External torque on the screw about y (vertebra frame)";
+  input Real T_ext_z(unit="N.m", start=0) "External torque on the screw about z (vertebra frame)";
+  input Real y_in(unit="m", start=0) "Prescribed axial displacement in motion-driven mode when use_y_in is true";
+
+  // Outputs: coordinates and their rates
+  output Real x(unit="m") "Interaction point displacement x (screw point relative to vertebra point)";
+  output Real y(unit="m") "Axial displacement of the screw (pullout positive)";
+  output Real z(unit="m") "Interaction point displacement z";
+  output Real alpha(unit="rad") "Cardan angle about x";
+  output Real beta(unit="rad") "Cardan angle about y";
+  output Real gamma(unit="rad") "Cardan angle about z";
+  output Real v_x(unit="m/s") "Velocity along x";
+  output Real v_y(unit="m/s") "Axial velocity of the screw";
+  output Real v_z(unit="m/s") "Velocity along z";
+  output Real w_alpha(unit="rad/s") "Rate of alpha";
+  output Real w_beta(unit="rad/s") "Rate of beta";
+  output Real w_gamma(unit="rad/s") "Rate of gamma";
+  output Real a_y(unit="m/s2") "Axial acceleration of the screw";
+
+  // Outputs: element forces with eq. 1's sign, pullout force
+  output Real F_x(unit="N") "Interface force along x (c_x*x + d_x*v_x)";
+  output Real F_y(unit="N") "Axial interface force (c_y*y + d_y*v_y or table force + d_y*v_y)";
+  output Real F_z(unit="N") "Interface force along z (c_z*z + d_z*v_z)";
+  output Real T_alpha(unit="N.m") "Interface torque (c_alpha*alpha + d_alpha*w_alpha)";
+  output Real T_beta(unit="N.m") "Interface torque (c_beta*beta + d_beta*w_beta)";
+  output Real T_gamma(unit="N.m") "Interface torque (c_gamma*gamma + d_gamma*w_gamma)";
+  output Real F_pull(unit="N") "Axial force on the screw head: the load in force-driven mode or the reaction of the drive in motion-driven mode";
+
+  // Outputs: monitors
+  output Real y_max(unit="m") "Monitor: max |y| so far (every internal step and between steps)";
+  output Real v_y_max(unit="m/s") "Monitor: max |v_y| so far";
+  output Real t_eq(unit="s") "Monitor: time since which |v_y| <= eps_v_eq and |a_y| <= eps_a_eq hold; -1 while not at rest";
+  discrete output Integer n_steps "Internal solver steps taken so far";
+
+protected
+  function tableForce
+    "Piecewise-linear force F(u) through the first n table points, linear extrapolation beyond its ends"
+    input Real u "Axial displacement";
+    input Integer n "Number of table points used (2 <= n <= size(ty, 1))";
+    input Real ty[:] "Displacements, strictly increasing";
+    input Real tF[size(ty, 1)] "Forces";
+    output Real F "Spring force at u";
+  protected
+    Integer i "Segment [ty[i], ty[i+1]] used for u";
+  algorithm
+    if n < 2 then
+      F := 0 "no table (not used then)";
+    else
+      i := 1;
+      while i < n - 1 and u >= ty[i + 1] loop
+        i := i + 1;
+      end while;
+      F := tF[i] + (tF[i + 1] - tF[i])*(u - ty[i])/(ty[i + 1] - ty[i]);
+    end if;
+  end tableForce;
+
+  // Geometry and inertia in the screw frame S
+  final parameter Real c[3](each unit="m") = {cg_x, cg_y, cg_z} "Centre of gravity";
+  final parameter Real p[3](each unit="m") = {rI_x, rI_y, rI_z} "Interaction point P";
+  final parameter Real b[3](each unit="m") = c - p "From P to the centre of gravity";
+  final parameter Real h[3](each unit="m") = -c "From the centre of gravity to the head centre H";
+  final parameter Real Q[3, 3] = [1, 0, 0;
+                                  0, cos(phi_inertia), -sin(phi_inertia);
+                                  0, sin(phi_inertia), cos(phi_inertia)]
+    "Principal axes e1, e2, e3 as columns";
+  final parameter Real I_B[3, 3](each unit="kg.m2") = Q*diagonal({I_1, I_2, I_3})*transpose(Q)
+    "Inertia tensor about the centre of gravity";
+
+  Real R[3, 3] "Rotation matrix, S to V";
+  Real G[3, 3] "Body angular velocity omega = G*der({alpha, beta, gamma})";
+  Real G_d[3, 3] "Time derivative of G";
+  Real a[3](each unit="m/s2") "Acceleration of P, in V";
+  Real theta_dd[3](each unit="rad/s2") "Second derivatives of the Cardan angles";
+  Real omega[3](each unit="rad/s") "Angular velocity of the screw, in S";
+  Real omega_d[3](each unit="rad/s2") "Angular acceleration of the screw, in S";
+  Real a_G[3](each unit="m/s2") "Acceleration of the centre of gravity, in V";
+  Real F_I[3](each unit="N") "Interface force on the screw at P, in V";
+  Real Q_I[3](each unit="N.m") "Generalised interface forces on the Cardan angles";
+  Real tau_I[3](each unit="N.m") "Interface torque on the screw, in S";
+  Real F_H[3](each unit="N") "Force on the screw head H, in V";
+  Real F_spring_y(unit="N") "Axial spring force: c_y*y or the table force";
+  Real F_load(unit="N") "Pullout force of the force-driven load case";
+  Real y_drive(unit="m") "Prescribed axial displacement of the motion-driven load case";
+  discrete Real y_hold(unit="m", start=0, fixed=true) "max |y| at the local maxima of |y| so far";
+  discrete Real v_hold(unit="m/s", start=0, fixed=true) "max |v_y| at the local maxima of |v_y| so far";
+  Boolean at_rest "|v_y| <= eps_v_eq and |a_y| <= eps_a_eq";
+  discrete Real t_rest(unit="s", start=0, fixed=true) "Time at which at_rest last became true";
+
+initial equation
+  // Start at rest in the reference configuration
+  x = 0;
+  z = 0;
+  alpha = 0;
+  beta = 0;
+  gamma = 0;
+  v_x = 0;
+  v_z = 0;
+  w_alpha = 0;
+  w_beta = 0;
+  w_gamma = 0;
+  if mode <> 2 then
+    y = 0;
+    v_y = 0;
+  end if;
+
+initial algorithm
+  for i in 2:tab_n loop
+    assert(tab_y[i] > tab_y[i - 1], "tab_y must be strictly increasing over its first tab_n points");
+  end for;
+
+equation
+  assert(mode == 1 or mode == 2, "mode must be 1 (force-driven) or 2 (motion-driven)");
+  assert(tab_n == 0 or tab_n >= 2 and tab_n <= 16, "tab_n must be 0 or 2..16");
+  assert(not unload or t_unload >= t_ramp, "unloading must start after the ramp (t_unload >= t_ramp)");
+  assert(abs(cos(beta)) >= 1e-6, "the Cardan angle beta reached +-pi/2 (gimbal lock)");
+
+  // Kinematics: six generalised coordinates and their rates
+  der(x) = v_x;
+  der(y) = v_y;
+  der(z) = v_z;
+  der(alpha) = w_alpha;
+  der(beta) = w_beta;
+  der(gamma) = w_gamma;
+  a = {der(v_x), der(v_y), der(v_z)};
+  theta_dd = {der(w_alpha), der(w_beta), der(w_gamma)};
+  a_y = a[2];
+
+  R = [1, 0, 0; 0, cos(alpha), -sin(alpha); 0, sin(alpha), cos(alpha)]
+    *[cos(beta), 0, sin(beta); 0, 1, 0; -sin(beta), 0, cos(beta)]
+    *[cos(gamma), -sin(gamma), 0; sin(gamma), cos(gamma), 0; 0, 0, 1];
+  G = [cos(beta)*cos(gamma), sin(gamma), 0;
+       -cos(beta)*sin(gamma), cos(gamma), 0;
+       sin(beta), 0, 1];
+  G_d = [-sin(beta)*cos(gamma)*w_beta - cos(beta)*sin(gamma)*w_gamma, cos(gamma)*w_gamma, 0;
+         sin(beta)*sin(gamma)*w_beta - cos(beta)*cos(gamma)*w_gamma, -sin(gamma)*w_gamma, 0;
+         cos(beta)*w_beta, 0, 0];
+  omega = G*{w_alpha, w_beta, w_gamma};
+  omega_d = G*theta_dd + G_d*{w_alpha, w_beta, w_gamma};
+  a_G = a + R*(cross(omega_d, b) + cross(omega, cross(omega, b)));
+
+  // Matrix force element (eq. 1): element outputs with eq. 1's sign
+  F_spring_y = if tab_n >= 2 then tableForce(y, tab_n, tab_y, tab_F) else c_y*y;
+  F_x = c_x*x + d_x*v_x;
+  F_y = F_spring_y + d_y*v_y;
+  F_z = c_z*z + d_z*v_z;
+  T_alpha = c_alpha*alpha + d_alpha*w_alpha;
+  T_beta = c_beta*beta + d_beta*w_beta;
+  T_gamma = c_gamma*gamma + d_gamma*w_gamma;
+  // ... acting on the screw: the force at P, the rotational part as generalised forces on the angles
+  F_I = -{F_x, F_y, F_z};
+  Q_I = -{T_alpha, T_beta, T_gamma};
+  transpose(G)*tau_I = Q_I;
+
+  // Load case
+  F_load = if time < 0 then 0
+           elseif unload and time >= t_unload then
+             (if time >= t_unload + t_ramp then 0 else F_max*(1 - (time - t_unload)/t_ramp))
+           elseif time < t_ramp then F_max*time/t_ramp
+           else F_max;
+  y_drive = if use_y_in then y_in else v_pull*time;
+  if mode == 2 then
+    y = y_drive "y prescribed; F_pull is the reaction of the drive";
+  else
+    F_pull = F_load;
+  end if;
+  F_H = {F_ext_x, F_pull + F_ext_y, F_ext_z};
+
+  // Newton-Euler equations about the centre of gravity
+  m*a_G = F_I + F_H;
+  I_B*omega_d + cross(omega, I_B*omega) = cross(-b, transpose(R)*F_I) + cross(h, transpose(R)*F_H)
+    + tau_I + transpose(R)*{T_ext_x, T_ext_y, T_ext_z};
+
+  // Monitors. |y| has a local maximum where y*v_y changes sign from + to -: the running maximum is
+  // the largest such value so far or the current |y|, whichever is larger (likewise for |v_y|).
+  when y*v_y < 0 then
+    y_hold = max(pre(y_hold), abs(y));
+  end when;
+  y_max = max(y_hold, abs(y));
+  when v_y*a_y < 0 then
+    v_hold = max(pre(v_hold), abs(v_y));
+  end when;
+  v_y_max = max(v_hold, abs(v_y));
+  at_rest = abs(v_y) <= eps_v_eq and abs(a_y) <= eps_a_eq;
+  when {initial(), at_rest} then
+    t_rest = time;
+  end when;
+  t_eq = if at_rest then t_rest else -1;
+
+  // The FMU counts its internal solver steps; a Modelica tool has no such variable.
+  n_steps = 0;
+
+  annotation(experiment(StartTime=0, StopTime=12, Interval=0.01, Tolerance=1e-09));
+end ScrewVertebra;

@@ -1,0 +1,180 @@
+"""The ``fmusa`` command line.
+
+Each subcommand is a function ``cmd_<name>(args) -> int`` registered in :func:`build_parser`;
+new subcommands (sweep, inspect, diagnose, …) add a ``_add_<name>`` function there.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from . import __version__
+
+#: Table 2 of the paper: thresholds of the parameter search.
+EPS_Y = 5e-4        # m, max |y|
+EPS_V = 5e-5        # m/s, max |v_y|
+
+
+def _parse_sets(items: list[str] | None) -> list[tuple[str, str]]:
+    out = []
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip() or not value.strip():
+            raise SystemExit(f"fmusa: --set expects NAME=VALUE, got {item!r}")
+        out.append((name.strip(), value.strip()))
+    return out
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.6g}"
+
+
+# ---------------------------------------------------------------------------- pullout
+def _add_pullout(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "pullout", help="simulate the paper's 411 N pullout and write a CSV and a figure",
+        description="Force-driven pullout of the ScrewVertebra FMU: F_pull ramps linearly from 0 to "
+                    "F_max (411 N) over t_ramp (10 s), then holds. Writes DIR/pullout.csv (SI units) "
+                    "and DIR/pullout.png.")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", dest="sets",
+                   help="override an FMU parameter (repeatable), e.g. --set c_y=1e6 --set d_y=500")
+    p.add_argument("--stop-time", type=float, default=12.0, help="simulation end in s (default 12)")
+    p.add_argument("--step", type=float, default=0.01, help="communication step in s (default 0.01)")
+    p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
+    p.set_defaults(func=cmd_pullout)
+
+
+def cmd_pullout(args: argparse.Namespace) -> int:
+    from .evaluate import PULLOUT_OUTPUTS, FMURunner, pullout
+
+    with FMURunner(args.fmu) as fmu:
+        try:
+            params = {name: fmu.parse_value(name, value) for name, value in _parse_sets(args.sets)}
+        except ValueError as exc:
+            print(f"fmusa pullout: {exc}", file=sys.stderr)
+            return 2
+        effective = {**fmu.start_values(), **params}
+        df = pullout(params, stop_time=args.stop_time, step=args.step, runner=fmu)
+    df = df[["time", *PULLOUT_OUTPUTS]]
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path = out / "pullout.csv"
+    png_path = out / "pullout.png"
+    df.to_csv(csv_path, index=False, float_format="%.10g")
+    plot_pullout(df, effective, png_path)
+    last = df.iloc[-1]
+    print(f"{_load_case(effective)}: c_y = {_fmt(effective['c_y'])} N/m, "
+          f"d_y = {_fmt(effective['d_y'])} N·s/m")
+    print(f"  y_max = {last['y_max'] * 1e3:.4g} mm (eps_y = {EPS_Y * 1e3:g} mm), "
+          f"v_y_max = {last['v_y_max'] * 1e3:.4g} mm/s (eps_v = {EPS_V * 1e3:g} mm/s), "
+          f"t_eq = {_fmt(last['t_eq'])} s")
+    print(f"wrote {csv_path}")
+    print(f"wrote {png_path}")
+    return 0
+
+
+def _headroom(ax, data, threshold: float) -> None:
+    """Leave room above the curve and the threshold line so that neither hides under the title
+    or a legend."""
+    import numpy as np
+    finite = np.asarray(data)[np.isfinite(data)]
+    top = max(float(finite.max()) if finite.size else 0.0, threshold)
+    bottom = min(float(finite.min()) if finite.size else 0.0, 0.0)
+    span = top - bottom
+    ax.set_ylim(bottom - 0.05 * span, top + 0.2 * span)
+
+
+def _load_case(params: dict) -> str:
+    if int(params.get("mode", 1)) == 2:
+        if params.get("use_y_in"):
+            return "Motion-driven pullout, y prescribed by the input y_in"
+        return (f"Motion-driven pullout at v_pull = {params.get('v_pull', float('nan')) * 6e4:.4g} mm/min")
+    return (f"Pullout, F_pull ramped to F_max = {_fmt(params.get('F_max', float('nan')))} N over "
+            f"t_ramp = {_fmt(params.get('t_ramp', float('nan')))} s")
+
+
+def plot_pullout(df, params: dict, path: Path) -> None:
+    """Three stacked panels: forces, displacement and velocity against time, with Table 2's
+    thresholds."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = df["time"].to_numpy()
+    t_eq = float(df["t_eq"].iloc[-1])
+    fig, axes = plt.subplots(3, 1, figsize=(8, 9.5), sharex=True, constrained_layout=True)
+    fig.suptitle(f"{_load_case(params)}\n"
+                 f"c = c_y = {_fmt(params.get('c_y', float('nan')))} N/m,  "
+                 f"d = d_y = {_fmt(params.get('d_y', float('nan')))} N·s/m", fontsize=12)
+
+    ax = axes[0]
+    motion = int(params.get("mode", 1)) == 2
+    ax.plot(t, df["F_pull"], lw=2, color="tab:red",
+            label="drive reaction $F_{pull}$" if motion else "pullout force $F_{pull}$")
+    ax.plot(t, df["F_y"], lw=1.2, ls="--", color="k",
+            label="interface force $F_y = c_y y + d_y \\dot y$")
+    ax.set_ylabel("force [N]")
+
+    ax = axes[1]
+    y_mm = df["y"].to_numpy() * 1e3
+    ax.plot(t, y_mm, lw=2, color="tab:blue", label="displacement $y$")
+    ax.axhline(EPS_Y * 1e3, color="tab:purple", ls="--", lw=1.2,
+               label=f"threshold $\\epsilon_y$ = {EPS_Y * 1e3:g} mm (Table 2)")
+    ax.set_ylabel("displacement y [mm]")
+    _headroom(ax, y_mm, EPS_Y * 1e3)
+
+    ax = axes[2]
+    v = df["v_y"].to_numpy() * 1e3
+    ax.plot(t, v, lw=2, color="tab:green", label="velocity $\\dot y$")
+    ax.axhline(EPS_V * 1e3, color="tab:purple", ls="--", lw=1.2,
+               label=f"threshold $\\epsilon_{{\\dot y}}$ = {EPS_V * 1e3:g} mm/s (Table 2)")
+    if (v < 0).any():
+        ax.axhline(-EPS_V * 1e3, color="tab:purple", ls="--", lw=1.2)
+    ax.set_ylabel("velocity $\\dot y$ [mm/s]")
+    ax.set_xlabel("time t [s]")
+    _headroom(ax, v, EPS_V * 1e3)
+
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+        if t_eq >= 0:
+            ax.axvline(t_eq, color="0.35", ls=":", lw=1.3,
+                       label=f"at rest from $t_{{eq}}$ = {t_eq:.6g} s" if ax is axes[2] else None)
+    rest = "" if t_eq >= 0 else "\nnot at rest at the end ($t_{eq}$ = -1)"
+    axes[0].legend(loc="best", fontsize=9)
+    axes[1].legend(loc="best", fontsize=9, title_fontsize=9,
+                   title=f"max |y| = {df['y_max'].iloc[-1] * 1e3:.4g} mm")
+    axes[2].legend(loc="best", fontsize=9, title_fontsize=9,
+                   title=f"max |$\\dot y$| = {df['v_y_max'].iloc[-1] * 1e3:.4g} mm/s{rest}")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------- entry point
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fmusa", description="Run the ScrewVertebra FMU (or another FMI 2.0 co-simulation FMU) "
+                                  "for parameter studies.")
+    parser.add_argument("--version", action="version", version=f"fmusa {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    _add_pullout(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except ValueError as exc:
+        print(f"fmusa {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, RuntimeError) as exc:
+        print(f"fmusa {args.command}: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
