@@ -15,7 +15,7 @@ FMU_C := fmu/fmi2.c fmu/model.c fmu/solver.c
 FMU_SRC := $(wildcard fmu/*.c) $(wildcard fmu/*.h)
 FMI_HEADERS := fmi2Functions.h fmi2FunctionTypes.h fmi2TypesPlatform.h
 CC := gcc
-CFLAGS := -std=c99 -O2 -fPIC -shared -Wall -Wextra -fvisibility=hidden
+CFLAGS := -std=c99 -O3 -fPIC -shared -Wall -Wextra -fvisibility=hidden
 
 .PHONY: all fmu sweep test bench clean
 .DELETE_ON_ERROR:

@@ -138,6 +138,14 @@ static cplx axial_spring(const ModelInstance *mi, cplx y)
 
 /* ------------------------------------------------------------------ small complex algebra */
 
+/* 1/z without the range-checking complex division of libgcc: the arguments here are cos(beta) and
+ * pivots, far from overflow. */
+static inline cplx cinv(cplx z)
+{
+    double a = creal(z), b = cimag(z), d = 1.0 / (a * a + b * b);
+    return a * d - I * (b * d);
+}
+
 static void mat3_vec(const cplx A[9], const cplx x[3], cplx y[3])
 {
     for (int i = 0; i < 3; i++) y[i] = A[3 * i] * x[0] + A[3 * i + 1] * x[1] + A[3 * i + 2] * x[2];
@@ -174,7 +182,7 @@ static int solve(int n, cplx *A, cplx *b)
             for (int j = 0; j < n; j++) { cplx tmp = A[c * n + j]; A[c * n + j] = A[p * n + j]; A[p * n + j] = tmp; }
             cplx tmp = b[c]; b[c] = b[p]; b[p] = tmp;
         }
-        cplx inv = 1.0 / A[c * n + c];
+        cplx inv = cinv(A[c * n + c]);
         for (int r = c + 1; r < n; r++) {
             cplx f = A[r * n + c] * inv;
             if (f == 0.0) continue;
@@ -185,31 +193,44 @@ static int solve(int n, cplx *A, cplx *b)
     for (int r = n - 1; r >= 0; r--) {
         cplx s = b[r];
         for (int j = r + 1; j < n; j++) s -= A[r * n + j] * b[j];
-        b[r] = s / A[r * n + r];
+        b[r] = s * cinv(A[r * n + r]);
     }
     return 0;
 }
 
 /* ------------------------------------------------------------------ dynamics */
 
+static void cos_sin(cplx x, cplx *c, cplx *s)
+{
+    if (x == 0.0) { *c = 1.0; *s = 0.0; return; }   /* the common axial case: skip the complex trig */
+    *c = ccos(x);
+    *s = csin(x);
+}
+
 /* Accelerations (and, in motion-driven mode, the reaction of the drive) at (t, u). */
 static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, cplx *F_pull,
                     char *msg, size_t len)
 {
     const cplx *q = u, *qd = u + NQ;
-    cplx ca = ccos(q[3]), sa = csin(q[3]), cb = ccos(q[4]), sb = csin(q[4]), cg = ccos(q[5]), sg = csin(q[5]);
+    cplx ca, sa, cb, sb, cg, sg;
+    cos_sin(q[3], &ca, &sa);
+    cos_sin(q[4], &cb, &sb);
+    cos_sin(q[5], &cg, &sg);
     if (fabs(creal(cb)) < 1e-6) {
         snprintf(msg, len, "the Cardan angle beta reached %.6g rad (gimbal lock at +-pi/2): the rotational "
                  "interface stiffness c_beta or the load is unphysical", creal(q[4]));
         return 1;
     }
     /* R = Rx(alpha) Ry(beta) Rz(gamma) */
-    cplx Rx[9] = {1, 0, 0, 0, ca, -sa, 0, sa, ca};
-    cplx Ry[9] = {cb, 0, sb, 0, 1, 0, -sb, 0, cb};
-    cplx Rz[9] = {cg, -sg, 0, sg, cg, 0, 0, 0, 1};
-    cplx Rxy[9], R[9];
-    mat3_mul(Rx, Ry, Rxy);
-    mat3_mul(Rxy, Rz, R);
+    cplx R[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+    if (q[3] != 0.0 || q[4] != 0.0 || q[5] != 0.0) {
+        cplx Rx[9] = {1, 0, 0, 0, ca, -sa, 0, sa, ca};
+        cplx Ry[9] = {cb, 0, sb, 0, 1, 0, -sb, 0, cb};
+        cplx Rz[9] = {cg, -sg, 0, sg, cg, 0, 0, 0, 1};
+        cplx Rxy[9];
+        mat3_mul(Rx, Ry, Rxy);
+        mat3_mul(Rxy, Rz, R);
+    }
     /* omega = G dtheta, dG dtheta */
     cplx G[9] = {cb * cg, sg, 0, -cb * sg, cg, 0, sb, 0, 1};
     const cplx *th = qd + 3;
@@ -224,12 +245,11 @@ static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, c
                   -(V(c_z) * q[2] + V(d_z) * qd[2])};
     cplx QI[3] = {-(V(c_alpha) * q[3] + V(d_alpha) * qd[3]), -(V(c_beta) * q[4] + V(d_beta) * qd[4]),
                   -(V(c_gamma) * q[5] + V(d_gamma) * qd[5])};
-    cplx GT[9] = {G[0], G[3], G[6], G[1], G[4], G[7], G[2], G[5], G[8]};
-    cplx tauI[3] = {QI[0], QI[1], QI[2]};
-    if (solve(3, GT, tauI)) {
-        snprintf(msg, len, "singular angular-velocity map at beta = %.6g rad", creal(q[4]));
-        return 1;
-    }
+    /* G^-1 in closed form (det G = cos beta); tau_I = G^-T Q_I */
+    cplx icb = cinv(cb);
+    cplx Gi[9] = {cg * icb, -sg * icb, 0, sg, cg, 0, -sb * cg * icb, sb * sg * icb, 1};
+    cplx tauI[3];
+    mat3T_vec(Gi, QI, tauI);
     /* loads at the head (without the pull, which is handled as its own column) */
     cplx FH[3] = {input(mi, VR_F_ext_x, t), input(mi, VR_F_ext_y, t), input(mi, VR_F_ext_z, t)};
     cplx TE[3] = {input(mi, VR_T_ext_x, t), input(mi, VR_T_ext_y, t), input(mi, VR_T_ext_z, t)};
@@ -242,16 +262,9 @@ static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, c
     mat3T_vec(R, TE, TEb);
     mat3T_vec(R, ey, eyb);
 
-    cplx M[36] = {0}, g[6], B[6];
+    cplx g[6], B[6];
     double m = V(m);
     /* translation: m r'' - m R [b]x G theta'' = F_I + F_H - m R (Gd x b + w x (w x b)) */
-    cplx bxG[9], RbxG[9];
-    for (int j = 0; j < 3; j++) {
-        cplx col[3] = {G[j], G[3 + j], G[6 + j]}, c[3];
-        cross(b, col, c);
-        bxG[j] = c[0]; bxG[3 + j] = c[1]; bxG[6 + j] = c[2];
-    }
-    mat3_mul(R, bxG, RbxG);
     cplx t1[3], t2[3], t3[3], cen[3], cenV[3];
     cross(Gd, b, t1);
     cross(w, b, t2);
@@ -259,15 +272,12 @@ static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, c
     for (int i = 0; i < 3; i++) cen[i] = t1[i] + t3[i];
     mat3_vec(R, cen, cenV);
     for (int i = 0; i < 3; i++) {
-        M[6 * i + i] = m;
-        for (int j = 0; j < 3; j++) M[6 * i + 3 + j] = -m * RbxG[3 * i + j];
         g[i] = FI[i] + FH[i] - m * cenV[i];
         B[i] = ey[i];
     }
     /* rotation about the CG in the screw frame: I G theta'' = torques - w x I w - I Gd */
-    cplx Ib[9], IG[9], Iw[3], wIw[3], IGd[3], mb[3] = {-b[0], -b[1], -b[2]}, tb[3], th_[3], thy[3];
+    cplx Ib[9], Iw[3], wIw[3], IGd[3], mb[3] = {-b[0], -b[1], -b[2]}, tb[3], th_[3], thy[3];
     for (int i = 0; i < 9; i++) Ib[i] = mi->inertia[i];
-    mat3_mul(Ib, G, IG);
     mat3_vec(Ib, w, Iw);
     cross(w, Iw, wIw);
     mat3_vec(Ib, Gd, IGd);
@@ -275,13 +285,27 @@ static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, c
     cross(h, FHb, th_);
     cross(h, eyb, thy);
     for (int i = 0; i < 3; i++) {
-        for (int j = 0; j < 3; j++) M[6 * (3 + i) + 3 + j] = IG[3 * i + j];
         g[3 + i] = tb[i] + th_[i] + tauI[i] + TEb[i] - wIw[i] - IGd[i];
         B[3 + i] = thy[i];
     }
     if ((int)V(mode) == 2) {
         /* y'' is prescribed (u[IX_VY] carries the drive's velocity, its derivative is 0 within a step),
-         * and the pull force is the unknown in its place */
+         * and the pull force is the unknown in its place: the full 6x6 system with that column swapped */
+        cplx M[36] = {0}, bxG[9], RbxG[9], IG[9];
+        for (int j = 0; j < 3; j++) {
+            cplx col[3] = {G[j], G[3 + j], G[6 + j]}, c[3];
+            cross(b, col, c);
+            bxG[j] = c[0]; bxG[3 + j] = c[1]; bxG[6 + j] = c[2];
+        }
+        mat3_mul(R, bxG, RbxG);
+        mat3_mul(Ib, G, IG);
+        for (int i = 0; i < 3; i++) {
+            M[6 * i + i] = m;
+            for (int j = 0; j < 3; j++) {
+                M[6 * i + 3 + j] = -m * RbxG[3 * i + j];
+                M[6 * (3 + i) + 3 + j] = IG[3 * i + j];
+            }
+        }
         cplx ay = 0.0;
         for (int i = 0; i < 6; i++) {
             g[i] -= M[6 * i + 1] * ay;
@@ -291,9 +315,17 @@ static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, c
         *F_pull = g[1];
         g[1] = ay;
     } else {
+        /* M is block upper triangular: solve the rotation first, I_B (G theta'') = g_rot, then
+         * r'' = g_tr / m + R (b x (G theta'')) */
         cplx Fp = pull_force(mi, t);
         for (int i = 0; i < 6; i++) g[i] += B[i] * Fp;
-        if (solve(6, M, g)) goto singular;
+        cplx gr[3] = {g[3], g[4], g[5]}, wd[3], bw[3], Rbw[3], Iinv[9];
+        for (int i = 0; i < 9; i++) Iinv[i] = mi->inertia_inv[i];
+        mat3_vec(Iinv, gr, wd);
+        mat3_vec(Gi, wd, g + 3);
+        cross(b, wd, bw);
+        mat3_vec(R, bw, Rbw);
+        for (int i = 0; i < 3; i++) g[i] = g[i] * (1.0 / m) + Rbw[i];
         *F_pull = Fp;
     }
     for (int i = 0; i < 6; i++) acc[i] = g[i];
@@ -366,6 +398,25 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
             for (int k = 0; k < 3; k++) acc += Q[3 * i + k] * Id[k] * Q[3 * j + k];
             mi->inertia[3 * i + j] = acc;
         }
+    {   /* inverse of the symmetric positive definite I_B by cofactors */
+        const double *A = mi->inertia;
+        double *Ai = mi->inertia_inv;
+        Ai[0] = A[4] * A[8] - A[5] * A[7];
+        Ai[1] = A[2] * A[7] - A[1] * A[8];
+        Ai[2] = A[1] * A[5] - A[2] * A[4];
+        Ai[3] = A[5] * A[6] - A[3] * A[8];
+        Ai[4] = A[0] * A[8] - A[2] * A[6];
+        Ai[5] = A[2] * A[3] - A[0] * A[5];
+        Ai[6] = A[3] * A[7] - A[4] * A[6];
+        Ai[7] = A[1] * A[6] - A[0] * A[7];
+        Ai[8] = A[0] * A[4] - A[1] * A[3];
+        double det = A[0] * Ai[0] + A[1] * Ai[3] + A[2] * Ai[6];
+        if (!(det > 0.0) || !isfinite(det)) {
+            snprintf(msg, len, "the inertia tensor is singular: check m, L_screw and D_screw");
+            return 1;
+        }
+        for (int i = 0; i < 9; i++) Ai[i] /= det;
+    }
     mi->time = t0;
     mi->t_inputs = t0;
     memset(mi->u, 0, sizeof(mi->u));

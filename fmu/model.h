@@ -32,6 +32,7 @@ typedef struct ModelInstance {
     double time;
     double u[NX];
     double inertia[9];       /* I_B about the CG in the screw frame */
+    double inertia_inv[9];
     Solver solver;
 } ModelInstance;
 

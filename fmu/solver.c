@@ -406,11 +406,13 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
     Linearization L;
     Phis P;
     double A[NMAX * NMAX];
+    int reuse = 0;   /* the last step was exactly linear: its Jacobian holds at its end point */
     while (s->t < t_end) {
         double t = s->t;
         double remaining = t_end - t;
         if (remaining <= 1e-14 * fmax(1.0, fabs(t_end))) { s->t = t_end; break; }
-        if (linearize(s, t, s->u, &L, msg, msglen)) return 1;
+        if (!reuse && linearize(s, t, s->u, &L, msg, msglen)) return 1;
+        reuse = 0;
         if (L.k == 0) {              /* at rest with no load: nothing moves until the next kink */
             double bp = s->breakpoint(s->ctx, t);
             s->t = fmin(t_end, bp);
@@ -419,6 +421,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             continue;
         }
         double bp = s->breakpoint(s->ctx, t);
+        int expanded_any = 0;
         for (;;) {
             double h = fmin(s->h, remaining);
             int at_bp = 0;
@@ -441,6 +444,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             for (int i = 0; i < n; i++)
                 if (!L.active[i] && FU[i] != 0.0) { L.active[i] = 1; expanded = 1; }
             if (expanded) {
+                expanded_any = 1;
                 int filled[NMAX];
                 for (int i = 0; i < n; i++) filled[i] = 0;
                 for (int a = 0; a < L.k; a++) filled[L.idx[a]] = 1;
@@ -506,9 +510,9 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
 #ifdef SOLVER_DEBUG
             if (s->n_steps == 1500) for (int a = 0; a < k; a++) fprintf(stderr, "  i=%d u0=%.6g U=%.6g FU=%.6g F0=%.6g Ft=%.6g D=%.6g corr=%.6g\n", L.idx[a], s->u[L.idx[a]], U[L.idx[a]], FU[L.idx[a]], L.F0[L.idx[a]], L.Ft[L.idx[a]], D[a], 2*h*corr[a]);
 #endif
-            double fac_e = err > 0.0 ? 0.9 * pow(err, -1.0 / 3.0) : 5.0;
-            double fac_d = rd > 0.0 ? 0.9 * pow(rd, -0.25) : 5.0;
-            double fac = fmin(fmin(fac_e, fac_d), 5.0);
+            double fac_e = err > 0.0 ? 0.9 * pow(err, -1.0 / 3.0) : 10.0;
+            double fac_d = rd > 0.0 ? 0.9 * pow(rd, -0.25) : 10.0;
+            double fac = fmin(fmin(fac_e, fac_d), 10.0);
             if (!(err <= 1.0 && rd <= 1.0)) {
                 s->n_rejected++;
                 s->h = h * fmax(0.1, fmin(fac, 0.9));
@@ -541,6 +545,22 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             memcpy(s->z, zs[NSUB], sizeof(double) * n);
             s->z_valid = 1;
             s->n_steps++;
+            /* When D vanished (the step was linear to rounding), no kink was reached and the active set
+             * held, the Jacobian and F_t at the end point are those of the start: reuse them, with the
+             * derivative from F(U) = F(u1) and the carried one where they agree within rounding. */
+            int linear = !at_bp && !expanded_any;
+            for (int a = 0; a < k && linear; a++) linear = (D[a] == 0.0);
+            if (linear) {
+                L.t = s->t;
+                memcpy(L.u, u1, sizeof(double) * n);
+                for (int a = 0; a < k; a++) {
+                    int i = L.idx[a];
+                    double mag = fabs(FU[i]);
+                    for (int b = 0; b < k; b++) mag += fabs(L.J[i * n + L.idx[b]] * u1[L.idx[b]]);
+                    L.F0[i] = fabs(FU[i] - s->z[i]) <= 8.0 * DBL_EPSILON * mag ? s->z[i] : FU[i];
+                }
+                reuse = 1;
+            }
             /* a step shortened by a kink or the end keeps the earlier proposal when it went well */
             s->h = (h < s->h && fac >= 1.0) ? fmax(s->h, h * fac) : h * fac;
             break;
