@@ -365,6 +365,11 @@ static int update_outputs(ModelInstance *mi, char *msg, size_t len)
     V(y_max) = mi->solver.pos_max;
     V(v_y_max) = mi->solver.vel_max;
     V(t_eq) = mi->solver.t_eq;
+    {
+        double span = mi->time - mi->solver.t0;
+        V(y_mean) = span > 0.0 ? mi->solver.pos_int / span : u[IX_Y];
+        V(v_y_mean) = span > 0.0 ? mi->solver.absvel_int / span : fabs(u[IX_VY]);
+    }
     V(n_steps) = (double)mi->solver.n_steps;
     return 0;
 }

@@ -388,6 +388,8 @@ int solver_init(Solver *s, double t0, const double *u0, char *msg, size_t msglen
 {
     double F[NMAX];
     s->t = t0;
+    s->t0 = t0;
+    s->pos_int = s->absvel_int = 0.0;
     memcpy(s->u, u0, sizeof(double) * s->n);
     for (int i = 0; i < s->n; i++) s->umax[i] = fabs(u0[i]);
     s->n_steps = s->n_rejected = s->n_rhs = 0;
@@ -416,6 +418,8 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
         if (L.k == 0) {              /* at rest with no load: nothing moves until the next kink */
             double bp = s->breakpoint(s->ctx, t);
             s->t = fmin(t_end, bp);
+            s->pos_int += (s->t - t) * s->u[s->ipos];
+            s->absvel_int += (s->t - t) * fabs(s->u[s->ivel]);
             s->acc = 0.0;
             if (s->t_eq < 0.0 && at_rest(s, s->u[s->ivel], 0.0)) s->t_eq = t;
             continue;
@@ -526,6 +530,13 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             for (int j = 0; j < NSUB; j++) {
                 double p0 = w[j][s->ipos], p1 = w[j + 1][s->ipos];
                 double v0 = w[j][s->ivel], v1 = w[j + 1][s->ivel];
+                /* integrals on the Hermite pieces (exact for cubics); |v| across a sign change by
+                 * splitting the piece at the linear root */
+                s->pos_int += 0.5 * dt * (p0 + p1) + dt * dt * (v0 - v1) / 12.0;
+                if (v0 * v1 >= 0.0)
+                    s->absvel_int += fabs(0.5 * dt * (v0 + v1) + dt * dt * (ac[j] - ac[j + 1]) / 12.0);
+                else
+                    s->absvel_int += 0.5 * dt * (v0 * v0 + v1 * v1) / (fabs(v0) + fabs(v1));
                 s->pos_max = fmax(s->pos_max, hermite_absmax(p0, v0, p1, v1, dt));
                 s->vel_max = fmax(s->vel_max, hermite_absmax(v0, ac[j], v1, ac[j + 1], dt));
                 int r1 = at_rest(s, v1, ac[j + 1]);

@@ -30,6 +30,8 @@ typedef struct {
     double eps_v, eps_a;         /* equilibrium thresholds */
     /* monitors */
     double pos_max, vel_max, t_eq;
+    double pos_int, absvel_int;  /* integrals of y and |v_y| since t0 (for the time averages) */
+    double t0;
     double acc;                  /* acceleration at t (du[ivel]) */
     /* The derivative du/dt carried from step to step while the Jacobian stays the same (the linear
      * regime): recomputing it from the state would cancel F - c y in double precision and leave an

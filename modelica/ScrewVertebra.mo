@@ -129,6 +129,8 @@ model ScrewVertebra
   // Outputs: monitors
   output Real y_max(unit="m") "Monitor: max |y| so far (every internal step and between steps)";
   output Real v_y_max(unit="m/s") "Monitor: max |v_y| so far";
+  output Real y_mean(unit="m") "Monitor: time average of y over [0, t]";
+  output Real v_y_mean(unit="m/s") "Monitor: time average of |v_y| over [0, t]";
   output Real t_eq(unit="s") "Monitor: time since which |v_y| <= eps_v_eq and |a_y| <= eps_a_eq hold; -1 while not at rest";
   discrete output Integer n_steps "Internal solver steps taken so far";
 
@@ -184,6 +186,8 @@ protected
   discrete Real y_hold(unit="m", start=0, fixed=true) "max |y| at the local maxima of |y| so far";
   discrete Real v_hold(unit="m/s", start=0, fixed=true) "max |v_y| at the local maxima of |v_y| so far";
   Boolean at_rest "|v_y| <= eps_v_eq and |a_y| <= eps_a_eq";
+  Real y_int(unit="m.s", start=0, fixed=true) "Integral of y since the start";
+  Real v_abs_int(unit="m", start=0, fixed=true) "Integral of |v_y| since the start";
   discrete Real t_rest(unit="s", start=0, fixed=true) "Time at which at_rest last became true";
 
 initial equation
@@ -285,6 +289,10 @@ equation
     t_rest = time;
   end when;
   t_eq = if at_rest then t_rest else -1;
+  der(y_int) = y;
+  der(v_abs_int) = abs(v_y);
+  y_mean = if time > 0 then y_int/time else y;
+  v_y_mean = if time > 0 then v_abs_int/time else abs(v_y);
 
   // The FMU counts its internal solver steps; a Modelica tool has no such variable.
   n_steps = 0;
