@@ -152,8 +152,8 @@ static void unbalance(int n, const double *d, double *P)
         for (int j = 0; j < n; j++) P[i * n + j] *= d[i] / d[j];
 }
 
-/* phi_k(A/8) (the sub-step) and phi_k(A) (the step), k = 0..3. */
-static void phi_pair(int n, const double *A, double sub[4][NMAX * NMAX], double full[4][NMAX * NMAX])
+/* phi_k(A/8) (the sub-step) and phi_k(A) (the step), k = 0..3, of one dense block. */
+static void phi_pair_dense(int n, const double *A, double sub[4][NMAX * NMAX], double full[4][NMAX * NMAX])
 {
     double B[NMAX * NMAX], d[NMAX];
     int nn = n * n;
@@ -167,6 +167,55 @@ static void phi_pair(int n, const double *A, double sub[4][NMAX * NMAX], double 
     add_identity(n, sub[0]);
     add_identity(n, full[0]);
     for (int k = 0; k < 4; k++) { unbalance(n, d, sub[k]); unbalance(n, d, full[k]); }
+}
+
+/* Connected components of the coupling graph of A: matrix functions of a block-diagonal matrix are
+ * block diagonal, and the cost is cubic in the block size (the 6-DOF screw splits into 2+2+2+6). */
+static int components(int n, const double *A, int *label)
+{
+    int nc = 0;
+    for (int i = 0; i < n; i++) label[i] = -1;
+    for (int i = 0; i < n; i++) {
+        if (label[i] >= 0) continue;
+        int stack[NMAX], top = 0;
+        label[i] = nc;
+        stack[top++] = i;
+        while (top) {
+            int a = stack[--top];
+            for (int b = 0; b < n; b++)
+                if (label[b] < 0 && (A[a * n + b] != 0.0 || A[b * n + a] != 0.0)) {
+                    label[b] = nc;
+                    stack[top++] = b;
+                }
+        }
+        nc++;
+    }
+    return nc;
+}
+
+static void phi_pair(int n, const double *A, double sub[4][NMAX * NMAX], double full[4][NMAX * NMAX])
+{
+    int label[NMAX], nc = components(n, A, label);
+    if (nc == 1) { phi_pair_dense(n, A, sub, full); return; }
+    for (int k = 0; k < 4; k++) {
+        memset(sub[k], 0, sizeof(double) * n * n);
+        memset(full[k], 0, sizeof(double) * n * n);
+    }
+    for (int c = 0; c < nc; c++) {
+        int idx[NMAX], m = 0;
+        for (int i = 0; i < n; i++)
+            if (label[i] == c) idx[m++] = i;
+        double Am[NMAX * NMAX], sm[4][NMAX * NMAX], fm[4][NMAX * NMAX];
+        for (int a = 0; a < m; a++)
+            for (int b = 0; b < m; b++) Am[a * m + b] = A[idx[a] * n + idx[b]];
+        phi_pair_dense(m, Am, sm, fm);
+        for (int k = 0; k < 4; k++)
+            for (int a = 0; a < m; a++)
+                for (int b = 0; b < m; b++) {
+                    sub[k][idx[a] * n + idx[b]] = sm[k][a * m + b];
+                    full[k][idx[a] * n + idx[b]] = fm[k][a * m + b];
+                }
+    }
 }
 
 void solver_phi(int n, const double *A, double *P0, double *P1, double *P2, double *P3)

@@ -1,0 +1,83 @@
+"""Metrics of one run from its outputs, and the constraints on them.
+
+A metric reduces one FMU output over the run (the final value of a monitor the FMU keeps, or the max,
+mean, … of the sampled output) and maps it to study units. Pure numpy: no FMU here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+
+REDUCTIONS = ("final", "max", "min", "max_abs", "mean", "mean_abs")
+
+
+@dataclass(frozen=True)
+class MetricRule:
+    """How one metric comes out of the sampled outputs; picklable, so workers can apply it."""
+    name: str
+    column: int             # index of the output in the sampled array
+    reduce: str
+    scale: float = 1.0
+    offset: float = 0.0
+    missing_below: float | None = None
+
+
+def _time_mean(t: np.ndarray, x: np.ndarray) -> float:
+    if len(t) < 2 or t[-1] <= t[0]:
+        return float(x[-1])
+    return float(np.trapezoid(x, t) / (t[-1] - t[0]))
+
+
+def reduce_series(t: np.ndarray, values: np.ndarray, rules: Sequence[MetricRule]) -> np.ndarray:
+    """Metric values of one run. ``values`` has one row per communication point (the last row is the
+    end of the run) and one column per output."""
+    out = np.empty(len(rules))
+    for k, r in enumerate(rules):
+        x = values[:, r.column]
+        if r.reduce == "final":
+            v = float(x[-1])
+        elif r.reduce == "max":
+            v = float(np.max(x))
+        elif r.reduce == "min":
+            v = float(np.min(x))
+        elif r.reduce == "max_abs":
+            v = float(np.max(np.abs(x)))
+        elif r.reduce == "mean":
+            v = _time_mean(t, x)
+        elif r.reduce == "mean_abs":
+            v = _time_mean(t, np.abs(x))
+        else:  # pragma: no cover - the study loader rejects other names
+            raise ValueError(f"unknown reduction {r.reduce!r}; use one of {', '.join(REDUCTIONS)}")
+        if r.missing_below is not None and v < r.missing_below:
+            v = float("nan")
+        out[k] = r.scale * v + r.offset
+    return out
+
+
+def metric_rules(metrics: Iterable, outputs: list[str]) -> list[MetricRule]:
+    """Rules for the study's metrics, given the order of the outputs the FMU is asked for."""
+    index = {name: i for i, name in enumerate(outputs)}
+    return [MetricRule(m.name, index[m.output], m.reduce, m.scale, m.offset, m.missing_below)
+            for m in metrics]
+
+
+def constraint_table(values: Mapping[str, np.ndarray], constraints: Iterable) -> dict[str, np.ndarray]:
+    """Pass/fail of every constraint for every run (columns ``ok_<name>``) and ``feasible``."""
+    table: dict[str, np.ndarray] = {}
+    feasible = None
+    for c in constraints:
+        x = np.asarray(values[c.metric], dtype=float)
+        ok = np.ones(x.shape, dtype=bool)
+        if c.required or c.max is not None or c.min is not None:
+            ok &= ~np.isnan(x)
+        if c.max is not None:
+            ok &= np.where(np.isnan(x), False, x <= c.max)
+        if c.min is not None:
+            ok &= np.where(np.isnan(x), False, x >= c.min)
+        table[f"ok_{c.name}"] = ok
+        feasible = ok if feasible is None else feasible & ok
+    if feasible is not None:
+        table["feasible"] = feasible
+    return table

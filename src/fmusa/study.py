@@ -1,0 +1,1018 @@
+"""The study file: one YAML file describes a whole study, validated at load into dataclasses.
+
+A study names the FMU, maps the study's parameters onto FMU variables, fixes the scenario (end time,
+inputs), defines the metrics read from the FMU's outputs and the constraints on them, and lists the
+stages to run (grid → roi → search → regression, and/or a global sensitivity analysis).
+
+Everything that can be checked without the FMU is checked here, once, at load time, so that a long
+study never dies halfway on a typo. Every error is a :class:`StudyError` whose message names the
+file, the line, the key and the fix, e.g.::
+
+    studies/paper.yaml:14: key 'stop_tme' is not allowed in 'scenario'; did you mean 'stop_time'?
+    (allowed: stop_time, step, inputs, description)
+
+Whether the FMU variables exist is checked later, against the FMU itself.
+
+Example::
+
+    from fmusa.study import load_study
+    study = load_study("studies/paper.yaml")
+    study.stages["grid"].points()        # {'c': array([1.5625e4, ...]), 'd': array([625., ...])}
+    study.constraints[0].satisfied(4e-4)
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+import yaml
+from yaml.constructor import ConstructorError, SafeConstructor
+from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
+
+__all__ = [
+    "StudyError", "Study", "Parameter", "Scenario", "Metric", "Constraint", "GridStage", "RoiStage",
+    "SearchStage", "RegressionStage", "SensitivityStage", "SensitivityParameter", "Execution",
+    "load_study", "parse_study", "STAGE_NAMES", "REDUCTIONS", "METHODS", "DISTRIBUTIONS",
+]
+
+#: Stage names, in the order they are normally run.
+STAGE_NAMES = ("grid", "roi", "search", "regression", "sensitivity")
+#: How a metric reduces the sampled values of its output.
+REDUCTIONS = ("final", "max", "min", "max_abs", "mean", "mean_abs")
+#: Global sensitivity methods.
+METHODS = ("morris", "sobol")
+#: Distributions of sensitivity parameters.
+DISTRIBUTIONS = ("uniform", "loguniform")
+
+_IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+class StudyError(ValueError):
+    """An invalid study file. The message is ``file:line: what is wrong; how to fix it``."""
+
+
+# ============================================================================ dataclasses
+@dataclass(frozen=True)
+class Parameter:
+    """A study parameter (e.g. the paper's c) and the FMU variable it sets (c_y).
+
+    The study may work in other units than the FMU; ``scale``/``offset`` convert, so reports and
+    figures use the study's unit while the FMU always gets SI values.
+    """
+    name: str
+    variable: str
+    unit: str = ""
+    scale: float = 1.0
+    offset: float = 0.0
+    description: str = ""
+
+    def to_fmu(self, x):
+        """FMU value of study value ``x`` (scalar or array): ``scale * x + offset``."""
+        return self.scale * x + self.offset
+
+    def from_fmu(self, v):
+        """Study value of FMU value ``v``: the inverse of :meth:`to_fmu`."""
+        return (v - self.offset) / self.scale
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """What one run simulates: the end time, the communication step and constant inputs.
+
+    ``step`` None means one ``doStep`` from 0 to ``stop_time``; the FMU's monitors (y_max, t_eq, …)
+    are updated on every internal step, so their final values are exact without sampling.
+    """
+    stop_time: float
+    step: float | None = None
+    inputs: dict[str, float] = field(default_factory=dict)
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A scalar result of one run, computed from an FMU output.
+
+    ``reduce`` turns the sampled output into one number (``final`` needs no sampling). A reduced
+    raw value below ``missing_below`` means "none" (NaN): e.g. ``t_eq = -1`` means never at rest.
+    The reported metric is ``scale * raw + offset`` (unit conversion).
+    """
+    name: str
+    output: str
+    reduce: str = "final"
+    unit: str = ""
+    scale: float = 1.0
+    offset: float = 0.0
+    missing_below: float | None = None
+    description: str = ""
+
+    def compute(self, samples) -> float:
+        """The metric from the output's samples (a scalar counts as one sample).
+
+        The reduction is applied first, then ``missing_below`` (on the raw FMU value), then
+        ``scale``/``offset``.
+        """
+        a = np.atleast_1d(np.asarray(samples, dtype=float))
+        if a.size == 0:
+            return math.nan
+        if self.reduce == "final":
+            raw = a[-1]
+        elif self.reduce == "max":
+            raw = a.max()
+        elif self.reduce == "min":
+            raw = a.min()
+        elif self.reduce == "max_abs":
+            raw = np.abs(a).max()
+        elif self.reduce == "mean":
+            raw = a.mean()
+        elif self.reduce == "mean_abs":
+            raw = np.abs(a).mean()
+        else:  # pragma: no cover - rejected at load
+            raise ValueError(f"unknown reduction {self.reduce!r}")
+        raw = float(raw)
+        if math.isnan(raw) or (self.missing_below is not None and raw < self.missing_below):
+            return math.nan
+        return self.scale * raw + self.offset
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """A condition on a metric that a feasible parameter set must meet (Table 2 of the paper).
+
+    Bounds are inclusive (``min <= value <= max``). ``required`` means the metric must exist
+    (not NaN), e.g. "the screw reaches equilibrium".
+    """
+    name: str
+    metric: str
+    max: float | None = None
+    min: float | None = None
+    required: bool = False
+    description: str = ""
+
+    def satisfied(self, value: float) -> bool:
+        """Whether ``value`` meets the constraint. NaN fails every constraint (each one has a
+        bound or is required)."""
+        value = float(value)
+        if math.isnan(value):
+            return False
+        if self.max is not None and not value <= self.max:
+            return False
+        if self.min is not None and not value >= self.min:
+            return False
+        return True
+
+
+@dataclass(frozen=True)
+class GridStage:
+    """The initial coarse grid (paper, Section 2.4): powers of a base, or explicit values."""
+    base: float | None = None
+    exponents: dict[str, tuple[int, int]] = field(default_factory=dict)
+    values: dict[str, list[float]] = field(default_factory=dict)
+
+    def points(self) -> dict[str, np.ndarray]:
+        """Grid values per parameter, sorted ascending: ``base**k`` for k = lo..hi (inclusive), or
+        the explicit values. Parameters with exponents come first, in file order."""
+        out: dict[str, np.ndarray] = {}
+        for name, (lo, hi) in self.exponents.items():
+            out[name] = np.sort(np.array([float(self.base) ** k for k in range(lo, hi + 1)]))
+        for name, vals in self.values.items():
+            out[name] = np.sort(np.array(vals, dtype=float))
+        return out
+
+
+@dataclass(frozen=True)
+class RoiStage:
+    """The region of interest. ``manual`` (parameter -> (lo, hi)) overrides the region computed
+    from the grid; the paper chose its region by hand."""
+    manual: dict[str, tuple[float, float]] | None = None
+
+
+@dataclass(frozen=True)
+class SearchStage:
+    """The nested binary search (paper, Section 3): for each ``outer`` value, halved from the
+    region's upper bound, bisect ``inner`` for its smallest feasible value; stop when the response
+    no longer changes."""
+    inner: str
+    outer: str
+    inner_rtol: float = 1e-3
+    response_rtol: float = 1e-3
+    max_outer: int = 20
+
+
+@dataclass(frozen=True)
+class RegressionStage:
+    """Polynomial fits of metrics over one parameter (the paper's eq. 3, a cubic in c), one fit
+    per value of ``by`` if given."""
+    x: str
+    y: list[str]
+    by: str | None = None
+    degree: int = 3
+
+
+@dataclass(frozen=True)
+class SensitivityParameter:
+    """An input of the global sensitivity analysis, sampled within ``bounds``."""
+    name: str
+    variable: str
+    bounds: tuple[float, float]
+    distribution: str = "uniform"
+    unit: str = ""
+
+
+@dataclass(frozen=True)
+class SensitivityStage:
+    """Global sensitivity analysis (Morris screening, Sobol indices) of ``outputs`` (metric
+    names) to ``parameters``. ``n`` is the Sobol base sample size."""
+    methods: list[str] = field(default_factory=lambda: list(METHODS))
+    n: int = 1024
+    morris_trajectories: int = 20
+    seed: int = 1
+    outputs: list[str] = field(default_factory=list)
+    parameters: dict[str, SensitivityParameter] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Execution:
+    """Where the runs execute: local worker processes (None = all cores) or a Dask scheduler."""
+    workers: int | None = None
+    scheduler: str | None = None
+    timeout_s: float = 60.0
+
+
+@dataclass(frozen=True)
+class Study:
+    """A whole study, as loaded from its YAML file.
+
+    ``path`` is the YAML file (absolute; None when parsed from a string without a file name);
+    ``fmu`` None means the built ScrewVertebra FMU (:func:`fmusa.evaluate.default_fmu_path`).
+    ``stages`` keeps the file order.
+    """
+    name: str
+    description: str
+    path: Path | None
+    fmu: Path | None
+    parameters: dict[str, Parameter]
+    fixed: dict[str, float | int | bool]
+    scenario: Scenario
+    metrics: dict[str, Metric]
+    constraints: list[Constraint]
+    stages: dict[str, object]
+    execution: Execution
+    paper: dict
+
+    def fmu_values(self, point: Mapping[str, float]) -> dict[str, float | int | bool]:
+        """FMU start values for one run: ``fixed`` plus the study parameters in ``point``
+        (study name -> study value), converted with each parameter's scale/offset."""
+        out: dict[str, float | int | bool] = dict(self.fixed)
+        for name, x in point.items():
+            p = self.parameters[name]
+            out[p.variable] = p.to_fmu(x)
+        return out
+
+
+# ============================================================================ YAML plumbing
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that also reads ``1e5`` and ``1.0e5`` as floats (YAML 1.1, and so plain
+    PyYAML, reads them as strings; YAML 1.2 and every user reads them as numbers)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^(?:[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+"
+               r"|[-+]?\.[0-9_]+[eE][-+]?[0-9]+)$"),
+    list("-+0123456789."))
+
+_NULL = "tag:yaml.org,2002:null"
+
+
+def _line(node: Node) -> int:
+    return node.start_mark.line + 1
+
+
+def _in(where: str) -> str:
+    return f"in '{where}'" if where else "at the top level"
+
+
+def _key(key: str, where: str) -> str:
+    return f"key '{key}' {_in(where)}"
+
+
+def _suggest(word: str, pool) -> str:
+    close = difflib.get_close_matches(word, list(pool), n=1, cutoff=0.6)
+    return f"; did you mean '{close[0]}'?" if close else ""
+
+
+def _fmt_list(names) -> str:
+    names = list(names)
+    return ", ".join(names) if names else "none"
+
+
+class _Parser:
+    """Walks the composed node tree; knows the file label for messages."""
+
+    def __init__(self, label: str) -> None:
+        self.label = label
+        self._constructor = SafeConstructor()
+
+    # ---------------------------------------------------------------- errors
+    def error(self, node: Node | None, msg: str) -> StudyError:
+        line = _line(node) if node is not None else 1
+        return StudyError(f"{self.label}:{line}: {msg}")
+
+    # ---------------------------------------------------------------- plain values
+    def scalar(self, node: ScalarNode):
+        try:
+            return self._constructor.construct_object(node, deep=True)
+        except ConstructorError as exc:
+            raise self.error(node, f"cannot read the value {node.value!r}: {exc.problem}; "
+                                   f"write a plain number, string, true/false or null") from None
+
+    def describe(self, node: Node) -> str:
+        """'a list', 'a mapping', 'the string 'x'', 'the number 3', 'null', 'true'..."""
+        if isinstance(node, MappingNode):
+            return "a mapping"
+        if isinstance(node, SequenceNode):
+            return "a list"
+        v = self.scalar(node)
+        if v is None:
+            return "null (empty)"
+        if isinstance(v, bool):
+            return f"the boolean {str(v).lower()}"
+        if isinstance(v, (int, float)):
+            return f"the number {v!r}"
+        if isinstance(v, str):
+            return f"the string {v!r}"
+        return f"{type(v).__name__} {v!r}"
+
+    def plain(self, node: Node, where: str):
+        """Free-form value (the ``paper`` section): plain Python, duplicate keys rejected."""
+        if isinstance(node, MappingNode):
+            self.flatten(node)
+            out: dict = {}
+            lines: dict = {}
+            for k, v in node.value:
+                key = self.plain(k, where)
+                try:
+                    hash(key)
+                except TypeError:
+                    raise self.error(k, f"a key {_in(where)} must be a plain value, not "
+                                        f"{self.describe(k)}") from None
+                if key in out:
+                    raise self.error(k, f"key '{key}' appears twice {_in(where)} (first at line "
+                                        f"{lines[key]}); remove one of them")
+                lines[key] = _line(k)
+                out[key] = self.plain(v, f"{where}.{key}" if where else str(key))
+            return out
+        if isinstance(node, SequenceNode):
+            return [self.plain(v, f"{where}[{i}]") for i, v in enumerate(node.value)]
+        return self.scalar(node)
+
+    def flatten(self, node: MappingNode) -> None:
+        """Apply YAML merge keys (``<<: *anchor``) in place."""
+        try:
+            self._constructor.flatten_mapping(node)
+        except ConstructorError as exc:
+            line = (exc.problem_mark or node.start_mark).line + 1
+            raise StudyError(f"{self.label}:{line}: bad merge key '<<': {exc.problem}; merge a "
+                             f"mapping anchor (<<: *name)") from None
+
+    def is_null(self, node: Node) -> bool:
+        return isinstance(node, ScalarNode) and node.tag == _NULL
+
+    # ---------------------------------------------------------------- typed values
+    def mapping(self, node: Node, where: str, key: str | None = None,
+                owner: Node | None = None) -> "_Map":
+        """``node`` as a :class:`_Map`; ``owner`` is its key node (missing keys are reported there)."""
+        if not isinstance(node, MappingNode):
+            what = _key(key, where.rpartition(".")[0]) if key else f"'{where}'" if where else "the study"
+            raise self.error(node, f"{what} must be a mapping (indented 'name: value' lines), got "
+                                   f"{self.describe(node)}; write it as a mapping")
+        return _Map(self, node, where, owner)
+
+    def sequence(self, node: Node, key: str, where: str, hint: str) -> list[Node]:
+        if not isinstance(node, SequenceNode):
+            raise self.error(node, f"{_key(key, where)} must be a list, got {self.describe(node)}; "
+                                   f"write it as a list, e.g. {hint}")
+        return list(node.value)
+
+    def string(self, node: Node, key: str, where: str, hint: str, nonempty: bool = True) -> str:
+        v = self.scalar(node) if isinstance(node, ScalarNode) else None
+        if not isinstance(node, ScalarNode) or not isinstance(v, str):
+            raise self.error(node, f"{_key(key, where)} must be a string, got {self.describe(node)}; "
+                                   f"e.g. {hint} (quote it if it looks like a number or true/false)")
+        if nonempty and not v.strip():
+            raise self.error(node, f"{_key(key, where)} must not be empty; e.g. {hint}")
+        return v
+
+    def ident(self, node: Node, key: str, where: str, hint: str, what: str = "name") -> str:
+        v = self.string(node, key, where, hint)
+        if not _IDENT.match(v):
+            raise self.error(node, f"{_key(key, where)}: {what} {v!r} is not an identifier; use "
+                                   f"letters, digits and '_' (not starting with a digit), e.g. {hint}")
+        return v
+
+    def number(self, node: Node, key: str, where: str, hint: str, *, positive: bool = False,
+               nonzero: bool = False) -> float:
+        v = self.scalar(node) if isinstance(node, ScalarNode) else None
+        if (not isinstance(node, ScalarNode) or isinstance(v, bool)
+                or not isinstance(v, (int, float))):
+            extra = ""
+            if isinstance(v, str):
+                extra = " (remove the quotes or units)"
+            raise self.error(node, f"{_key(key, where)} must be a number, got {self.describe(node)}"
+                                   f"{extra}; e.g. {hint}")
+        v = float(v)
+        if not math.isfinite(v):
+            raise self.error(node, f"{_key(key, where)} must be finite, got {v}; e.g. {hint}")
+        if positive and v <= 0:
+            raise self.error(node, f"{_key(key, where)} must be > 0, got {v:g}; e.g. {hint}")
+        if nonzero and v == 0:
+            raise self.error(node, f"{_key(key, where)} must not be 0; e.g. {hint}")
+        return v
+
+    def integer(self, node: Node, key: str, where: str, hint: str, minimum: int | None = None) -> int:
+        v = self.scalar(node) if isinstance(node, ScalarNode) else None
+        if not isinstance(node, ScalarNode) or isinstance(v, bool) or not isinstance(v, int):
+            raise self.error(node, f"{_key(key, where)} must be an integer, got "
+                                   f"{self.describe(node)}; e.g. {hint}")
+        if minimum is not None and v < minimum:
+            raise self.error(node, f"{_key(key, where)} must be ≥ {minimum}, got {v}; e.g. {hint}")
+        return v
+
+    def boolean(self, node: Node, key: str, where: str, hint: str) -> bool:
+        v = self.scalar(node) if isinstance(node, ScalarNode) else None
+        if not isinstance(v, bool):
+            raise self.error(node, f"{_key(key, where)} must be true or false, got "
+                                   f"{self.describe(node)}; e.g. {hint}")
+        return v
+
+    def choice(self, node: Node, key: str, where: str, allowed, what: str) -> str:
+        v = self.string(node, key, where, f"{key}: {allowed[0]}")
+        if v not in allowed:
+            raise self.error(node, f"{_key(key, where)}: unknown {what} {v!r}{_suggest(v, allowed)} "
+                                   f"(allowed: {_fmt_list(allowed)})")
+        return v
+
+    def name_in(self, node: Node, key: str, where: str, pool: Mapping, what: str, hint: str) -> str:
+        """A reference to a study parameter or a metric, checked against ``pool``."""
+        v = self.string(node, key, where, hint)
+        if v not in pool:
+            raise self.error(node, f"{_key(key, where)} names an unknown {what} {v!r}"
+                                   f"{_suggest(v, pool)} (known {what}s: {_fmt_list(pool)}); "
+                                   f"use one of them or define it")
+        return v
+
+    def names_in(self, node: Node, key: str, where: str, pool: Mapping, what: str,
+                 hint: str) -> list[str]:
+        items = self.sequence(node, key, where, hint)
+        if not items:
+            raise self.error(node, f"{_key(key, where)} must list at least one {what}; e.g. {hint}")
+        out: list[str] = []
+        for item in items:
+            v = self.name_in(item, key, where, pool, what, hint)
+            if v in out:
+                raise self.error(item, f"{_key(key, where)} lists {what} {v!r} twice; remove one")
+            out.append(v)
+        return out
+
+    def pair(self, node: Node, key: str, where: str, hint: str, conv: Callable) -> tuple:
+        items = self.sequence(node, key, where, hint)
+        if len(items) != 2:
+            raise self.error(node, f"{_key(key, where)} must be a pair [lo, hi], got {len(items)} "
+                                   f"value(s); e.g. {hint}")
+        return tuple(conv(item, key, where, hint) for item in items)
+
+
+class _Map:
+    """A YAML mapping with its key nodes (for line numbers); rejects duplicate and unknown keys."""
+
+    def __init__(self, p: _Parser, node: MappingNode, where: str, owner: Node | None = None) -> None:
+        p.flatten(node)   # support '<<: *anchor' merges
+        self.p, self.node, self.where = p, node, where
+        self.owner = owner if owner is not None else node
+        self.items: dict[str, tuple[Node, Node]] = {}
+        for k, v in node.value:
+            kv = p.scalar(k) if isinstance(k, ScalarNode) else None
+            if not isinstance(kv, str):
+                raise p.error(k, f"keys {_in(where)} must be names, got {p.describe(k)}; "
+                                 f"quote the key if it is a name that looks like a number or boolean")
+            if kv in self.items:
+                raise p.error(k, f"key '{kv}' appears twice {_in(where)} (first at line "
+                                 f"{_line(self.items[kv][0])}); remove or rename one of them")
+            self.items[kv] = (k, v)
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.items
+
+    def keys(self) -> list[str]:
+        return list(self.items)
+
+    def sub(self, key: str) -> str:
+        return f"{self.where}.{key}" if self.where else key
+
+    def allow(self, allowed) -> None:
+        for key, (knode, _) in self.items.items():
+            if key not in allowed:
+                raise self.p.error(knode, f"key '{key}' is not allowed {_in(self.where)}"
+                                          f"{_suggest(key, allowed)} (allowed: {_fmt_list(allowed)})")
+
+    def need(self, key: str, hint: str) -> Node:
+        if key not in self.items:
+            raise self.p.error(self.owner, f"key '{key}' is missing {_in(self.where)}; add it, "
+                                          f"e.g. {hint}")
+        return self.items[key][1]
+
+    def opt(self, key: str) -> Node | None:
+        """The value node, or None when absent or null (then the default applies)."""
+        if key not in self.items:
+            return None
+        v = self.items[key][1]
+        return None if self.p.is_null(v) else v
+
+    def key_node(self, key: str) -> Node:
+        return self.items[key][0]
+
+    def entries(self):
+        """(key, key node, value node) in file order."""
+        return [(k, kn, vn) for k, (kn, vn) in self.items.items()]
+
+    # shorthands --------------------------------------------------------------
+    def text(self, key: str, default: str = "") -> str:
+        n = self.opt(key)
+        return default if n is None else self.p.string(n, key, self.where, f'{key}: "..."',
+                                                       nonempty=False)
+
+    def num(self, key: str, default, hint: str, **kw):
+        n = self.opt(key)
+        return default if n is None else self.p.number(n, key, self.where, hint, **kw)
+
+    def int_(self, key: str, default, hint: str, minimum: int | None = None):
+        n = self.opt(key)
+        return default if n is None else self.p.integer(n, key, self.where, hint, minimum)
+
+
+# ============================================================================ sections
+_TOP_KEYS = ("name", "description", "fmu", "parameters", "fixed", "scenario", "metrics",
+             "constraints", "stages", "execution", "paper")
+
+
+def _parse_parameters(p: _Parser, top: _Map) -> dict[str, Parameter]:
+    node = top.need("parameters", "parameters: {c: {variable: c_y, unit: N/m}}")
+    m = p.mapping(node, "parameters", "parameters", top.key_node("parameters"))
+    if not m.items:
+        raise p.error(node, "key 'parameters' at the top level must define at least one study "
+                            "parameter; e.g. parameters: {c: {variable: c_y, unit: N/m}}")
+    out: dict[str, Parameter] = {}
+    seen: dict[str, str] = {}
+    for name, knode, vnode in m.entries():
+        p.ident(knode, name, "parameters", "c: {variable: c_y}", "parameter name")
+        where = f"parameters.{name}"
+        pm = p.mapping(vnode, where, name, knode)
+        pm.allow(("variable", "unit", "scale", "offset", "description"))
+        var = p.string(pm.need("variable", "variable: c_y"), "variable", where, "variable: c_y")
+        if var in seen:
+            raise p.error(pm.items["variable"][1],
+                          f"key 'variable' {_in(where)}: FMU variable {var!r} is already set by "
+                          f"parameter '{seen[var]}'; map each FMU variable to one parameter")
+        seen[var] = name
+        out[name] = Parameter(
+            name=name, variable=var, unit=pm.text("unit"),
+            scale=pm.num("scale", 1.0, "scale: 1.0", nonzero=True),
+            offset=pm.num("offset", 0.0, "offset: 0.0"),
+            description=pm.text("description"))
+    return out
+
+
+def _parse_fixed(p: _Parser, top: _Map) -> dict[str, float | int | bool]:
+    node = top.opt("fixed")
+    if node is None:
+        return {}
+    m = p.mapping(node, "fixed", "fixed")
+    out: dict[str, float | int | bool] = {}
+    for name, _, vnode in m.entries():
+        v = p.scalar(vnode) if isinstance(vnode, ScalarNode) else None
+        if isinstance(v, bool):
+            out[name] = v
+            continue
+        if isinstance(v, int):
+            out[name] = v
+            continue
+        out[name] = p.number(vnode, name, "fixed", f"{name}: 411  (a number, or true/false)")
+    return out
+
+
+def _parse_scenario(p: _Parser, top: _Map) -> Scenario:
+    node = top.need("scenario", "scenario: {stop_time: 12}")
+    m = p.mapping(node, "scenario", "scenario", top.key_node("scenario"))
+    m.allow(("stop_time", "step", "inputs", "description"))
+    stop = p.number(m.need("stop_time", "stop_time: 12  (simulation end time in s, > 0)"),
+                    "stop_time", "scenario", "stop_time: 12  (simulation end time in s)",
+                    positive=True)
+    step = m.num("step", None, "step: 0.01  (communication step in s), or null for one doStep",
+                 positive=True)
+    if step is not None and step > stop:
+        raise p.error(m.items["step"][1], f"key 'step' in 'scenario' ({step:g} s) is longer than "
+                                          f"stop_time ({stop:g} s); use a smaller step or null")
+    inputs: dict[str, float] = {}
+    inode = m.opt("inputs")
+    if inode is not None:
+        im = p.mapping(inode, "scenario.inputs", "inputs")
+        for name, _, vnode in im.entries():
+            inputs[name] = p.number(vnode, name, "scenario.inputs", f"{name}: 20")
+    return Scenario(stop_time=stop, step=step, inputs=inputs, description=m.text("description"))
+
+
+def _parse_metrics(p: _Parser, top: _Map, parameters: Mapping) -> dict[str, Metric]:
+    node = top.need("metrics", "metrics: {max_y: {output: y_max}}")
+    m = p.mapping(node, "metrics", "metrics")
+    if not m.items:
+        raise p.error(node, "key 'metrics' at the top level must define at least one metric; "
+                            "e.g. metrics: {max_y: {output: y_max}}")
+    out: dict[str, Metric] = {}
+    for name, knode, vnode in m.entries():
+        p.ident(knode, name, "metrics", "max_y: {output: y_max}", "metric name")
+        if name in parameters:
+            raise p.error(knode, f"key '{name}' in 'metrics': '{name}' is already a study parameter; "
+                                 f"rename the metric (parameters and metrics share result tables)")
+        where = f"metrics.{name}"
+        mm = p.mapping(vnode, where, name, knode)
+        mm.allow(("output", "reduce", "unit", "scale", "offset", "missing_below", "description"))
+        output = p.string(mm.need("output", "output: y_max  (an FMU output variable)"), "output",
+                          where, "output: y_max")
+        rnode = mm.opt("reduce")
+        reduce = "final" if rnode is None else p.choice(rnode, "reduce", where, REDUCTIONS,
+                                                        "reduction")
+        out[name] = Metric(
+            name=name, output=output, reduce=reduce, unit=mm.text("unit"),
+            scale=mm.num("scale", 1.0, "scale: 1000  (e.g. m -> mm)", nonzero=True),
+            offset=mm.num("offset", 0.0, "offset: 0.0"),
+            missing_below=mm.num("missing_below", None, "missing_below: 0"),
+            description=mm.text("description"))
+    return out
+
+
+def _parse_constraints(p: _Parser, top: _Map, metrics: Mapping) -> list[Constraint]:
+    node = top.opt("constraints")
+    if node is None:
+        return []
+    items = p.sequence(node, "constraints", "", "constraints: [{name: translation, metric: max_y, "
+                                                "max: 5.0e-4}]")
+    out: list[Constraint] = []
+    first: dict[str, Node] = {}
+    for i, item in enumerate(items):
+        where = f"constraints[{i}]"
+        cm = p.mapping(item, where)
+        cm.allow(("name", "metric", "max", "min", "required", "description"))
+        nnode = cm.need("name", "name: translation")
+        name = p.ident(nnode, "name", where, "name: translation", "constraint name")
+        if name in first:
+            raise p.error(nnode, f"key 'name' {_in(where)}: constraint name {name!r} is already used "
+                                 f"at line {_line(first[name])}; give each constraint its own name")
+        first[name] = nnode
+        metric = p.name_in(cm.need("metric", "metric: max_y"), "metric", where, metrics, "metric",
+                           "metric: max_y")
+        hi = cm.num("max", None, "max: 5.0e-4")
+        lo = cm.num("min", None, "min: 0.0")
+        rnode = cm.opt("required")
+        required = False if rnode is None else p.boolean(rnode, "required", where, "required: true")
+        if hi is None and lo is None and not required:
+            raise p.error(item, f"constraint '{name}' {_in(where)} checks nothing; add a key 'max', "
+                                f"a key 'min' or 'required: true'")
+        if hi is not None and lo is not None and lo > hi:
+            raise p.error(cm.items["min"][1], f"key 'min' {_in(where)} ({lo:g}) is above key 'max' "
+                                              f"({hi:g}); swap them")
+        out.append(Constraint(name=name, metric=metric, max=hi, min=lo, required=required,
+                              description=cm.text("description")))
+    return out
+
+
+def _parse_grid(p: _Parser, m: _Map, where: str, parameters: Mapping) -> GridStage:
+    m.allow(("base", "exponents", "values"))
+    exponents: dict[str, tuple[int, int]] = {}
+    values: dict[str, list[float]] = {}
+    enode = m.opt("exponents")
+    if enode is not None:
+        ew = f"{where}.exponents"
+        em = p.mapping(enode, ew, "exponents")
+        for name, knode, vnode in em.entries():
+            p.name_in(knode, name, ew, parameters, "study parameter", f"c: [3, 7]")
+            lo, hi = p.pair(vnode, name, ew, f"{name}: [3, 7]", p.integer)
+            if lo > hi:
+                raise p.error(vnode, f"{_key(name, ew)} must be a range [lo, hi] with lo ≤ hi, got "
+                                     f"[{lo}, {hi}]; swap them: {name}: [{hi}, {lo}]")
+            exponents[name] = (lo, hi)
+    vnode_all = m.opt("values")
+    if vnode_all is not None:
+        vw = f"{where}.values"
+        vm = p.mapping(vnode_all, vw, "values")
+        for name, knode, vnode in vm.entries():
+            p.name_in(knode, name, vw, parameters, "study parameter", f"c: [1.0e5, 1.0e6]")
+            if name in exponents:
+                raise p.error(knode, f"{_key(name, vw)}: parameter '{name}' also has exponents in "
+                                     f"'{where}'; keep exactly one of exponents / values")
+            items = p.sequence(vnode, name, vw, f"{name}: [1.0e5, 1.0e6]")
+            if not items:
+                raise p.error(vnode, f"{_key(name, vw)} must list at least one value; e.g. "
+                                     f"{name}: [1.0e5, 1.0e6]")
+            vals = [p.number(it, name, vw, f"{name}: [1.0e5, 1.0e6]") for it in items]
+            if len(set(vals)) != len(vals):
+                raise p.error(vnode, f"{_key(name, vw)} lists a value twice; remove duplicates")
+            values[name] = vals
+    if not exponents and not values:
+        raise p.error(m.owner, f"key 'grid' in 'stages' defines no grid points; add 'exponents' "
+                               f"(with 'base') or 'values', e.g. base: 25, exponents: {{c: [3, 7]}}")
+    base = m.num("base", None, "base: 25", positive=True)
+    if exponents and base is None:
+        raise p.error(m.owner, f"key 'base' is missing {_in(where)}; exponents need it, add it, "
+                              f"e.g. base: 25")
+    if exponents and base == 1.0:
+        raise p.error(m.items["base"][1], f"{_key('base', where)} must not be 1 (every power would "
+                                          f"be 1); e.g. base: 25")
+    return GridStage(base=base, exponents=exponents, values=values)
+
+
+def _parse_roi(p: _Parser, m: _Map, where: str, parameters: Mapping) -> RoiStage:
+    m.allow(("manual",))
+    node = m.opt("manual")
+    if node is None:
+        return RoiStage(manual=None)
+    mw = f"{where}.manual"
+    mm = p.mapping(node, mw, "manual")
+    manual: dict[str, tuple[float, float]] = {}
+    for name, knode, vnode in mm.entries():
+        p.name_in(knode, name, mw, parameters, "study parameter", "c: [3.91e5, 9.77e6]")
+        lo, hi = p.pair(vnode, name, mw, f"{name}: [3.91e5, 9.77e6]", p.number)
+        if lo > hi:
+            raise p.error(vnode, f"{_key(name, mw)} must be [lo, hi] with lo ≤ hi, got "
+                                 f"[{lo:g}, {hi:g}]; swap them")
+        manual[name] = (lo, hi)
+    if not manual:
+        raise p.error(node, f"{_key('manual', where)} is empty; give [lo, hi] per parameter, "
+                            f"e.g. manual: {{c: [3.91e5, 9.77e6]}}, or null for the automatic region")
+    return RoiStage(manual=manual)
+
+
+def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping) -> SearchStage:
+    m.allow(("inner", "outer", "inner_rtol", "response_rtol", "max_outer"))
+    inner = p.name_in(m.need("inner", "inner: c"), "inner", where, parameters, "study parameter",
+                      "inner: c")
+    onode = m.need("outer", "outer: d")
+    outer = p.name_in(onode, "outer", where, parameters, "study parameter", "outer: d")
+    if outer == inner:
+        raise p.error(onode, f"{_key('outer', where)} is the same parameter as 'inner' ({inner!r}); "
+                             f"search two different parameters")
+    return SearchStage(
+        inner=inner, outer=outer,
+        inner_rtol=m.num("inner_rtol", 1e-3, "inner_rtol: 1.0e-3", positive=True),
+        response_rtol=m.num("response_rtol", 1e-3, "response_rtol: 1.0e-3", positive=True),
+        max_outer=m.int_("max_outer", 20, "max_outer: 20", minimum=1))
+
+
+def _parse_regression(p: _Parser, m: _Map, where: str, parameters: Mapping,
+                      metrics: Mapping) -> RegressionStage:
+    m.allow(("x", "y", "by", "degree"))
+    x = p.name_in(m.need("x", "x: c"), "x", where, parameters, "study parameter", "x: c")
+    y = p.names_in(m.need("y", "y: [max_y, max_v]"), "y", where, metrics, "metric",
+                   "y: [max_y, max_v]")
+    by = None
+    bnode = m.opt("by")
+    if bnode is not None:
+        by = p.name_in(bnode, "by", where, parameters, "study parameter", "by: d")
+        if by == x:
+            raise p.error(bnode, f"{_key('by', where)} is the same parameter as 'x' ({x!r}); use "
+                                 f"another parameter or null")
+    return RegressionStage(x=x, y=y, by=by, degree=m.int_("degree", 3, "degree: 3", minimum=1))
+
+
+def _parse_sensitivity(p: _Parser, m: _Map, where: str, metrics: Mapping,
+                       fixed: Mapping) -> SensitivityStage:
+    m.allow(("methods", "n", "morris_trajectories", "seed", "outputs", "parameters"))
+    methods = list(METHODS)
+    mnode = m.opt("methods")
+    if mnode is not None:
+        items = p.sequence(mnode, "methods", where, "methods: [morris, sobol]")
+        if not items:
+            raise p.error(mnode, f"{_key('methods', where)} is empty; e.g. methods: [morris, sobol]")
+        methods = []
+        for it in items:
+            v = p.choice(it, "methods", where, METHODS, "method")
+            if v in methods:
+                raise p.error(it, f"{_key('methods', where)} lists {v!r} twice; remove one")
+            methods.append(v)
+    outputs = p.names_in(m.need("outputs", "outputs: [max_y, max_v]"), "outputs", where, metrics,
+                         "metric", "outputs: [max_y, max_v]")
+    pw = f"{where}.parameters"
+    pnode = m.need("parameters", "parameters: {c_x: {variable: c_x, bounds: [1.0e5, 1.0e7]}}")
+    pm = p.mapping(pnode, pw, "parameters")
+    if not pm.items:
+        raise p.error(pnode, f"{_key('parameters', where)} is empty; e.g. parameters: "
+                             f"{{c_x: {{variable: c_x, bounds: [1.0e5, 1.0e7]}}}}")
+    params: dict[str, SensitivityParameter] = {}
+    seen: dict[str, str] = {}
+    for name, knode, vnode in pm.entries():
+        p.ident(knode, name, pw, "c_x: {variable: c_x, bounds: [1.0e5, 1.0e7]}", "parameter name")
+        if name in metrics:
+            raise p.error(knode, f"{_key(name, pw)}: '{name}' is already a metric; rename the "
+                                 f"parameter (parameters and metrics share result tables)")
+        w = f"{pw}.{name}"
+        sm = p.mapping(vnode, w, name, knode)
+        sm.allow(("variable", "bounds", "distribution", "unit"))
+        varnode = sm.need("variable", f"variable: {name}")
+        var = p.string(varnode, "variable", w, f"variable: {name}")
+        if var in seen:
+            raise p.error(varnode, f"{_key('variable', w)}: FMU variable {var!r} is already varied by "
+                                   f"'{seen[var]}'; vary each FMU variable once")
+        if var in fixed:
+            raise p.error(varnode, f"{_key('variable', w)}: FMU variable {var!r} is also in 'fixed', "
+                                   f"which would override the sample; remove it from 'fixed'")
+        seen[var] = name
+        dnode = sm.opt("distribution")
+        dist = "uniform" if dnode is None else p.choice(dnode, "distribution", w, DISTRIBUTIONS,
+                                                        "distribution")
+        bnode = sm.need("bounds", "bounds: [1.0e5, 1.0e7]")
+        lo, hi = p.pair(bnode, "bounds", w, "bounds: [1.0e5, 1.0e7]", p.number)
+        if not lo < hi:
+            raise p.error(bnode, f"{_key('bounds', w)} must be [lo, hi] with lo < hi, got "
+                                 f"[{lo:g}, {hi:g}]; "
+                                 + ("swap them" if lo > hi else "widen the range"))
+        if dist == "loguniform" and lo <= 0:
+            raise p.error(bnode, f"{_key('bounds', w)}: a loguniform distribution needs lo > 0, got "
+                                 f"[{lo:g}, {hi:g}]; use a positive lower bound or distribution: "
+                                 f"uniform")
+        params[name] = SensitivityParameter(name=name, variable=var, bounds=(lo, hi),
+                                            distribution=dist, unit=sm.text("unit"))
+    return SensitivityStage(
+        methods=methods,
+        n=m.int_("n", 1024, "n: 1024", minimum=1),
+        morris_trajectories=m.int_("morris_trajectories", 20, "morris_trajectories: 20", minimum=2),
+        seed=m.int_("seed", 1, "seed: 1", minimum=0),
+        outputs=outputs, parameters=params)
+
+
+def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
+                  fixed: Mapping) -> dict[str, object]:
+    node = top.need("stages", "stages: {sensitivity: {...}}  (one or more of: "
+                              + ", ".join(STAGE_NAMES) + ")")
+    m = p.mapping(node, "stages", "stages")
+    m.allow(STAGE_NAMES)
+    if not m.items:
+        raise p.error(node, f"key 'stages' at the top level is empty; add at least one of: "
+                            f"{_fmt_list(STAGE_NAMES)}")
+    out: dict[str, object] = {}
+    for name, knode, vnode in m.entries():
+        where = f"stages.{name}"
+        if p.is_null(vnode):   # e.g. 'roi:' with nothing under it: all defaults
+            sm = _Map(p, MappingNode("tag:yaml.org,2002:map", [], vnode.start_mark, vnode.end_mark),
+                      where, knode)
+        else:
+            sm = p.mapping(vnode, where, name, knode)
+        if name == "grid":
+            out[name] = _parse_grid(p, sm, where, parameters)
+        elif name == "roi":
+            stage = _parse_roi(p, sm, where, parameters)
+            if stage.manual is None and "grid" not in out:
+                raise p.error(knode, "key 'roi' in 'stages': without 'manual' the region is computed "
+                                     "from the grid, but no 'grid' stage comes before it; add a "
+                                     "'grid' stage above it or give roi: {manual: {...}}")
+            out[name] = stage
+        elif name == "search":
+            if "roi" not in out:
+                raise p.error(knode, "key 'search' in 'stages': the search needs a region of "
+                                     "interest, but no 'roi' stage comes before it; add 'roi:' "
+                                     "above 'search'")
+            stage = _parse_search(p, sm, where, parameters)
+            manual = out["roi"].manual
+            if manual is not None:
+                for q in (stage.inner, stage.outer):
+                    if q not in manual:
+                        raise p.error(knode, f"key 'search' in 'stages' varies '{q}', but "
+                                             f"'stages.roi.manual' gives no range for it; add "
+                                             f"{q}: [lo, hi] there")
+            out[name] = stage
+        elif name == "regression":
+            out[name] = _parse_regression(p, sm, where, parameters, metrics)
+        elif name == "sensitivity":
+            out[name] = _parse_sensitivity(p, sm, where, metrics, fixed)
+    return out
+
+
+def _parse_execution(p: _Parser, top: _Map) -> Execution:
+    node = top.opt("execution")
+    if node is None:
+        return Execution()
+    m = p.mapping(node, "execution", "execution")
+    m.allow(("workers", "scheduler", "timeout_s"))
+    snode = m.opt("scheduler")
+    scheduler = None if snode is None else p.string(snode, "scheduler", "execution",
+                                                    "scheduler: tcp://127.0.0.1:8786")
+    return Execution(
+        workers=m.int_("workers", None, "workers: 4  (or null for all cores)", minimum=1),
+        scheduler=scheduler,
+        timeout_s=m.num("timeout_s", 60.0, "timeout_s: 60", positive=True))
+
+
+def _parse_fmu(p: _Parser, top: _Map, base_dir: Path) -> Path | None:
+    node = top.opt("fmu")
+    if node is None:
+        return None
+    text = p.string(node, "fmu", "", "fmu: default  (or a path to an .fmu file)")
+    if text == "default":
+        return None
+    path = Path(os.path.expanduser(text))
+    if not path.is_absolute():
+        path = base_dir / path
+    path = path.resolve()
+    if not path.exists():
+        raise p.error(node, f"key 'fmu' at the top level: {path} does not exist; give the path to "
+                            f"the .fmu file (relative paths start at the study file's directory) "
+                            f"or 'default' for the built ScrewVertebra FMU")
+    return path
+
+
+def _check_conflicts(p: _Parser, top: _Map, parameters: Mapping[str, Parameter], fixed: Mapping,
+                     scenario: Scenario) -> None:
+    fixed_map = p.mapping(top.items["fixed"][1], "fixed") if top.opt("fixed") is not None else None
+    for prm in parameters.values():
+        if prm.variable in fixed and fixed_map is not None:
+            raise p.error(fixed_map.key_node(prm.variable),
+                          f"key '{prm.variable}' in 'fixed' is the FMU variable of study parameter "
+                          f"'{prm.name}', which sets it on every run; remove it from 'fixed'")
+    if fixed_map is not None:
+        for name in scenario.inputs:
+            if name in fixed:
+                raise p.error(fixed_map.key_node(name),
+                              f"key '{name}' in 'fixed' is also in 'scenario.inputs'; an FMU "
+                              f"variable is either a parameter or an input, keep it in one place")
+
+
+def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None) -> Study:
+    if root is None:
+        raise p.error(None, "the study file is empty; it needs at least the keys name, parameters, "
+                            "scenario, metrics and stages")
+    top = p.mapping(root, "")
+    top.allow(_TOP_KEYS)
+    name = p.ident(top.need("name", "name: paper"), "name", "", "name: paper", "study name")
+    description = top.text("description")
+    fmu = _parse_fmu(p, top, base_dir)
+    parameters = _parse_parameters(p, top)
+    fixed = _parse_fixed(p, top)
+    scenario = _parse_scenario(p, top)
+    _check_conflicts(p, top, parameters, fixed, scenario)
+    metrics = _parse_metrics(p, top, parameters)
+    constraints = _parse_constraints(p, top, metrics)
+    stages = _parse_stages(p, top, parameters, metrics, fixed)
+    execution = _parse_execution(p, top)
+    paper_node = top.opt("paper")
+    paper: dict = {}
+    if paper_node is not None:
+        if not isinstance(paper_node, MappingNode):
+            raise p.error(paper_node, f"key 'paper' at the top level must be a mapping, got "
+                                      f"{p.describe(paper_node)}; e.g. paper: {{optimum: {{c: 823224}}}}")
+        paper = p.plain(paper_node, "paper")
+    return Study(name=name, description=description, path=path, fmu=fmu, parameters=parameters,
+                 fixed=fixed, scenario=scenario, metrics=metrics, constraints=constraints,
+                 stages=stages, execution=execution, paper=paper)
+
+
+# ============================================================================ entry points
+def parse_study(text: str, path: str | os.PathLike = "<string>") -> Study:
+    """Parse and validate a study from YAML ``text``.
+
+    ``path`` is used in error messages and, unless it is ``"<string>"``, as the study file: relative
+    paths in the study then resolve against its directory (otherwise against the current one).
+    Raises :class:`StudyError`.
+    """
+    label = str(path)
+    p = _Parser(label)
+    if label == "<string>":
+        base_dir, study_path = Path.cwd(), None
+    else:
+        study_path = Path(path).expanduser().resolve()
+        base_dir = study_path.parent
+    try:
+        root = yaml.compose(text, Loader=_Loader)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark is not None else 1
+        problem = " ".join(x for x in (exc.context, exc.problem) if x)
+        raise StudyError(f"{label}:{line}: invalid YAML: {problem}; fix the syntax (indentation, "
+                         f"':' after each key, matching quotes and brackets)") from None
+    except yaml.YAMLError as exc:
+        raise StudyError(f"{label}:1: invalid YAML: {exc}") from None
+    return _parse(p, root, base_dir, study_path)
+
+
+def load_study(path: str | os.PathLike) -> Study:
+    """Load and validate the study file ``path``. Raises :class:`StudyError` (a ValueError)."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise StudyError(f"{path}:1: study file not found; check the path") from None
+    except OSError as exc:
+        raise StudyError(f"{path}:1: cannot read the study file: {exc.strerror}") from None
+    return parse_study(text, path)
