@@ -528,6 +528,9 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                 double c = 2.0 * h * corr[a];
                 u1[i] += c;
                 double sc = s->rtol * fmax(fmax(fabs(s->u[i]), fabs(u1[i])), s->umax[i]) + 1e-300;
+#ifdef SOLVER_DEBUG
+                if (fabs(c) / sc > err) { s->dbg_i = i; s->dbg_D = D[a]; }
+#endif
                 err = fmax(err, fabs(c) / sc);
             }
             /* dense samples of the linearised solution, blended to end at u1 */
@@ -550,7 +553,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                 pscale = fmax(pscale, fabs(w[j][s->ipos]));
                 vscale = fmax(vscale, fabs(w[j][s->ivel]));
             }
-            double rtol_d = 100.0 * s->rtol;
+            double rtol_d = fmin(1e-7, 100.0 * s->rtol);   /* dense output: never looser than 1e-7 */
             double rd = 0.0;
             for (int j = 1; j < NSUB; j += 2) {
                 double p0 = w[j - 1][s->ipos], p1 = w[j + 1][s->ipos];
@@ -573,8 +576,8 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             }
             /* accepted: monitors over the samples */
 #ifdef SOLVER_DEBUG
-            fprintf(stderr, "step t=%.10g h=%.4g k=%d err=%.3g rd=%.3g v=%.4g a=%.4g teq=%.10g\n", t, h, k, err, rd,
-                    u1[s->ivel], ac[NSUB], s->t_eq);
+            fprintf(stderr, "step t=%.10g h=%.4g k=%d err=%.3g rd=%.3g i=%d D=%.3g u=%.3g umax=%.3g\n", t, h, k, err, rd,
+                    s->dbg_i, s->dbg_D, u1[s->dbg_i], s->umax[s->dbg_i]);
 #endif
             for (int j = 0; j < NSUB; j++) {
                 double p0 = w[j][s->ipos], p1 = w[j + 1][s->ipos];

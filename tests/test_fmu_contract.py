@@ -319,14 +319,38 @@ def test_container_fmu(fmu, md, tmp_path):
     assert not bad, f"container vs direct (range-relative, pointwise-relative): {report}"
 
 
-def test_communication_point_within_rounding_of_a_load_kink(fmu):
-    """fmpy steps to start + n*interval as time + (next - time): the FMU's time can end a few ulps short
-    of a load kink (here t_ramp = 0.05 reached as 0.045 + 0.005 = 0.049999999999999996). The next step
-    must go on, not fail on a step of ~1e-17 s to the kink."""
-    result = simulate_fmu(str(fmu), stop_time=0.1, output_interval=0.005,
-                          start_values={"t_ramp": 0.05}, output=["y", "t_eq"])
-    assert result["time"][-1] == pytest.approx(0.1)
-    assert result["t_eq"][-1] > 0
+def test_fixed_step_master_across_a_load_kink(unzipdir, md, vrs, log):
+    """The usual fixed-step master calls doStep(n*h, h), so the FMU's own time after step n-1 is
+    (n-1)*h + h, which can fall a few ulps short of n*h: 0.045 + 0.005 = 0.049999999999999996, just
+    before the kink at t_ramp = 0.05 (fmpy's container FMU steps this way). Every step must be taken
+    (a communication point within rounding of the FMU's time is the same point), and the result must
+    match stepping to exactly representable ends."""
+    h, n = 0.005, 20
+    results = []
+    for fixed_master in (True, False):
+        slave = new_slave(unzipdir, md, log, name="kink")
+        try:
+            slave.setupExperiment(startTime=0.0, stopTime=n * h)
+            slave.enterInitializationMode()
+            slave.setReal([vrs["t_ramp"]], [0.05])
+            slave.exitInitializationMode()
+            del log.messages[:]
+            t = 0.0
+            for i in range(n):
+                cp = i * h if fixed_master else t
+                step = h if fixed_master else (i + 1) * h - t
+                try:
+                    slave.doStep(currentCommunicationPoint=cp, communicationStepSize=step)
+                except FMICallException as e:
+                    pytest.fail(f"doStep({cp!r}, {step!r}) failed: {e}; log: {log.errors()}")
+                t = (i + 1) * h
+            results.append(slave.getReal([vrs["y"], vrs["y_max"], vrs["t_eq"]]))
+            slave.terminate()
+        finally:
+            slave.freeInstance()
+    (y_a, ymax_a, teq_a), (y_b, ymax_b, teq_b) = results
+    assert teq_a > 0 and teq_b > 0
+    assert rel_diff(y_a, y_b) <= 1e-9 and rel_diff(ymax_a, ymax_b) <= 1e-9 and abs(teq_a - teq_b) <= 1e-9
 
 
 # ---------------------------------------------------------------------------------------------- state machine

@@ -94,7 +94,7 @@ def test_six_dof_study_loads():
     assert (sens.methods, sens.n, sens.seed) == (["morris", "sobol"], 1024, 1)
     assert sens.outputs == list(s.metrics)
     assert s.metrics["x_final"].output == "x" and s.metrics["gamma_final"].output == "gamma"
-    start = {n: float(r["start"]) for n, r in _variables().items() if r["start"]}
+    start = {n: float(r["start"]) for n, r in _variables().items() if r["type"] == "Real" and r["start"]}
     elements = [f"{k}_{a}" for k in "cd" for a in ("x", "y", "z", "alpha", "beta", "gamma")]
     mass = ["m", "cg_y", "L_screw", "D_screw"]
     assert list(sens.parameters) == elements + mass
@@ -261,12 +261,12 @@ CASES = [
      ["key 'gird' is not allowed in 'stages'", "did you mean 'grid'?", "allowed: grid, roi, search, regression, sensitivity"]),
     ("unknown reduction", PAPER_TEXT, "    reduce: final\n    unit: m\n    description: Maximum screw translation",
      "    reduce: maximum\n    unit: m\n    description: Maximum screw translation", "reduce: maximum",
-     ["key 'reduce' in 'metrics.max_y'", "unknown reduction 'maximum'", "did you mean 'max_abs'?"]),
+     ["key 'reduce' in 'metrics.max_y'", "unknown reduction 'maximum'", "did you mean 'max'?"]),
     ("search on unknown parameter", PAPER_TEXT, "    inner: c\n", "    inner: cc\n", "inner: cc",
      ["key 'inner' in 'stages.search'", "unknown study parameter 'cc'", "did you mean 'c'?"]),
     ("search inner equals outer", PAPER_TEXT, "    outer: d\n", "    outer: c\n", "outer: c",
      ["key 'outer' in 'stages.search'", "same parameter as 'inner'"]),
-    ("search without roi", PAPER_TEXT, "  roi:\n    manual: null", "  roi_x: null", "roi_x",
+    ("misspelt stage", PAPER_TEXT, "  roi:\n    manual: null", "  roi_x: null", "roi_x",
      ["key 'roi_x' is not allowed in 'stages'", "did you mean 'roi'?"]),
     ("regression on unknown metric", PAPER_TEXT, "    y: [max_y, max_v]", "    y: [max_y, max_w]", "y: [max_y, max_w]",
      ["key 'y' in 'stages.regression'", "unknown metric 'max_w'"]),
@@ -274,14 +274,15 @@ CASES = [
      ["key 'timeout_s' in 'execution' must be > 0"]),
     ("zero workers", PAPER_TEXT, "  workers: null ", "  workers: 0 ", "workers: 0",
      ["key 'workers' in 'execution' must be ≥ 1"]),
-    ("paper not a mapping", PAPER_TEXT, "\npaper:\n", "\npaper: [1]\nold_paper:\n", "paper: [1]",
+    ("paper not a mapping", MINIMAL, "name: tiny\n", "name: tiny\npaper: [1]\n", "paper: [1]",
      ["key 'paper' at the top level must be a mapping"]),
     ("loguniform with lo <= 0", SIX_TEXT, "bounds: [0.1, 10], ", "bounds: [0, 10], ", "bounds: [0, 10]",
      ["key 'bounds' in 'stages.sensitivity.parameters.c_beta'", "loguniform distribution needs lo > 0",
       "distribution: uniform"]),
     ("sensitivity bounds reversed", SIX_TEXT, "bounds: [0.0136, 0.0204]", "bounds: [0.0204, 0.0136]", "bounds: [0.0204",
      ["key 'bounds' in 'stages.sensitivity.parameters.L_screw'", "lo < hi", "swap them"]),
-    ("sensitivity bounds not a pair", SIX_TEXT, "bounds: [1, 100], ", "bounds: [1, 10, 100], ", "bounds: [1, 10, 100]",
+    ("sensitivity bounds not a pair", SIX_TEXT, "c_alpha, bounds: [1, 100], ", "c_alpha, bounds: [1, 10, 100], ",
+     "bounds: [1, 10, 100]",
      ["key 'bounds' in 'stages.sensitivity.parameters.c_alpha' must be a pair [lo, hi]"]),
     ("unknown distribution", SIX_TEXT, "distribution: uniform, unit: kg", "distribution: normal, unit: kg",
      "distribution: normal", ["key 'distribution' in 'stages.sensitivity.parameters.m'", "unknown distribution 'normal'",
@@ -290,11 +291,13 @@ CASES = [
      ["key 'methods' in 'stages.sensitivity'", "unknown method 'sobole'", "did you mean 'sobol'?"]),
     ("sensitivity output unknown", SIX_TEXT, "outputs: [max_y, ", "outputs: [y_max, ", "outputs:",
      ["key 'outputs' in 'stages.sensitivity'", "unknown metric 'y_max'", "did you mean 'max_y'?"]),
-    ("sensitivity variable twice", SIX_TEXT, "c_z:     {variable: c_z,", "c_z:     {variable: c_x,", "variable: c_x, ",
+    ("sensitivity variable twice", SIX_TEXT, "c_z:     {variable: c_z,", "c_z:     {variable: c_x,", "c_z:     {variable: c_x",
      ["key 'variable' in 'stages.sensitivity.parameters.c_z'", "'c_x' is already varied by 'c_x'"]),
     ("sensitivity variable fixed", SIX_TEXT, "  t_ramp: 0.05 ", "  t_ramp: 0.05\n  m: 0.0003 ",
      "m:       {variable: m", ["key 'variable' in 'stages.sensitivity.parameters.m'", "also in 'fixed'"]),
-    ("missing sensitivity parameters", SIX_TEXT, "    parameters:\n", "    params:\n", "params:",
+    ("missing sensitivity outputs", SIX_TEXT, "    outputs: [max_y, max_v, x_final, z_final, alpha_final, gamma_final]\n",
+     "", "  sensitivity:", ["key 'outputs' is missing in 'stages.sensitivity'", "outputs: [max_y, max_v]"]),
+    ("misspelt sensitivity key", SIX_TEXT, "    parameters:\n", "    params:\n", "params:",
      ["key 'params' is not allowed in 'stages.sensitivity'", "did you mean 'parameters'?"]),
     ("non-integer n", SIX_TEXT, "    n: 1024 ", "    n: 1024.5 ", "n: 1024.5",
      ["key 'n' in 'stages.sensitivity' must be an integer"]),
