@@ -319,8 +319,20 @@ def test_search_needs_roi_stage():
 
 
 def test_automatic_roi_needs_grid():
-    bad = MINIMAL.replace("  grid:\n    values: {c: [3.0e5, 1e5, 2.0E+5]}\n", "  roi:\n    manual: null\n")
+    roi = "  roi:\n    manual: null             # computed from the grid; the paper's hand-chosen region is under paper.roi\n"
+    bad = _edit(_edit(PAPER_TEXT, roi, ""), "  grid:", roi + "  grid:")
     _fails(bad, _line_of(bad, "  roi:"), "key 'roi' in 'stages'", "add a 'grid' stage")
+
+
+def test_roi_needs_a_search_stage():
+    bad = MINIMAL + "  roi:\n    manual: {c: [1.0, 2.0]}\n"
+    _fails(bad, _line_of(bad, "  roi:"), "key 'roi' in 'stages'", "no 'search' stage")
+
+
+def test_grid_must_cover_every_study_parameter():
+    bad = _edit(PAPER_TEXT, "      d: [2, 6]  ", "      #")
+    _fails(bad, _line_of(bad, "  grid:"), "key 'grid' in 'stages' gives no values for study parameter(s) d",
+           "d: [lo, hi]")
 
 
 def test_manual_roi_must_cover_the_searched_parameters():

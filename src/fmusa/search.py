@@ -126,7 +126,12 @@ def nested_binary_search(evaluate: Evaluate, region: Region, response: Sequence[
     found = [lv for lv in levels if lv.inner is not None]
     if not found:
         return SearchResult(inner, outer, None, None, [], levels, stop, warnings)
+    # The answer is the first pair of the final unchanged run: below it the outer parameter no longer
+    # changes the response (the paper: "parameters smaller than presented here ... did not indicate any
+    # significant change"). Without such a run, the smallest feasible outer value reached.
     best = found[-1]
+    if unchanged_run >= 2:
+        best = found[-unchanged_run]
     binding = []
     if best.below is not None:
         binding = [k[3:] for k, v in best.below.items() if k.startswith("ok_") and not v]

@@ -898,6 +898,19 @@ def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
             out[name] = _parse_regression(p, sm, where, parameters, metrics)
         elif name == "sensitivity":
             out[name] = _parse_sensitivity(p, sm, where, metrics, fixed)
+    if "grid" in out:
+        grid = out["grid"]
+        missing = [q for q in parameters if q not in grid.exponents and q not in grid.values]
+        if missing:
+            raise p.error(m.key_node("grid"),
+                          f"key 'grid' in 'stages' gives no values for study parameter(s) "
+                          f"{', '.join(missing)}; add {missing[0]}: [lo, hi] under 'exponents' or "
+                          f"{missing[0]}: [...] under 'values'")
+    if "roi" in out and "search" not in out:
+        raise p.error(m.key_node("roi"), "key 'roi' in 'stages': the region of interest is "
+                                         "spanned by the search's inner and outer parameters, but "
+                                         "there is no 'search' stage; add one after 'roi' or remove "
+                                         "'roi'")
     return out
 
 

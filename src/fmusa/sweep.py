@@ -148,7 +148,7 @@ def grid_points(study: Study) -> list[dict[str, float]]:
 
 def run_study(study: Study, out: str | Path, resume: bool = False, workers: int | None = None,
               scheduler: str | None = None, figures: bool = True, progress: bool = True) -> SweepResult:
-    from .report import write_report
+
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -228,6 +228,7 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     finally:
         runner.close()
     if figures:
+        from .report import write_report
         write_report(result)
         summary["wall_s_with_report"] = time.perf_counter() - t0
     (out / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2))
