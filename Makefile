@@ -62,7 +62,7 @@ fmu: $(FMU)
 
 # ---------------------------------------------------------------- study, tests, benchmark
 sweep: $(STAMP) $(FMU)
-	$(VENV)/bin/fmusa pullout --out out/paper
+	$(VENV)/bin/fmusa sweep studies/paper.yaml --out out/paper
 
 test: $(STAMP) $(FMU)
 	$(VENV)/bin/pytest -q -p no:cacheprovider tests

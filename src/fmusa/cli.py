@@ -151,6 +151,48 @@ def plot_pullout(df, params: dict, path: Path) -> None:
     plt.close(fig)
 
 
+# ---------------------------------------------------------------------------- sweep
+def _add_sweep(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "sweep", help="run a study file: grid, region of interest, search, regression, sensitivity",
+        description="Run every stage of a study (YAML) and write runs.csv, summary.json, figures/ and "
+                    "report.md into --out.")
+    p.add_argument("study", type=Path, help="the study file, e.g. studies/paper.yaml")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted study in --out: runs already in runs.csv are not redone")
+    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
+    p.add_argument("--scheduler", default=None,
+                   help="address of a Dask distributed scheduler (e.g. tcp://127.0.0.1:8786) to run on")
+    p.add_argument("--no-figures", action="store_true", help="skip figures and report.md")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_sweep)
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from .study import load_study
+    from .sweep import run_study
+
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    study = load_study(args.study)
+    if args.out.exists() and (args.out / "runs.csv").exists() and not args.resume:
+        print(f"note: {args.out / 'runs.csv'} exists and is started afresh; use --resume to continue it",
+              file=sys.stderr)
+    result = run_study(study, args.out, resume=args.resume, workers=args.workers, scheduler=args.scheduler,
+                       figures=not args.no_figures, progress=not args.quiet)
+    s = result.summary
+    print(f"{study.name}: {s.get('runs', 0)} runs ({s.get('simulated_this_session', 0)} simulated now, "
+          f"{s.get('failed', 0)} failed) in {s.get('wall_s', 0.0):.2f} s")
+    if s.get("optimum"):
+        opt = ", ".join(f"{k} = {v:.6g}" for k, v in s["optimum"].items())
+        print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}")
+    for name in ("runs.csv", "summary.json", "report.md"):
+        if (args.out / name).exists():
+            print(f"wrote {args.out / name}")
+    return 0
+
+
 # ---------------------------------------------------------------------------- entry point
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -160,6 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     _add_pullout(sub)
+    _add_sweep(sub)
     return parser
 
 
