@@ -5,7 +5,8 @@
 - The sources in the archive rebuild (fmpy.build.build_platform_binary: cmake + gcc) into a binary
   that reproduces the shipped one on the 411 N pullout to 1e-12.
 - A second importer, fmpy's container FMU, runs ScrewVertebra as a component and gives the same
-  results as simulating it directly.
+  results as simulating it directly; a fixed-step master (doStep(n*h, h)) gets across a load kink that
+  its rounded step ends miss by a few ulps.
 - The FMI state machine and argument checks: every illegal call returns fmi2Error, is logged with a
   message naming the call or the variable, and fmi2Reset makes the instance usable again.
 - The calculated parameters I_1..I_3 are the solid-cylinder moments.
@@ -304,18 +305,18 @@ def test_container_fmu(fmu, md, tmp_path):
     assert via_container["y"][-1] == pytest.approx(f_max / CONTAINER_PARAMS["c_y"], rel=1e-6)
     assert via_container["t_eq"][-1] > 0
 
+    # The two runs end their steps at times a few ulps apart (fmpy: time + (next - time); container:
+    # n*h + h), so the solver's internal steps differ slightly and agreement is to the solver's
+    # tolerance: relative to each signal's range, and pointwise for the time t_eq.
     report = {}
     for name in CONTAINER_OUTPUTS:
         a, b = via_container[name], direct[name]
         scale = np.max(np.abs(b))
         assert scale > 0, name
-        # relative to the signal's range, and pointwise wherever the value is not negligible in it
-        norm_rel = np.max(np.abs(a - b)) / scale
-        big = np.abs(b) > 1e-6 * scale
-        point_rel = np.max(np.abs(a[big] - b[big]) / np.abs(b[big]))
-        report[name] = (norm_rel, point_rel)
-    bad = {k: v for k, v in report.items() if max(v) > 1e-9}
-    assert not bad, f"container vs direct (range-relative, pointwise-relative): {report}"
+        report[name] = float(np.max(np.abs(a - b)) / scale)
+    a, b = via_container["t_eq"], direct["t_eq"]
+    report["t_eq pointwise"] = max(rel_diff(float(x), float(y)) for x, y in zip(a, b))
+    assert max(report.values()) <= 1e-9, f"container vs direct, relative differences: {report}"
 
 
 def test_fixed_step_master_across_a_load_kink(unzipdir, md, vrs, log):
