@@ -590,26 +590,148 @@ def run_chunk(spec: PlanSpec, chunk: Sequence[tuple[int, tuple[float, ...]]]) ->
     return out
 
 
-class Evaluator:
-    """Runs batches of parameter sets in this process, on a local process pool, or on a Dask cluster,
-    and hands every result to ``on_result`` as soon as its chunk returns (so it reaches disk early).
+def _worker_main(conn, spec: PlanSpec) -> None:
+    """A pool worker: receive chunks, send back one result per run as soon as it is done."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # the parent decides when to stop
+    while True:
+        try:
+            msg = conn.recv()
+        except EOFError:
+            return
+        if msg is None:
+            return
+        for item in msg:
+            conn.send(run_chunk(spec, [item])[0])
 
-    Small batches run in-process: a pool pays ~0.1 s to start and to load the FMU in each worker,
-    which is more than a few hundred runs of the built FMU cost.
+
+class _Worker:
+    """One supervised worker process and the items it has been given but not answered yet."""
+
+    def __init__(self, ctx, spec: PlanSpec) -> None:
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_worker_main, args=(child, spec), daemon=True)
+        self.proc.start()
+        child.close()
+        self.pending: list[tuple[int, tuple[float, ...]]] = []
+        self.since = 0.0           # when the current run started (last answer or hand-out)
+
+    def give(self, items: list, now: float) -> None:
+        self.pending = list(items)
+        self.since = now
+        self.conn.send(items)
+
+    def kill(self) -> None:
+        try:
+            self.proc.kill()
+        except Exception:
+            pass
+        self.proc.join(1.0)
+        self.conn.close()
+
+
+class WorkerPool:
+    """Local worker processes supervised run by run.
+
+    A run that crashes its worker (segfault, abort) or exceeds ``timeout_s`` is recorded as failed with
+    the reason, the worker is replaced, the rest of its chunk is handed out again and the study goes on.
+    """
+
+    def __init__(self, spec: PlanSpec, workers: int, timeout_s: float | None) -> None:
+        import multiprocessing as mp
+        self.ctx = mp.get_context("fork")
+        self.spec = spec
+        self.n = workers
+        self.timeout_s = timeout_s
+        self.workers: list[_Worker] = []
+
+    def close(self) -> None:
+        for w in self.workers:
+            try:
+                w.conn.send(None)
+            except Exception:
+                pass
+        for w in self.workers:
+            w.proc.join(0.5)
+            if w.proc.is_alive():
+                w.kill()
+        self.workers = []
+
+    def map(self, items: list, take, chunk: int) -> None:
+        import time
+        from multiprocessing.connection import wait
+
+        queue = [items[i:i + chunk] for i in range(0, len(items), chunk)]
+        while len(self.workers) < min(self.n, len(queue)):
+            self.workers.append(_Worker(self.ctx, self.spec))
+        for w in self.workers:
+            if queue:
+                w.give(queue.pop(0), time.monotonic())
+        while any(w.pending for w in self.workers):
+            busy = {w.conn: w for w in self.workers if w.pending}
+            ready = wait(list(busy), timeout=0.05 if self.timeout_s else None)
+            now = time.monotonic()
+            for conn in ready:
+                w = busy[conn]
+                try:
+                    res = conn.recv()
+                except (EOFError, OSError):
+                    code = w.proc.exitcode
+                    w.proc.join(1.0)
+                    code = w.proc.exitcode if code is None else code
+                    reason = (f"the FMU crashed the worker process (signal {-code})" if code and code < 0
+                              else f"the worker process exited with code {code}")
+                    self._replace(w, reason, take, now)
+                    continue
+                w.pending.pop(0)
+                w.since = now
+                take([res])
+                if not w.pending and queue:
+                    w.give(queue.pop(0), now)
+            if self.timeout_s:
+                for w in list(self.workers):
+                    if w.pending and now - w.since > self.timeout_s:
+                        self._replace(w, f"timed out after {self.timeout_s:g} s (the FMU hangs or is too slow; "
+                                         f"raise execution.timeout_s if it is only slow)", take, now)
+            # workers replaced without a chunk left to finish pick up queued chunks
+            for w in self.workers:
+                if not w.pending and queue:
+                    w.give(queue.pop(0), now)
+
+    def _replace(self, w: _Worker, reason: str, take, now: float) -> None:
+        run_id, values = w.pending[0]
+        rest = w.pending[1:]
+        w.kill()
+        take([RunResult(run_id, tuple(values), None, "failed", reason, now - w.since)])
+        nw = _Worker(self.ctx, self.spec)
+        self.workers[self.workers.index(w)] = nw
+        if rest:
+            nw.give(rest, now)
+
+
+class Evaluator:
+    """Runs batches of parameter sets in this process, on supervised local workers, or on a Dask
+    cluster, and hands every result to ``on_result`` as soon as it is known (so it reaches disk early).
+
+    Small batches of a trusted FMU (our own) run in-process: workers pay ~0.1 s to start and to load the
+    FMU, more than a few hundred runs of the built FMU cost. Any other FMU always runs in workers, so a
+    crash or a hang costs one run, never the study.
     """
 
     def __init__(self, spec: PlanSpec, workers: int | None = None, scheduler: str | None = None,
-                 pool_threshold: int = 400) -> None:
+                 pool_threshold: int = 400, isolate: bool = False, timeout_s: float | None = 60.0) -> None:
         self.spec = spec
         self.workers = workers or os.cpu_count() or 1
         self.scheduler = scheduler
         self.pool_threshold = pool_threshold
-        self._pool = None
+        self.isolate = isolate
+        self.timeout_s = timeout_s
+        self._pool: WorkerPool | None = None
         self._client = None
 
     def close(self) -> None:
         if self._pool is not None:
-            self._pool.shutdown(cancel_futures=True)
+            self._pool.close()
             self._pool = None
         if self._client is not None:
             self._client.close()
@@ -650,15 +772,11 @@ class Evaluator:
                        for c in self._chunks(items, n)]
             for fut in as_completed(futures):
                 take(fut.result())
-        elif self.workers > 1 and len(items) >= self.pool_threshold:
-            import concurrent.futures as cf
-            import multiprocessing as mp
-
+        elif self.isolate or (self.workers > 1 and len(items) >= self.pool_threshold):
             if self._pool is None:
-                self._pool = cf.ProcessPoolExecutor(self.workers, mp_context=mp.get_context("fork"))
-            futures = [self._pool.submit(run_chunk, self.spec, c) for c in self._chunks(items, self.workers)]
-            for fut in cf.as_completed(futures):
-                take(fut.result())
+                self._pool = WorkerPool(self.spec, self.workers, self.timeout_s)
+            size = max(1, min(200, len(items) // (self.workers * 8) or 1))
+            self._pool.map(items, take, size)
         else:
             for c in self._chunks(items, 1):
                 take(run_chunk(self.spec, c))

@@ -100,8 +100,10 @@ class StudyRunner:
         )
         self.spec = spec
         self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume)
+        # any FMU but our own runs in supervised workers: a crash or hang then costs one run
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
-                                   scheduler=scheduler or study.execution.scheduler)
+                                   scheduler=scheduler or study.execution.scheduler,
+                                   isolate=study.fmu is not None, timeout_s=study.execution.timeout_s)
         self.progress = progress
         self.simulated = 0
 
