@@ -532,9 +532,6 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                 double c = 2.0 * h * corr[a];
                 u1[i] += c;
                 double sc = s->rtol * fmax(fmax(fabs(s->u[i]), fabs(u1[i])), s->umax[i]) + 1e-300;
-#ifdef SOLVER_DEBUG
-                if (fabs(c) / sc > err) { s->dbg_i = i; s->dbg_D = D[a]; }
-#endif
                 err = fmax(err, fabs(c) / sc);
             }
             /* dense samples of the linearised solution, blended to end at u1 */
@@ -567,9 +564,6 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                 if (pscale > 0.0) rd = fmax(rd, fabs(ph - w[j][s->ipos]) / (rtol_d * pscale));
                 if (vscale > 0.0) rd = fmax(rd, fabs(vh - w[j][s->ivel]) / (rtol_d * vscale));
             }
-#ifdef SOLVER_DEBUG
-            if (s->n_steps == 1500) for (int a = 0; a < k; a++) fprintf(stderr, "  i=%d u0=%.6g U=%.6g FU=%.6g F0=%.6g Ft=%.6g D=%.6g corr=%.6g\n", L.idx[a], s->u[L.idx[a]], U[L.idx[a]], FU[L.idx[a]], L.F0[L.idx[a]], L.Ft[L.idx[a]], D[a], 2*h*corr[a]);
-#endif
             double fac_e = err > 0.0 ? 0.9 * pow(err, -1.0 / 3.0) : 10.0;
             double fac_d = rd > 0.0 ? 0.9 * pow(rd, -0.25) : 10.0;
             double fac = fmin(fmin(fac_e, fac_d), 10.0);
@@ -579,10 +573,6 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                 continue;
             }
             /* accepted: monitors over the samples */
-#ifdef SOLVER_DEBUG
-            fprintf(stderr, "step t=%.10g h=%.4g k=%d err=%.3g rd=%.3g i=%d D=%.3g u=%.3g umax=%.3g\n", t, h, k, err, rd,
-                    s->dbg_i, s->dbg_D, u1[s->dbg_i], s->umax[s->dbg_i]);
-#endif
             for (int j = 0; j < NSUB; j++) {
                 double p0 = w[j][s->ipos], p1 = w[j + 1][s->ipos];
                 double v0 = w[j][s->ivel], v1 = w[j + 1][s->ivel];

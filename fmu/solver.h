@@ -39,10 +39,6 @@ typedef struct {
     double z[SOLVER_NMAX];
     double J_prev[SOLVER_NMAX * SOLVER_NMAX];
     int z_valid;
-#ifdef SOLVER_DEBUG
-    int dbg_i;
-    double dbg_D;
-#endif
     long n_steps, n_rejected, n_rhs;
     solver_rhs_fn rhs;
     solver_breakpoint_fn breakpoint;
