@@ -1,9 +1,15 @@
-"""Run FMI 2.0 co-simulation FMUs: the one module of fmusa that talks to an FMU (through fmpy).
+"""Run FMI 2.0 FMUs: the one module of fmusa that talks to an FMU (through fmpy).
 
 An :class:`FMURunner` extracts the FMU once, instantiates it once and then runs it as often as
 needed: every run is ``reset`` → set parameters → ``setupExperiment`` → initialisation →
 ``doStep`` … → read outputs. Reusing the instance avoids the unzip/load/instantiate cost that
 ``fmpy.simulate_fmu`` pays on every call, which matters for studies of thousands of runs.
+
+Co-simulation FMUs integrate themselves. Model exchange FMUs are integrated by fmpy's solver (CVode or
+Euler, ``fmpy.simulate_fmu`` on the reused instance). :func:`read_fmu_info` reads what an FMU declares
+(FMI version, interfaces, binaries, sources, variables) without loading it; :func:`variable_problem`
+and :func:`select_interface` are the load-time checks; an FMU without a binary for this platform but
+with C sources is built by :func:`compile_sources` / :func:`prepare_fmu`.
 
 Example::
 
@@ -19,7 +25,7 @@ import math
 import os
 import shutil
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from ctypes import byref
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
@@ -60,57 +66,541 @@ def _label(status: int) -> str:
     return _STATUS[status] if 0 <= status < len(_STATUS) else f"status {status}"
 
 
+# ---------------------------------------------------------------------- what an FMU holds, checks, compiling
+#: The FMI 2.0 interfaces fmusa runs, in order of preference for ``interface: auto``.
+INTERFACES = ("co-simulation", "model-exchange")
+#: Values of ``fmu_options.interface``.
+INTERFACE_CHOICES = ("auto",) + INTERFACES
+#: fmpy's solvers for model exchange FMUs.
+SOLVERS = ("CVode", "Euler")
+_FMPY_TYPE = {"co-simulation": "CoSimulation", "model-exchange": "ModelExchange"}
+_SHORT = {"co-simulation": "CS", "model-exchange": "ME"}
+
+
+class FMUError(ValueError):
+    """An FMU fmusa cannot run as asked: not FMI 2.0, the requested interface missing, no binary for
+    this platform and no sources to build one, or an unreadable model description."""
+
+
+class FMUCompileError(RuntimeError):
+    """Building an FMU's binary from its C sources failed; the message names the FMU and holds the
+    compiler's output."""
+
+
+def host_platform() -> str:
+    """The FMI 2.0 platform directory of this machine (``linux64`` on Linux x86-64)."""
+    import fmpy
+    return fmpy.platform
+
+
+def _an(word: str) -> str:
+    return f"an {word}" if word[:1].lower() in "aeiou" else f"a {word}"
+
+
+def _archive_names(path: Path) -> list[str]:
+    if path.is_dir():
+        return [p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file()]
+    import zipfile
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return [n for n in zf.namelist() if not n.endswith("/")]
+    except zipfile.BadZipFile:
+        raise FMUError(f"{path}: not an FMU (not a ZIP archive)") from None
+
+
+def _root_attributes(path: Path) -> dict[str, str]:
+    """Attributes of <fmiModelDescription> (fmiVersion, modelName…), read without fmpy, so that an
+    FMI 1 or FMI 3 FMU is recognised before anything tries to parse it as FMI 2."""
+    import xml.etree.ElementTree as ET
+    import zipfile
+    try:
+        if path.is_dir():
+            data = (path / "modelDescription.xml").read_bytes()
+        else:
+            with zipfile.ZipFile(path) as zf:
+                data = zf.read("modelDescription.xml")
+    except (OSError, KeyError):
+        raise FMUError(f"{path}: not an FMU (no modelDescription.xml)") from None
+    try:
+        root = ET.fromstring(data)
+    except ET.ParseError as exc:
+        raise FMUError(f"{path}: modelDescription.xml is not well-formed XML ({exc})") from None
+    return dict(root.attrib)
+
+
+@dataclass(frozen=True, eq=False)
+class FMUInfo:
+    """What an FMU declares and contains, read from its model description and its file list (no binary
+    is loaded). Made by :func:`read_fmu_info`."""
+    path: Path
+    fmi_version: str
+    model_name: str
+    description: str
+    generation_tool: str
+    guid: str
+    interfaces: dict            # interface ("co-simulation"/"model-exchange") -> model identifier
+    binaries: dict              # platform directory -> list of files in it
+    source_files: tuple         # the files listed under <SourceFiles>
+    has_sources: bool           # the archive has sources/*.c (or .cpp)
+    default_experiment: dict    # start_time, stop_time, tolerance, step_size (those declared)
+    variables: tuple            # fmpy ModelVariable objects, in model-description order
+    n_states: int
+    n_event_indicators: int
+    model_description: object   # the fmpy ModelDescription
+    warnings: tuple = ()        # e.g. fmpy's schema validation problems (the FMU is still read)
+
+    @property
+    def platforms(self) -> list[str]:
+        """Platforms with a binary (``linux64``, ``win64``, ``darwin64``…)."""
+        return sorted(p for p, files in self.binaries.items() if files)
+
+    def variable(self, name: str):
+        return self._by_name.get(name)
+
+    @property
+    def _by_name(self) -> dict:
+        d = self.__dict__.get("_names")
+        if d is None:
+            d = {v.name: v for v in self.variables}
+            object.__setattr__(self, "_names", d)
+        return d
+
+    def binary_name(self, interface: str) -> str:
+        import fmpy
+        return f"{self.interfaces[interface]}{fmpy.sharedLibraryExtension}"
+
+    def has_binary(self, interface: str, platform: str | None = None) -> bool:
+        """Whether the shared library of ``interface`` is there for ``platform`` (default: this machine)."""
+        platform = platform or host_platform()
+        return self.binary_name(interface) in self.binaries.get(platform, [])
+
+    @property
+    def can_compile(self) -> bool:
+        return self.has_sources and bool(self.source_files)
+
+
+def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo:
+    """Read what ``path`` (an ``.fmu`` file or an extracted FMU directory) declares and contains.
+
+    Raises :class:`FMUError` when it is not an FMU, or (``require_fmi2``) not an FMI 2.0 FMU. fmpy's
+    schema validation problems do not stop the reading: they are kept in ``warnings``.
+    """
+    import fmpy
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"FMU not found: {path}")
+    names = _archive_names(path)
+    attrs = _root_attributes(path)
+    version = attrs.get("fmiVersion", "?")
+    model = attrs.get("modelName", path.stem)
+    if require_fmi2 and version != "2.0":
+        major = version.split(".")[0]
+        raise FMUError(f"{path}: {model} is an FMI {version} FMU (fmiVersion=\"{version}\" in its "
+                       f"modelDescription.xml); fmusa needs FMI 2.0. Export the model again as an FMI "
+                       f"2.0 co-simulation or model exchange FMU"
+                       + (" (FMI 1.0 FMUs cannot be converted)" if major == "1" else
+                          " (most tools that export FMI 3.0 can also export FMI 2.0)" if major == "3" else ""))
+    warnings: list[str] = []
+    try:
+        md = fmpy.read_model_description(str(path), validate=True)
+    except Exception as exc:  # schema or consistency problems: read it anyway, keep the problems
+        try:
+            md = fmpy.read_model_description(str(path), validate=False)
+        except Exception as exc2:
+            raise FMUError(f"{path}: cannot read modelDescription.xml: {exc2}") from None
+        warnings.append(f"fmpy's validation of modelDescription.xml failed: {str(exc).strip()}")
+    interfaces = {}
+    if getattr(md, "coSimulation", None) is not None:
+        interfaces["co-simulation"] = md.coSimulation.modelIdentifier
+    if getattr(md, "modelExchange", None) is not None:
+        interfaces["model-exchange"] = md.modelExchange.modelIdentifier
+    binaries: dict[str, list[str]] = {}
+    for n in names:
+        parts = n.split("/")
+        if len(parts) == 3 and parts[0] == "binaries":
+            binaries.setdefault(parts[1], []).append(parts[2])
+    has_sources = any(n.startswith("sources/") and n.rsplit(".", 1)[-1] in ("c", "cc", "cpp", "cxx")
+                      for n in names)
+    source_files: list[str] = []
+    for bc in getattr(md, "buildConfigurations", None) or []:
+        for sfs in bc.sourceFileSets:
+            source_files += [f for f in sfs.sourceFiles if f not in source_files]
+    de = md.defaultExperiment
+    experiment = {}
+    if de is not None:
+        for key, attr in (("start_time", "startTime"), ("stop_time", "stopTime"),
+                          ("tolerance", "tolerance"), ("step_size", "stepSize")):
+            val = getattr(de, attr, None)
+            if val is not None:
+                try:
+                    experiment[key] = float(val)
+                except ValueError:
+                    experiment[key] = val
+    return FMUInfo(path=path, fmi_version=md.fmiVersion, model_name=md.modelName or model,
+                   description=md.description or "", generation_tool=md.generationTool or "",
+                   guid=md.guid or "", interfaces=interfaces, binaries=binaries,
+                   source_files=tuple(source_files), has_sources=has_sources,
+                   default_experiment=experiment, variables=tuple(md.modelVariables),
+                   n_states=int(md.numberOfContinuousStates or 0),
+                   n_event_indicators=int(md.numberOfEventIndicators or 0),
+                   model_description=md, warnings=tuple(warnings))
+
+
+def select_interface(info: FMUInfo, requested: str = "auto") -> str:
+    """The interface a study runs: co-simulation when the FMU has it (``auto``), else model exchange;
+    or the one ``requested``. Raises :class:`FMUError` when the FMU does not implement it."""
+    have = list(info.interfaces)
+    if not have:
+        raise FMUError(f"{info.path}: {info.model_name} declares neither <CoSimulation> nor "
+                       f"<ModelExchange> in its modelDescription.xml")
+    if requested in (None, "auto"):
+        return "co-simulation" if "co-simulation" in have else "model-exchange"
+    if requested not in INTERFACES:
+        raise FMUError(f"unknown interface {requested!r}; use one of {', '.join(INTERFACE_CHOICES)}")
+    if requested not in have:
+        other = have[0]
+        raise FMUError(f"interface {requested} was asked for, but {info.model_name} implements only "
+                       f"{other} ({_SHORT[other]}); set interface: {other} or auto"
+                       + ("" if other == "model-exchange" else
+                          " (a co-simulation FMU brings its own solver)"))
+    return requested
+
+
+def binary_problem(info: FMUInfo, interface: str) -> str | None:
+    """Why ``interface`` cannot run on this machine (no binary and no sources), or None."""
+    if info.has_binary(interface) or info.can_compile:
+        return None
+    plat = host_platform()
+    have = ", ".join(info.platforms) or "none"
+    src = ("it has no C sources (sources/ and <SourceFiles>) to build one from" if not info.has_sources
+           else "its sources/ are not listed under <SourceFiles> in modelDescription.xml, so they "
+                "cannot be built")
+    return (f"{info.model_name} has no {plat} binary for {interface} "
+            f"(binaries/{plat}/{info.binary_name(interface)}; platforms with binaries: {have}), and "
+            f"{src}; export the FMU for {plat}, or with source code")
+
+
+def closest_names(name: str, pool: Iterable[str], n: int = 5) -> list[str]:
+    """Names in ``pool`` closest to ``name`` (difflib), best first; case-insensitive as a fallback."""
+    pool = list(pool)
+    close = difflib.get_close_matches(name, pool, n=n, cutoff=0.4)
+    if not close:
+        lower = {p.lower(): p for p in pool}
+        close = [lower[c] for c in difflib.get_close_matches(name.lower(), list(lower), n=n, cutoff=0.4)]
+    return close
+
+
+#: Variable types fmusa can set and read.
+_TYPES = ("Real", "Integer", "Enumeration", "Boolean")
+
+
+def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
+    """Why FMU variable ``name`` cannot play ``role``, or None when it can.
+
+    ``role`` is ``"varied"`` (a study parameter: a settable Real parameter), ``"parameter"`` (set once per
+    run: a settable parameter of any supported type), ``"input"`` or ``"output"`` (read after the run).
+    The message lists the closest names the FMU does have.
+    """
+    vs = info.variables
+    v = info.variable(name)
+    if role in ("varied", "parameter"):
+        pool = [x.name for x in vs if x.causality == "parameter" and x.variability in ("fixed", "tunable")]
+        wider = pool
+        what = "parameter"
+    elif role == "input":
+        pool = [x.name for x in vs if x.causality == "input"]
+        wider = pool
+        what = "input"
+    else:
+        pool = [x.name for x in vs if x.causality == "output"]
+        wider = [x.name for x in vs if x.causality != "independent"]
+        what = "output"
+
+    def hint(prefix: str = "closest") -> str:
+        others = [n for n in pool if n != name]
+        close = closest_names(name, others)
+        if not close and v is None:
+            close = closest_names(name, [n for n in wider if n != name])
+            if close:
+                return f"; closest names: {', '.join(close)}"
+        if close:
+            return f"; {prefix} {what} names: {', '.join(close)}"
+        if v is not None:
+            return ""
+        if others:
+            more = f" … ({len(others)} in all)" if len(others) > 12 else ""
+            return f"; its {what}s are: {', '.join(others[:12])}{more}"
+        return f"; it has no {what}s"
+
+    if v is None:
+        return f"{info.model_name} has no variable {name!r}{hint()}"
+    causality, variability = v.causality or "local", v.variability or "continuous"
+    if v.type not in _TYPES:
+        return f"{name!r} is of type {v.type}; fmusa sets and reads only Real, Integer, Boolean and Enumeration"
+    if role in ("varied", "parameter"):
+        if causality == "calculatedParameter":
+            deps = None
+            for u in getattr(info.model_description, "initialUnknowns", None) or []:
+                if u.variable is v and u.dependencies:
+                    deps = [d.name for d in u.dependencies]
+            source = (f" ({', '.join(deps)})" if deps else
+                      f" (its description: {v.description!r})" if v.description else "")
+            return (f"{name!r} is a calculatedParameter: the FMU computes it from other parameters, so it "
+                    f"cannot be set; set the parameters it is computed from{source} instead")
+        if variability == "constant":
+            return (f"{name!r} is a constant (variability constant, causality {causality}): its value is "
+                    f"fixed in the FMU and cannot be set{hint('settable')}")
+        if causality == "input":
+            return f"{name!r} is an input, not a parameter; set it under scenario.inputs instead"
+        if causality != "parameter":
+            return (f"{name!r} is {_an(causality)} variable (causality {causality}), not a parameter, and "
+                    f"cannot be set{hint('settable')}")
+        if variability not in ("fixed", "tunable"):
+            return (f"{name!r} has variability {variability}; only fixed or tunable parameters can be "
+                    f"set{hint('settable')}")
+        if role == "varied" and v.type != "Real":
+            return (f"{name!r} is {_an(v.type)} parameter; a study parameter must be Real (set "
+                    f"{v.type} parameters under fixed)")
+        return None
+    if role == "input":
+        if causality == "input":
+            return None
+        if causality == "parameter":
+            return f"{name!r} is a parameter, not an input; set it under fixed instead"
+        return f"{name!r} is {_an(causality)} variable (causality {causality}), not an input{hint()}"
+    if causality == "independent":
+        return f"{name!r} is the independent variable (time); metrics read outputs"
+    return None
+
+
+def _tail(text: str, n: int = 4000) -> str:
+    text = text.strip()
+    return text if len(text) <= n else "…" + text[-n:]
+
+
+def compile_sources(unzipdir: str | os.PathLike, info: FMUInfo | None = None,
+                    interface: str | None = None) -> Path:
+    """Build the binary for this platform from the C sources of the extracted FMU ``unzipdir`` and put it
+    in ``unzipdir/binaries/<platform>/``, as ``fmpy.build.build_platform_binary`` does (CMake with fmpy's
+    build template; plain ``cc`` when CMake is missing). Returns the binary's path.
+
+    Raises :class:`FMUCompileError` with the compiler's output when the build fails.
+    """
+    import subprocess
+    import tempfile
+
+    import fmpy
+
+    unzipdir = Path(unzipdir).resolve()
+    info = info or read_fmu_info(unzipdir)
+    interface = interface or select_interface(info)
+    plat = host_platform()
+    target = unzipdir / "binaries" / plat / info.binary_name(interface)
+    label = f"{info.model_name} ({info.path})"
+    if not info.can_compile:
+        raise FMUCompileError(f"{label}: no {plat} binary and no C sources listed under <SourceFiles>")
+    log: list[str] = []
+
+    def run(cmd: list[str], cwd=None) -> bool:
+        log.append("$ " + " ".join(cmd))
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, timeout=600)
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            log.append(str(exc))
+            return False
+        log.append((proc.stdout + proc.stderr).strip())
+        return proc.returncode == 0
+
+    c_code = Path(fmpy.__file__).parent / "c-code"
+    ok = False
+    if shutil.which("cmake"):
+        from fmpy.build import create_cmake_settings
+        with tempfile.TemporaryDirectory(prefix="fmusa-build-") as build_dir:
+            try:
+                create_cmake_settings(unzipdir, build_dir)
+            except Exception as exc:
+                raise FMUCompileError(f"{label}: cannot set up the build of its sources: {exc}") from None
+            ok = (run(["cmake", "-S", str(c_code), "-B", build_dir])
+                  and run(["cmake", "--build", build_dir, "--target", "install", "--config", "Release"]))
+    else:
+        cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+        if cc is None:
+            raise FMUCompileError(f"{label}: has no {plat} binary, and neither cmake nor a C compiler (cc, "
+                                  f"gcc) was found to build one from its sources; install gcc (and cmake)")
+        srcs = [str(unzipdir / "sources" / f) for f in info.source_files]
+        target.parent.mkdir(parents=True, exist_ok=True)
+        ok = run([cc, "-shared", "-fPIC", "-O2", f"-I{unzipdir / 'sources'}", f"-I{c_code}", *srcs,
+                  "-o", str(target), "-lm"])
+    if not ok or not target.is_file():
+        if ok:
+            log.append(f"the build finished but did not produce {target.relative_to(unzipdir)}")
+        raise FMUCompileError(f"{label}: has no {plat} binary, and building one from its C sources "
+                              f"({', '.join(info.source_files)}) failed. Compiler output:\n"
+                              + _tail("\n".join(x for x in log if x)))
+    return target
+
+
+def _file_digest(path: Path) -> str:
+    import hashlib
+    h = hashlib.sha256()
+    if path.is_dir():
+        for p in sorted(path.rglob("*")):
+            if p.is_file():
+                h.update(p.relative_to(path).as_posix().encode())
+                h.update(p.read_bytes())
+    else:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()[:12]
+
+
+def prepare_fmu(fmu_path: str | os.PathLike, interface: str = "auto",
+                workdir: str | os.PathLike | None = None) -> Path:
+    """A path FMURunner can run on this machine: ``fmu_path`` itself when it has a binary for this platform,
+    else an extracted copy in ``workdir`` (default: a new temporary directory) with the binary built from
+    the FMU's sources. A copy built earlier for the same FMU content is reused.
+
+    Raises :class:`FMUError` (not FMI 2.0, interface missing, neither binary nor sources) or
+    :class:`FMUCompileError`.
+    """
+    import tempfile
+
+    import fmpy
+
+    fmu_path = Path(fmu_path)
+    info = read_fmu_info(fmu_path)
+    iface = select_interface(info, interface)
+    if info.has_binary(iface):
+        return fmu_path
+    problem = binary_problem(info, iface)
+    if problem:
+        raise FMUError(f"{fmu_path}: {problem}")
+    root = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="fmusa-fmu-"))
+    root.mkdir(parents=True, exist_ok=True)
+    dest = root / f"{fmu_path.stem}-{_file_digest(fmu_path)}"
+    if (dest / "binaries" / host_platform() / info.binary_name(iface)).is_file():
+        return dest
+    tmp = Path(tempfile.mkdtemp(prefix=".build-", dir=root))
+    try:
+        if fmu_path.is_dir():
+            shutil.copytree(fmu_path, tmp, dirs_exist_ok=True)
+        else:
+            fmpy.extract(str(fmu_path), str(tmp))
+        compile_sources(tmp, info, iface)
+        shutil.rmtree(dest, ignore_errors=True)
+        tmp.rename(dest)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return dest
+
+
 class FMURunner:
-    """One extracted, instantiated FMI 2.0 co-simulation FMU, run again and again.
+    """One extracted, instantiated FMI 2.0 FMU, run again and again.
+
+    Co-simulation FMUs integrate themselves (``fmi2DoStep``); model exchange FMUs are integrated by
+    fmpy's solver (CVode or Euler) through ``fmpy.simulate_fmu``, on the same reused instance. An FMU
+    without a binary for this platform but with C sources is built from them first.
 
     Parameters
     ----------
     fmu_path:
-        The ``.fmu`` file (default: :func:`default_fmu_path`).
+        The ``.fmu`` file or an extracted FMU directory (default: :func:`default_fmu_path`).
     instance_name:
         Name passed to ``fmi2Instantiate`` (appears in the FMU's log messages).
     debug_logging:
         Log categories to switch on with ``fmi2SetDebugLogging`` (e.g. ``["logAll"]``); by default
         only the error and warning categories the model description declares.
+    interface:
+        ``"auto"`` (co-simulation when the FMU has it, else model exchange), ``"co-simulation"`` or
+        ``"model-exchange"``.
+    solver, relative_tolerance, step_size:
+        Model exchange only: fmpy's solver (``"CVode"``, the default, or ``"Euler"``), CVode's relative
+        tolerance (default: the FMU's default experiment, else 1e-5) and the integration step (Euler's
+        fixed step; for CVode the longest step). For a co-simulation FMU ``relative_tolerance`` is passed
+        to ``fmi2SetupExperiment``; ``solver`` and ``step_size`` are errors.
     """
 
     def __init__(self, fmu_path: str | os.PathLike | None = None, instance_name: str = "fmusa",
-                 debug_logging: Iterable[str] | None = None) -> None:
+                 debug_logging: Iterable[str] | None = None, *, interface: str = "auto",
+                 solver: str | None = None, relative_tolerance: float | None = None,
+                 step_size: float | None = None) -> None:
         import fmpy
 
         self.fmu_path = Path(fmu_path) if fmu_path is not None else default_fmu_path()
         if not self.fmu_path.exists():
             raise FileNotFoundError(f"FMU not found: {self.fmu_path}")
         self.instance_name = instance_name
-        self._owns_unzipdir = self.fmu_path.is_file()
-        self.unzipdir = (Path(fmpy.extract(str(self.fmu_path))) if self._owns_unzipdir
-                         else self.fmu_path)
-        self.model_description = fmpy.read_model_description(str(self.unzipdir))
-        md = self.model_description
-        if md.fmiVersion != "2.0" or md.coSimulation is None:
+        self._owns_unzipdir = False
+        self.unzipdir = None
+        self._slave = None
+        info = read_fmu_info(self.fmu_path)              # FMI 2.0? (FMUError otherwise)
+        self.interface = select_interface(info, interface)
+        if solver is not None and solver not in SOLVERS:
+            raise ValueError(f"unknown solver {solver!r}; use one of {', '.join(SOLVERS)}")
+        if self.interface == "co-simulation" and (solver is not None or step_size is not None):
+            raise ValueError(f"{info.model_name} runs as a co-simulation FMU, which integrates with its own "
+                             f"solver: solver and step_size apply to model exchange only")
+        for name, x in (("relative_tolerance", relative_tolerance), ("step_size", step_size)):
+            if x is not None and not (math.isfinite(x) and x > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {x!r}")
+        self.solver = solver or "CVode"
+        self.relative_tolerance = None if relative_tolerance is None else float(relative_tolerance)
+        self.step_size = None if step_size is None else float(step_size)
+        needs_build = not info.has_binary(self.interface)
+        if needs_build:
+            problem = binary_problem(info, self.interface)
+            if problem:
+                raise FMUError(f"{self.fmu_path}: {problem}")
+        if self.fmu_path.is_file():
+            self._owns_unzipdir = True
+            self.unzipdir = Path(fmpy.extract(str(self.fmu_path)))
+        elif needs_build:   # never write into the user's directory: build in a copy
+            import tempfile
+            self._owns_unzipdir = True
+            self.unzipdir = Path(tempfile.mkdtemp(prefix="fmusa-fmu-"))
+            shutil.copytree(self.fmu_path, self.unzipdir, dirs_exist_ok=True)
+        else:
+            self.unzipdir = self.fmu_path
+        try:
+            if needs_build:
+                compile_sources(self.unzipdir, info, self.interface)
+            self.info = info
+            self.model_description = info.model_description
+        except BaseException:
             self._cleanup_dir()
-            raise ValueError(f"{self.fmu_path}: not an FMI 2.0 co-simulation FMU")
+            raise
+        md = self.model_description
         self.variables = {v.name: v for v in md.modelVariables}
         self.messages: deque[tuple[str, str, str]] = deque(maxlen=500)
         cats = [c.name for c in getattr(md, "logCategories", [])]
         if debug_logging is None:
             debug_logging = [c for c in cats if c in ("logStatusError", "logStatusWarning")]
         self._debug_logging = list(debug_logging)
-        self._slave = None
         self._state = "closed"
         self._phase = ""
-        self._instantiate()
+        try:
+            self._instantiate()
+        except BaseException:
+            self._cleanup_dir()
+            raise
+
+    @property
+    def is_model_exchange(self) -> bool:
+        return self.interface == "model-exchange"
 
     # ------------------------------------------------------------------ instance management
     def _instantiate(self) -> None:
-        from fmpy.fmi2 import (FMU2Slave, fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE,
-                               fmi2CallbackFunctions, fmi2CallbackLoggerTYPE)
+        from fmpy.fmi2 import (FMU2Model, FMU2Slave, fmi2CallbackAllocateMemoryTYPE,
+                               fmi2CallbackFreeMemoryTYPE, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE)
         from fmpy import calloc, free
 
         md = self.model_description
-        slave = FMU2Slave(guid=md.guid, unzipDirectory=str(self.unzipdir),
-                          modelIdentifier=md.coSimulation.modelIdentifier,
-                          instanceName=self.instance_name)
+        cls = FMU2Model if self.is_model_exchange else FMU2Slave
+        slave = cls(guid=md.guid, unzipDirectory=str(self.unzipdir),
+                    modelIdentifier=self.info.interfaces[self.interface],
+                    instanceName=self.instance_name)
         callbacks = fmi2CallbackFunctions()
         # Keep references to the ctypes callbacks: they must outlive the instance.
         self._logger_cb = fmi2CallbackLoggerTYPE(self._log_message)
@@ -298,8 +788,8 @@ class FMURunner:
                             f"parameters set: {changed}\n"
                             f"FMU log:\n{log if log else '  (no messages)'}")
 
-    def _start(self, params: Mapping[str, Value], stop_time: float,
-               inputs: Mapping[str, float] | None) -> None:
+    def _ready(self) -> None:
+        """An instance in the instantiated state: reset the last run's, or instantiate afresh."""
         if self._slave is None:
             self._instantiate()
         elif self._state != "instantiated":
@@ -310,15 +800,58 @@ class FMURunner:
                 self._instantiate()
         self._state = "running"
         self.messages.clear()
+
+    def _start(self, params: Mapping[str, Value], stop_time: float,
+               inputs: Mapping[str, float] | None) -> None:
+        self._ready()
         self._phase = "while setting parameters"
         self._set(params, ("parameter",), "parameter")
         if inputs:
             self._set(inputs, ("input",), "input")
         self._phase = "during initialisation"
-        self._slave.setupExperiment(startTime=0.0, stopTime=float(stop_time))
+        self._slave.setupExperiment(tolerance=self.relative_tolerance, startTime=0.0, stopTime=float(stop_time))
         self._slave.enterInitializationMode()
         self._slave.exitInitializationMode()
         self._phase = "after initialisation"
+
+    def _me_intervals(self, times: np.ndarray) -> tuple[float, float | None]:
+        """(fmpy output_interval, fmpy step_size) for a model exchange run sampled at ``times``.
+
+        fmpy's loop integrates from one output point to the next (Euler: one step each), so the output
+        interval is the integration step: ``step_size`` when set, else the sampling step (CVode) or
+        the sampling step divided into steps of at most stop_time/1000 (Euler)."""
+        stop = float(times[-1])
+        sample = float(times[1] - times[0]) if len(times) > 2 else stop
+        if self.step_size is not None:
+            h = min(self.step_size, stop)
+        elif self.solver == "Euler":
+            h = sample / math.ceil(sample / (stop / 1000) - 1e-9)
+        else:
+            h = sample
+        return h, (h if self.solver == "Euler" else None)
+
+    def _run_me(self, values: Mapping[str, Value], times: np.ndarray, outputs: list[str],
+                params: Mapping[str, Value]) -> np.ndarray:
+        """One model exchange run with fmpy's solver on the reused instance; the outputs at ``times``.
+
+        ``values`` are the start values (parameters and constant inputs) set after ``fmi2Reset``."""
+        from fmpy import simulate_fmu
+
+        self._ready()
+        interval, step_size = self._me_intervals(times)
+        self._phase = (f"in fmpy's {self.solver} integration of the model exchange FMU "
+                       f"from t = 0 to {times[-1]:.10g} s")
+        try:
+            res = simulate_fmu(str(self.unzipdir), validate=True, start_time=0.0, stop_time=float(times[-1]),
+                               solver=self.solver, step_size=step_size,
+                               relative_tolerance=self.relative_tolerance, output_interval=interval,
+                               record_events=True, fmi_type="ModelExchange", start_values=dict(values),
+                               output=list(outputs), model_description=self.model_description,
+                               fmu_instance=self._slave)
+        except Exception as exc:
+            raise self._fail(exc, self._phase, params) from exc
+        self._state = "done"
+        return _sample_at(res, times, outputs)
 
     @staticmethod
     def _check_time(stop_time: float, step: float | None) -> None:
@@ -353,6 +886,14 @@ class FMURunner:
             n = max(1, math.ceil(stop_time / step - 1e-9))
             times = np.arange(n + 1, dtype=float) * step
             times[-1] = stop_time
+        if self.is_model_exchange:
+            for name in outputs:
+                self._lookup(name, ("output", "parameter", "calculatedParameter", "local", "input"), "output")
+            values = {n: self._coerce(self.variables[n], x) for n, x in {**params, **(inputs or {})}.items()}
+            data = self._run_me(values, times, outputs, params)
+            df = pd.DataFrame(data, columns=outputs)
+            df.insert(0, "time", times)
+            return df
         data = np.empty((len(times), len(outputs)))
         t = 0.0
         try:
@@ -381,6 +922,9 @@ class FMURunner:
         self._check_time(stop_time, None)
         self._validate(params, outputs, inputs)
         outputs = list(outputs)
+        if self.is_model_exchange:
+            df = self.run(params, stop_time, None, outputs, inputs)
+            return {name: float(df[name].iloc[-1]) for name in outputs}
         try:
             self._start(params, stop_time, inputs)
             read = self._reader(outputs)
@@ -393,6 +937,24 @@ class FMURunner:
             raise self._fail(exc, self._phase, params) from exc
         self._state = "done"
         return dict(zip(outputs, row))
+
+
+def _sample_at(res, times: np.ndarray, outputs: Sequence[str]) -> np.ndarray:
+    """Rows of fmpy's result ``res`` at ``times``: the last sample at each time (after an event at that
+    instant), linear interpolation where no sample falls on it."""
+    t = np.asarray(res["time"], dtype=float)
+    cols = np.column_stack([np.asarray(res[name], dtype=float) for name in outputs]) if len(outputs) \
+        else np.empty((len(t), 0))
+    tol = 1e-9 * max(1.0, abs(float(times[-1])))
+    idx = np.searchsorted(t, np.asarray(times) + tol, side="right") - 1
+    out = np.empty((len(times), len(outputs)))
+    for k, (T, i) in enumerate(zip(times, idx)):
+        if i >= 0 and abs(t[i] - T) <= tol:
+            out[k] = cols[i]
+        else:
+            for j in range(len(outputs)):
+                out[k, j] = np.interp(T, t, cols[:, j])
+    return out
 
 
 def pullout(params: Mapping[str, Value] | None = None, stop_time: float = 12.0, step: float | None = 0.01,
@@ -445,6 +1007,13 @@ class RunPlan:
                 raise ValueError(f"parameter {v.name!r} has variability {v.variability!r} and cannot be set")
         self._fixed_calls = self._prepared_sets(runner, self.fixed, ("parameter",), "parameter")
         self._input_calls = self._prepared_sets(runner, self.inputs, ("input",), "input")
+        if runner.is_model_exchange:
+            # fmpy's solver runs the FMU: start values by name, the same for every run but the varied ones
+            self._base_values = {n: runner._coerce(runner.variables[n], x)
+                                 for n, x in {**self.fixed, **self.inputs}.items()}
+            for n in self.outputs:
+                runner._lookup(n, ("output", "parameter", "calculatedParameter", "local", "input"), "output")
+            return
         self._vr_varied = (fmi2ValueReference * len(vs))(*[v.valueReference for v in vs])
         self._val_varied = (fmi2Real * len(vs))()
         outs = [runner._lookup(n, ("output", "parameter", "calculatedParameter", "local"), "output")
@@ -485,6 +1054,8 @@ class RunPlan:
 
     def __call__(self, values: Sequence[float]) -> np.ndarray:
         r = self.runner
+        if r.is_model_exchange:
+            return self._call_me(values)
         if r._slave is None or r._state != "instantiated":
             if r._slave is None:
                 r._instantiate()
@@ -510,7 +1081,10 @@ class RunPlan:
             for fn, vr, val in self._input_calls:
                 getattr(s, fn)(s.component, vr, len(vr), val)
             r._phase = "during initialisation"
-            s.fmi2SetupExperiment(s.component, 0, 0.0, 0.0, 1, self.stop_time)
+            if r.relative_tolerance is None:
+                s.fmi2SetupExperiment(s.component, 0, 0.0, 0.0, 1, self.stop_time)
+            else:
+                s.fmi2SetupExperiment(s.component, 1, r.relative_tolerance, 0.0, 1, self.stop_time)
             s.fmi2EnterInitializationMode(s.component)
             s.fmi2ExitInitializationMode(s.component)
             data[0] = self._read()
@@ -531,6 +1105,19 @@ class RunPlan:
         return data
 
 
+    def _call_me(self, values: Sequence[float]) -> np.ndarray:
+        """A model exchange run: fmpy's solver on the runner's reused instance."""
+        r = self.runner
+        params = dict(zip(self.varied, (float(x) for x in values)))
+        data = r._run_me({**self._base_values, **params}, self.times, self.outputs, {**self.fixed, **params})
+        if not np.all(np.isfinite(data[-1])):
+            bad = [n for n, x in zip(self.outputs, data[-1]) if not math.isfinite(x)]
+            r._state = "failed"
+            raise RuntimeError(f"{r.model_description.modelName}: non-finite output {', '.join(bad)} at "
+                               f"t = {self.times[-1]:.10g} s; parameters {params}")
+        return data
+
+
 # ---------------------------------------------------------------------- batches, pools, clusters
 @dataclass(frozen=True)
 class PlanSpec:
@@ -545,6 +1132,11 @@ class PlanSpec:
     stop_time: float
     step: float | None
     rules: tuple[MetricRule, ...]
+    # how the FMU runs (fmu_options of the study); the defaults are a co-simulation FMU's own solver
+    interface: str = "auto"                  # auto | co-simulation | model-exchange
+    solver: str | None = None                # model exchange: CVode (None) or Euler
+    relative_tolerance: float | None = None
+    step_size: float | None = None
 
 
 @dataclass
@@ -564,7 +1156,8 @@ def _plan_for(spec: PlanSpec) -> RunPlan:
     """The calling process's RunPlan for ``spec``: one FMU instance per process and spec, reused."""
     plan = _WORKER_PLANS.get(spec)
     if plan is None:
-        runner = FMURunner(spec.fmu_path)
+        runner = FMURunner(spec.fmu_path, interface=spec.interface, solver=spec.solver,
+                           relative_tolerance=spec.relative_tolerance, step_size=spec.step_size)
         plan = RunPlan(runner, spec.varied, dict(spec.fixed), spec.outputs, spec.stop_time, spec.step,
                        dict(spec.inputs))
         _WORKER_PLANS[spec] = plan
@@ -590,10 +1183,20 @@ def run_chunk(spec: PlanSpec, chunk: Sequence[tuple[int, tuple[float, ...]]]) ->
     return out
 
 
+def _signal_name(num: int) -> str:
+    import signal
+    try:
+        return f"{signal.Signals(num).name}, signal {num}"
+    except ValueError:
+        return f"signal {num}"
+
+
 def _worker_main(conn, spec: PlanSpec) -> None:
     """A pool worker: receive chunks, send back one result per run as soon as it is done."""
+    import faulthandler
     import signal
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # the parent decides when to stop
+    faulthandler.disable()   # a crashing FMU is reported by the parent, not by a Python stack dump
     while True:
         try:
             msg = conn.recv()
@@ -679,7 +1282,7 @@ class WorkerPool:
                     code = w.proc.exitcode
                     w.proc.join(1.0)
                     code = w.proc.exitcode if code is None else code
-                    reason = (f"the FMU crashed the worker process (signal {-code})" if code and code < 0
+                    reason = (f"the FMU crashed the worker process ({_signal_name(-code)})" if code and code < 0
                               else f"the worker process exited with code {code}")
                     self._replace(w, reason, take, now)
                     continue
@@ -691,8 +1294,11 @@ class WorkerPool:
             if self.timeout_s:
                 for w in list(self.workers):
                     if w.pending and now - w.since > self.timeout_s:
+                        if w.conn.poll():      # an answer arrived after wait(): read it next round
+                            continue
                         self._replace(w, f"timed out after {self.timeout_s:g} s (the FMU hangs or is too slow; "
-                                         f"raise execution.timeout_s if it is only slow)", take, now)
+                                         f"if only slow, raise execution.timeout_s and rerun without --resume)",
+                                      take, now)
             # workers replaced without a chunk left to finish pick up queued chunks
             for w in self.workers:
                 if not w.pending and queue:
@@ -728,11 +1334,28 @@ class Evaluator:
         self.timeout_s = timeout_s
         self._pool: WorkerPool | None = None
         self._client = None
+        self._unzipdir: str | None = None
+
+    def _local_spec(self) -> PlanSpec:
+        """The spec with the FMU unpacked once, here, for this process and its workers: workers that
+        crash or are killed cannot clean up a copy of their own."""
+        if self._unzipdir is None and Path(self.spec.fmu_path).is_file():
+            import fmpy
+            self._unzipdir = fmpy.extract(self.spec.fmu_path)
+        if self._unzipdir is None:
+            return self.spec
+        return replace(self.spec, fmu_path=self._unzipdir)
 
     def close(self) -> None:
         if self._pool is not None:
             self._pool.close()
             self._pool = None
+        if self._unzipdir is not None:
+            plan = _WORKER_PLANS.pop(self._local_spec(), None)
+            if plan is not None:
+                plan.runner.close()
+            shutil.rmtree(self._unzipdir, ignore_errors=True)
+            self._unzipdir = None
         if self._client is not None:
             self._client.close()
             self._client = None
@@ -774,10 +1397,11 @@ class Evaluator:
                 take(fut.result())
         elif self.isolate or (self.workers > 1 and len(items) >= self.pool_threshold):
             if self._pool is None:
-                self._pool = WorkerPool(self.spec, self.workers, self.timeout_s)
+                self._pool = WorkerPool(self._local_spec(), self.workers, self.timeout_s)
             size = max(1, min(200, len(items) // (self.workers * 8) or 1))
             self._pool.map(items, take, size)
         else:
+            spec = self._local_spec()
             for c in self._chunks(items, 1):
-                take(run_chunk(self.spec, c))
+                take(run_chunk(spec, c))
         return results
