@@ -433,6 +433,60 @@ static double locate_rest(const Solver *s, const Linearization *L, const double 
     return hi;
 }
 
+/* A lightly damped axial oscillation can have peaks of |a_y| or |v_y| above the rest thresholds between
+ * samples while every sample is below them, so t_eq would come out too early. When the active block is
+ * the 2x2 axial one with complex eigenvalues sigma +- i omega, the solution of the linearised dynamics is a
+ * particular part (affine in time) plus a damped oscillation whose amplitude is known in closed form;
+ * from the start s_c of the rest found by the samples to the time s* after which the envelope stays
+ * below the thresholds, the exact solution is scanned at 1/16 of the period for the last excursion, and
+ * t_eq moves to where that excursion ends. Returns the corrected start of rest in step coordinates. */
+static double rest_after_oscillation(const Solver *s, const Linearization *L, const double *w0,
+                                     const double *z0, double h, double s_c)
+{
+    if (L->k != 2) return s_c;
+    int ip = s->ipos, iv = s->ivel, n = s->n;
+    if (!((L->idx[0] == ip && L->idx[1] == iv) || (L->idx[0] == iv && L->idx[1] == ip))) return s_c;
+    double Jpp = L->J[ip * n + ip], Jpv = L->J[ip * n + iv], Jvp = L->J[iv * n + ip], Jvv = L->J[iv * n + iv];
+    double tr = Jpp + Jvv, det = Jpp * Jvv - Jpv * Jvp, disc = tr * tr - 4.0 * det;
+    if (!(disc < 0.0) || det == 0.0) return s_c;
+    double sigma = 0.5 * tr, omega = 0.5 * sqrt(-disc);
+    if (!(sigma < 0.0)) return s_c;
+    /* x = w - w0 obeys x' = J x + z0 + Ft s (z0 = the derivative at the sample, Ft the forcing slope) */
+    double Fp = L->Ft[ip], Fv = L->Ft[iv], Zp = z0[ip], Zv = z0[iv];
+    double ip_ = 1.0 / det;   /* J^-1 = [[Jvv, -Jpv], [-Jvp, Jpp]] / det */
+    double q1p = -ip_ * (Jvv * Fp - Jpv * Fv), q1v = -ip_ * (-Jvp * Fp + Jpp * Fv);
+    double rp = q1p - Zp, rv = q1v - Zv;
+    double q0p = ip_ * (Jvv * rp - Jpv * rv), q0v = ip_ * (-Jvp * rp + Jpp * rv);
+    double hp = -q0p, hv = -q0v;                       /* the oscillation at the sample */
+    double ghp = Jpp * hp + Jpv * hv, ghv = Jvp * hp + Jvv * hv;   /* its derivative */
+    /* amplitude of component c of e^{Js} x: sqrt(x_c^2 + (((J - sigma) x)_c / omega)^2) */
+    double Av = hypot(hv, (Jvp * hp + (Jvv - sigma) * hv) / omega);
+    double Aa = hypot(ghv, (Jvp * ghp + (Jvv - sigma) * ghv) / omega);
+    double ap = fabs(q1v);
+    double vp = fmax(fabs(w0[iv] + q0v + q1v * s_c), fabs(w0[iv] + q0v + q1v * h));
+    if (ap >= s->eps_a || vp >= s->eps_v) return s_c;   /* the samples' verdict stands */
+    double s_a = Aa > s->eps_a - ap ? log((s->eps_a - ap) / Aa) / sigma : 0.0;
+    double s_v = Av > s->eps_v - vp ? log((s->eps_v - vp) / Av) / sigma : 0.0;
+    double s_star = fmin(fmax(s_a, s_v), h);
+    if (s_star <= s_c) return s_c;
+    double dt = 3.14159265358979323846 / omega / 8.0;   /* 1/16 of the period */
+    for (double x = s_star; x > s_c; x -= dt) {
+        double xs = fmax(x, s_c);
+        if (rest_gap(s, L, w0, z0, xs) > 0.0) {
+            /* the last excursion: rest begins at the next upward-to-rest crossing after xs */
+            double x1 = fmin(xs + dt, h), g0 = rest_gap(s, L, w0, z0, xs), g1 = rest_gap(s, L, w0, z0, x1);
+            if (g1 > 0.0) return x1;   /* unresolved: take the conservative end */
+            double w1[NMAX], z1[NMAX], A[NMAX * NMAX];
+            double ph[4][NMAX * NMAX];
+            active_block(s, L, xs, A);
+            solver_phi(L->k, A, ph[0], ph[1], ph[2], ph[3]);
+            propagate_linear(s, L, w0, z0, xs, ph, w1, z1);
+            return xs + locate_rest(s, L, w1, z1, x1 - xs, g0, g1);
+        }
+    }
+    return s_c;
+}
+
 int solver_init(Solver *s, double t0, const double *u0, char *msg, size_t msglen)
 {
     double F[NMAX];
@@ -593,6 +647,11 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                     double g1 = fmax(fabs(v1) / s->eps_v, fabs(ac[j + 1]) / s->eps_a) - 1.0;
                     s->t_eq = t + j * dt + (g0 > 0.0 ? locate_rest(s, &L, w[j], zs[j], dt, g0, g1) : 0.0);
                 }
+            }
+            if (s->t_eq >= 0.0) {
+                double s_c = fmax(0.0, s->t_eq - t);
+                double s_new = rest_after_oscillation(s, &L, w[0], zs[0], h, s_c);
+                if (s_new > s_c) s->t_eq = t + s_new;
             }
             for (int i = 0; i < n; i++) s->umax[i] = fmax(s->umax[i], fabs(u1[i]));
             memcpy(s->u, u1, sizeof(double) * n);
