@@ -193,16 +193,243 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- inspect
+CAUSALITIES = ("parameter", "calculatedParameter", "input", "output", "local", "independent")
+_COLUMNS = ("name", "causality", "variability", "type", "unit", "start", "description")
+
+
+def _add_inspect(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "inspect", help="show what an FMU offers: FMI version, interfaces, binaries, sources, variables",
+        description="Print an FMU's FMI version, model name, interfaces (co-simulation CS, model exchange ME), "
+                    "the platforms it has binaries for, whether it carries its C sources, its default "
+                    "experiment, and a table of its variables (name, causality, variability, type, unit, "
+                    "start, description). Use it to write a study's mapping: study parameters and 'fixed' "
+                    "need causality parameter with variability fixed or tunable, 'scenario.inputs' need "
+                    "causality input, metrics read outputs.")
+    p.add_argument("fmu", type=Path, metavar="FMU", help="an .fmu file or an extracted FMU directory")
+    p.add_argument("--causality", action="append", metavar="KIND", dest="causality",
+                   help="only variables of this causality (repeatable or comma-separated): "
+                        + ", ".join(CAUSALITIES))
+    p.add_argument("--name", metavar="PATTERN", default=None,
+                   help="only variables whose name matches PATTERN (shell wildcards, e.g. 'c_*'; a plain word "
+                        "matches anywhere in the name)")
+    p.add_argument("--csv", action="store_true",
+                   help="print the variable table as CSV (all columns, nothing truncated) and nothing else")
+    p.add_argument("--full", action="store_true", help="do not truncate long descriptions")
+    p.set_defaults(func=cmd_inspect)
+
+
+def _causalities(items: list[str] | None) -> set[str] | None:
+    if not items:
+        return None
+    out = set()
+    lower = {c.lower(): c for c in CAUSALITIES}
+    for item in items:
+        for word in filter(None, (w.strip() for w in item.split(","))):
+            c = lower.get(word.lower())
+            if c is None:
+                import difflib
+                close = difflib.get_close_matches(word, CAUSALITIES, n=1)
+                hint = f"; did you mean {close[0]}?" if close else ""
+                raise ValueError(f"unknown causality {word!r}{hint} (known: {', '.join(CAUSALITIES)})")
+            out.add(c)
+    return out
+
+
+def _variable_rows(info, causality: set[str] | None, pattern: str | None) -> list[dict[str, str]]:
+    import fnmatch
+    rows = []
+    for v in info.variables:
+        c = v.causality or "local"
+        if causality is not None and c not in causality:
+            continue
+        if pattern and not (fnmatch.fnmatchcase(v.name, pattern) if any(ch in pattern for ch in "*?[")
+                            else pattern.lower() in v.name.lower()):
+            continue
+        unit = v.unit or (v.declaredType.unit if getattr(v, "declaredType", None) is not None else None) or ""
+        typ = v.type or ""
+        if typ == "Enumeration" and getattr(v, "declaredType", None) is not None and v.declaredType.name:
+            typ = f"Enumeration({v.declaredType.name})"
+        rows.append({"name": v.name, "causality": c, "variability": v.variability or "continuous",
+                     "type": typ, "unit": unit, "start": _fmt_start(v.start),
+                     "description": " ".join((v.description or "").split())})
+    return rows
+
+
+def _fmt_start(start) -> str:
+    """The start value as declared; long numbers shortened to 10 (or 7) significant digits."""
+    if start is None:
+        return ""
+    text = str(start)
+    if len(text) > 12:
+        try:
+            x = float(text)
+        except ValueError:
+            return text
+        text = f"{x:.10g}"
+        if len(text) > 14:
+            text = f"{x:.7g}"
+    return text
+
+
+def _table(rows: list[dict[str, str]], width: int, full: bool) -> list[str]:
+    """Aligned columns; long names and starts are cut at a cap, descriptions at the terminal width."""
+    caps = {"name": 48, "causality": 19, "variability": 11, "type": 24, "unit": 14, "start": 16}
+
+    def cut(text: str, n: int) -> str:
+        return text if len(text) <= n else text[:max(1, n - 1)] + "…"
+
+    widths = {}
+    for col in _COLUMNS[:-1]:
+        widths[col] = max([len(col)] + [len(r[col]) for r in rows])
+        if not full:
+            widths[col] = min(widths[col], caps[col])
+    used = sum(widths[c] + 2 for c in _COLUMNS[:-1])
+    desc = max([len("description")] + [len(r["description"]) for r in rows])
+    if not full:
+        desc = min(desc, max(12, width - used))
+    widths["description"] = desc
+    lines = ["  ".join(col.ljust(widths[col]) for col in _COLUMNS).rstrip(),
+             "  ".join("-" * widths[col] for col in _COLUMNS)]
+    for r in rows:
+        lines.append("  ".join((r[c] if full else cut(r[c], widths[c])).ljust(widths[c])
+                               for c in _COLUMNS).rstrip())
+    return lines
+
+
+def _fmt_num(x) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    import shutil as _shutil
+
+    from .evaluate import FMUError, host_platform, read_fmu_info
+
+    causality = _causalities(args.causality)
+    note = None
+    try:
+        info = read_fmu_info(args.fmu)
+    except FMUError as exc:
+        if "needs FMI 2.0" not in str(exc):
+            raise
+        note = str(exc)
+        try:
+            info = read_fmu_info(args.fmu, require_fmi2=False)
+        except Exception:
+            raise FMUError(note) from None
+    rows = _variable_rows(info, causality, args.name)
+    if args.csv:
+        import csv
+        w = csv.DictWriter(sys.stdout, fieldnames=list(_COLUMNS), lineterminator="\n")
+        try:
+            w.writeheader()
+            w.writerows(rows)
+            sys.stdout.flush()
+        except BrokenPipeError:
+            _quiet_stdout()
+        if note:
+            print(f"fmusa inspect: {note}", file=sys.stderr)
+        return 0
+    plat = host_platform()
+    names = {"co-simulation": "co-simulation (CS)", "model-exchange": "model exchange (ME)"}
+    ifaces = ", ".join(f"{names.get(k, k)}, model identifier {v}" for k, v in info.interfaces.items()) or "none"
+    if info.platforms:
+        here = ("yes" if any(info.has_binary(i) for i in info.interfaces) else "no")
+        binaries = f"{', '.join(info.platforms)}  (this machine, {plat}: {here})"
+    else:
+        binaries = "none"
+    if info.can_compile:
+        sources = f"yes: {', '.join(info.source_files)}"
+        if not any(info.has_binary(i) for i in info.interfaces):
+            sources += f"  (fmusa builds the {plat} binary from them before a study)"
+    elif info.has_sources:
+        sources = "sources/ present, but not listed under <SourceFiles> (cannot be built)"
+    else:
+        sources = "no"
+    de = info.default_experiment
+    if de:
+        parts = [f"{label} {_fmt_num(de[key])}{unit}" for key, label, unit in
+                 (("start_time", "start", " s"), ("stop_time", "stop", " s"), ("step_size", "step", " s"),
+                  ("tolerance", "tolerance", "")) if key in de]
+        experiment = ", ".join(parts)
+    else:
+        experiment = "none"
+    counts: dict[str, int] = {}
+    for v in info.variables:
+        c = v.causality or "local"
+        counts[c] = counts.get(c, 0) + 1
+    summary = ", ".join(f"{counts[c]} {c}" for c in CAUSALITIES if c in counts)
+    head = [
+        ("file", str(args.fmu)),
+        ("FMI version", info.fmi_version),
+        ("model name", info.model_name),
+        ("description", info.description or "-"),
+        ("generated by", info.generation_tool or "-"),
+        ("interfaces", ifaces),
+        ("binaries", binaries),
+        ("sources", sources),
+        ("default experiment", experiment),
+    ]
+    if "model-exchange" in info.interfaces:
+        head.append(("ME states / events", f"{info.n_states} continuous states, "
+                                           f"{info.n_event_indicators} event indicators"))
+    head.append(("variables", f"{len(info.variables)} ({summary})"))
+    width = _shutil.get_terminal_size((120, 24)).columns
+    try:
+        _print_inspect(head, info, note, rows, causality, args, width)
+        sys.stdout.flush()
+    except BrokenPipeError:   # e.g. `fmusa inspect X | head`: stop quietly
+        _quiet_stdout()
+    return 0
+
+
+def _quiet_stdout() -> None:
+    """After a closed pipe: send the rest of stdout (and Python's final flush) to /dev/null."""
+    import os
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
+def _print_inspect(head, info, note, rows, causality, args, width) -> None:
+    import textwrap
+    key_w = max(len(k) for k, _ in head)
+    for k, v in head:
+        if args.full or len(v) + key_w + 2 <= width:
+            print(f"{k.ljust(key_w)}  {v}")
+        else:   # wrap long values under themselves
+            print(textwrap.fill(v, width=max(40, width), initial_indent=f"{k.ljust(key_w)}  ",
+                                subsequent_indent=" " * (key_w + 2)))
+    for w in info.warnings:
+        print(f"{'warning'.ljust(key_w)}  {' '.join(w.split())}")
+    if note:
+        print(f"{'note'.ljust(key_w)}  {note}")
+    print()
+    if not rows:
+        filt = []
+        if causality:
+            filt.append("causality " + ", ".join(sorted(causality)))
+        if args.name:
+            filt.append(f"name {args.name!r}")
+        print(f"no variables match {' and '.join(filt)}")
+        return
+    for line in _table(rows, width, args.full):
+        print(line)
+    if causality or args.name:
+        print(f"({len(rows)} of {len(info.variables)} variables)")
+
+
 # ---------------------------------------------------------------------------- entry point
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="fmusa", description="Run the ScrewVertebra FMU (or another FMI 2.0 co-simulation FMU) "
-                                  "for parameter studies.")
+        prog="fmusa", description="Run the ScrewVertebra FMU (or another FMI 2.0 FMU, co-simulation or "
+                                  "model exchange) for parameter studies.")
     parser.add_argument("--version", action="version", version=f"fmusa {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     _add_pullout(sub)
     _add_sweep(sub)
+    _add_inspect(sub)
     return parser
 
 

@@ -435,9 +435,11 @@ def compile_sources(unzipdir: str | os.PathLike, info: FMUInfo | None = None,
     if not ok or not target.is_file():
         if ok:
             log.append(f"the build finished but did not produce {target.relative_to(unzipdir)}")
+        # the failing step (the configure chatter of a step that worked is left out)
+        failed = log[-2:] if len(log) >= 2 and log[-2].startswith("$ ") else log[-1:]
         raise FMUCompileError(f"{label}: has no {plat} binary, and building one from its C sources "
                               f"({', '.join(info.source_files)}) failed. Compiler output:\n"
-                              + _tail("\n".join(x for x in log if x)))
+                              + _tail("\n".join(x for x in failed if x)))
     return target
 
 
@@ -1342,6 +1344,15 @@ class Evaluator:
         if self._unzipdir is None and Path(self.spec.fmu_path).is_file():
             import fmpy
             self._unzipdir = fmpy.extract(self.spec.fmu_path)
+            try:   # sources but no binary for this machine: build once here, not in every worker
+                info = read_fmu_info(self._unzipdir)
+                iface = select_interface(info, self.spec.interface)
+                if not info.has_binary(iface) and info.can_compile:
+                    compile_sources(self._unzipdir, info, iface)
+            except Exception:
+                shutil.rmtree(self._unzipdir, ignore_errors=True)
+                self._unzipdir = None
+                raise
         if self._unzipdir is None:
             return self.spec
         return replace(self.spec, fmu_path=self._unzipdir)

@@ -11,7 +11,8 @@ file, the line, the key and the fix, e.g.::
     studies/paper.yaml:14: key 'stop_tme' is not allowed in 'scenario'; did you mean 'stop_time'?
     (allowed: stop_time, step, inputs, description)
 
-Whether the FMU variables exist is checked later, against the FMU itself.
+Whether the FMU variables exist is checked later, against the FMU itself (``fmusa.sweep.check_fmu``);
+``Study.lines`` keeps the line of every FMU reference for those messages.
 
 Example::
 
@@ -38,7 +39,7 @@ from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 __all__ = [
     "StudyError", "Study", "Parameter", "Scenario", "Metric", "Constraint", "GridStage", "RoiStage",
     "SearchStage", "RegressionStage", "SensitivityStage", "SensitivityParameter", "Execution",
-    "load_study", "parse_study", "STAGE_NAMES", "REDUCTIONS", "METHODS", "DISTRIBUTIONS",
+    "FMUOptions", "INTERFACES", "SOLVERS", "load_study", "parse_study", "STAGE_NAMES", "REDUCTIONS", "METHODS", "DISTRIBUTIONS",
 ]
 
 #: Stage names, in the order they are normally run.
@@ -49,6 +50,10 @@ REDUCTIONS = ("final", "max", "min", "max_abs", "mean", "mean_abs")
 METHODS = ("morris", "sobol")
 #: Distributions of sensitivity parameters.
 DISTRIBUTIONS = ("uniform", "loguniform")
+#: FMI 2.0 interfaces a study may ask for (``fmu_options.interface``).
+INTERFACES = ("auto", "co-simulation", "model-exchange")
+#: fmpy's solvers for model exchange FMUs (``fmu_options.solver``).
+SOLVERS = ("CVode", "Euler")
 
 _IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
@@ -245,6 +250,21 @@ class Execution:
 
 
 @dataclass(frozen=True)
+class FMUOptions:
+    """How the FMU runs (``fmu_options``).
+
+    ``interface`` ``auto`` runs co-simulation when the FMU has it (the FMU's own solver), else model
+    exchange. Model exchange FMUs are integrated by fmpy's ``solver`` (CVode when None, or Euler) with
+    ``relative_tolerance`` (CVode) and ``step_size`` (Euler's fixed step; CVode's longest step). For a
+    co-simulation FMU, ``relative_tolerance`` is passed to ``fmi2SetupExperiment``.
+    """
+    interface: str = "auto"
+    solver: str | None = None
+    relative_tolerance: float | None = None
+    step_size: float | None = None
+
+
+@dataclass(frozen=True)
 class Study:
     """A whole study, as loaded from its YAML file.
 
@@ -264,6 +284,17 @@ class Study:
     stages: dict[str, object]
     execution: Execution
     paper: dict
+    fmu_options: FMUOptions = field(default_factory=FMUOptions)
+    #: line of each FMU reference in the study file, for the FMU checks' messages: keys such as
+    #: ``fmu``, ``parameters.c.variable``, ``fixed.F_max``, ``scenario.inputs.F_ext``,
+    #: ``metrics.max_y.output``, ``stages.sensitivity.parameters.c_x.variable``, ``fmu_options.solver``
+    lines: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def line(self, key: str) -> str:
+        """``file:line`` of ``key`` (see ``lines``), or ``file`` when unknown, for messages."""
+        label = str(self.path) if self.path is not None else "<string>"
+        n = self.lines.get(key)
+        return f"{label}:{n}" if n else label
 
     def fmu_values(self, point: Mapping[str, float]) -> dict[str, float | int | bool]:
         """FMU start values for one run: ``fixed`` plus the study parameters in ``point``
@@ -318,6 +349,10 @@ class _Parser:
     def __init__(self, label: str) -> None:
         self.label = label
         self._constructor = SafeConstructor()
+        self.lines: dict[str, int] = {}   # study key -> line, for the checks against the FMU
+
+    def mark(self, key: str, node: Node) -> None:
+        self.lines.setdefault(key, _line(node))
 
     # ---------------------------------------------------------------- errors
     def error(self, node: Node | None, msg: str) -> StudyError:
@@ -557,7 +592,7 @@ class _Map:
 
 
 # ============================================================================ sections
-_TOP_KEYS = ("name", "description", "fmu", "parameters", "fixed", "scenario", "metrics",
+_TOP_KEYS = ("name", "description", "fmu", "fmu_options", "parameters", "fixed", "scenario", "metrics",
              "constraints", "stages", "execution", "paper")
 
 
@@ -575,6 +610,7 @@ def _parse_parameters(p: _Parser, top: _Map) -> dict[str, Parameter]:
         pm = p.mapping(vnode, where, name, knode)
         pm.allow(("variable", "unit", "scale", "offset", "description"))
         var = p.string(pm.need("variable", "variable: c_y"), "variable", where, "variable: c_y")
+        p.mark(f"{where}.variable", pm.items["variable"][1])
         if var in seen:
             raise p.error(pm.items["variable"][1],
                           f"key 'variable' {_in(where)}: FMU variable {var!r} is already set by "
@@ -594,7 +630,8 @@ def _parse_fixed(p: _Parser, top: _Map) -> dict[str, float | int | bool]:
         return {}
     m = p.mapping(node, "fixed", "fixed")
     out: dict[str, float | int | bool] = {}
-    for name, _, vnode in m.entries():
+    for name, knode, vnode in m.entries():
+        p.mark(f"fixed.{name}", knode)
         v = p.scalar(vnode) if isinstance(vnode, ScalarNode) else None
         if isinstance(v, bool):
             out[name] = v
@@ -622,7 +659,8 @@ def _parse_scenario(p: _Parser, top: _Map) -> Scenario:
     inode = m.opt("inputs")
     if inode is not None:
         im = p.mapping(inode, "scenario.inputs", "inputs")
-        for name, _, vnode in im.entries():
+        for name, knode, vnode in im.entries():
+            p.mark(f"scenario.inputs.{name}", knode)
             inputs[name] = p.number(vnode, name, "scenario.inputs", f"{name}: 20")
     return Scenario(stop_time=stop, step=step, inputs=inputs, description=m.text("description"))
 
@@ -644,6 +682,7 @@ def _parse_metrics(p: _Parser, top: _Map, parameters: Mapping) -> dict[str, Metr
         mm.allow(("output", "reduce", "unit", "scale", "offset", "missing_below", "description"))
         output = p.string(mm.need("output", "output: y_max  (an FMU output variable)"), "output",
                           where, "output: y_max")
+        p.mark(f"{where}.output", mm.items["output"][1])
         rnode = mm.opt("reduce")
         reduce = "final" if rnode is None else p.choice(rnode, "reduce", where, REDUCTIONS,
                                                         "reduction")
@@ -824,6 +863,7 @@ def _parse_sensitivity(p: _Parser, m: _Map, where: str, metrics: Mapping,
         sm.allow(("variable", "bounds", "distribution", "unit"))
         varnode = sm.need("variable", f"variable: {name}")
         var = p.string(varnode, "variable", w, f"variable: {name}")
+        p.mark(f"{w}.variable", varnode)
         if var in seen:
             raise p.error(varnode, f"{_key('variable', w)}: FMU variable {var!r} is already varied by "
                                    f"'{seen[var]}'; vary each FMU variable once")
@@ -929,11 +969,69 @@ def _parse_execution(p: _Parser, top: _Map) -> Execution:
         timeout_s=m.num("timeout_s", 60.0, "timeout_s: 60", positive=True))
 
 
+_INTERFACE_ALIASES = {"auto": "auto", "cosimulation": "co-simulation", "cs": "co-simulation",
+                      "modelexchange": "model-exchange", "me": "model-exchange"}
+
+
+def _parse_fmu_options(p: _Parser, top: _Map, scenario: Scenario) -> FMUOptions:
+    node = top.opt("fmu_options")
+    if node is None:
+        return FMUOptions()
+    w = "fmu_options"
+    m = p.mapping(node, w, "fmu_options")
+    m.allow(("interface", "solver", "relative_tolerance", "step_size"))
+    for key, knode, _ in m.entries():
+        p.mark(f"{w}.{key}", knode)
+    interface = "auto"
+    inode = m.opt("interface")
+    if inode is not None:
+        text = p.string(inode, "interface", w, "interface: model-exchange")
+        interface = _INTERFACE_ALIASES.get(re.sub(r"[\s_-]", "", text.lower()))
+        if interface is None:
+            raise p.error(inode, f"{_key('interface', w)}: unknown interface {text!r}"
+                                 f"{_suggest(text, INTERFACES)} (allowed: {_fmt_list(INTERFACES)}; auto runs "
+                                 f"co-simulation when the FMU has it, else model exchange)")
+    solver = None
+    snode = m.opt("solver")
+    if snode is not None:
+        text = p.string(snode, "solver", w, "solver: CVode")
+        solver = {s.lower(): s for s in SOLVERS}.get(text.lower())
+        if solver is None:
+            raise p.error(snode, f"{_key('solver', w)}: unknown solver {text!r}{_suggest(text, SOLVERS)} "
+                                 f"(allowed: {_fmt_list(SOLVERS)}, fmpy's solvers for model exchange FMUs)")
+    rtol = m.num("relative_tolerance", None, "relative_tolerance: 1.0e-6", positive=True)
+    if rtol is not None and rtol >= 1:
+        raise p.error(m.items["relative_tolerance"][1],
+                      f"{_key('relative_tolerance', w)} must be < 1 (a relative tolerance), got {rtol:g}; "
+                      f"e.g. relative_tolerance: 1.0e-6")
+    step_size = m.num("step_size", None, "step_size: 1.0e-3  (s)", positive=True)
+    if interface == "co-simulation":
+        for key, val in (("solver", solver), ("step_size", step_size)):
+            if val is not None:
+                raise p.error(m.items[key][1],
+                              f"{_key(key, w)} applies to model exchange only: a co-simulation FMU integrates "
+                              f"with its own solver; remove '{key}' or set interface: model-exchange")
+    if step_size is not None:
+        snode = m.items["step_size"][1]
+        if step_size > scenario.stop_time:
+            raise p.error(snode, f"{_key('step_size', w)} ({step_size:g} s) is longer than scenario.stop_time "
+                                 f"({scenario.stop_time:g} s); use a smaller step_size or null")
+        if scenario.step is not None:
+            k = scenario.step / step_size
+            if abs(k - round(k)) > 1e-9 * max(1.0, k) or round(k) < 1:
+                good = scenario.step / max(1, math.ceil(k))
+                raise p.error(snode, f"{_key('step_size', w)} ({step_size:g} s) must divide scenario.step "
+                                     f"({scenario.step:g} s) into whole steps, so that the outputs are sampled "
+                                     f"on solver steps; e.g. step_size: {good:.6g}")
+    return FMUOptions(interface=interface, solver=solver, relative_tolerance=rtol, step_size=step_size)
+
+
 def _parse_fmu(p: _Parser, top: _Map, base_dir: Path) -> Path | None:
     node = top.opt("fmu")
     if node is None:
         return None
     text = p.string(node, "fmu", "", "fmu: default  (or a path to an .fmu file)")
+    p.mark("fmu", node)
     if text == "default":
         return None
     path = Path(os.path.expanduser(text))
@@ -980,6 +1078,7 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None) -> 
     constraints = _parse_constraints(p, top, metrics)
     stages = _parse_stages(p, top, parameters, metrics, fixed)
     execution = _parse_execution(p, top)
+    fmu_options = _parse_fmu_options(p, top, scenario)
     paper_node = top.opt("paper")
     paper: dict = {}
     if paper_node is not None:
@@ -989,7 +1088,8 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None) -> 
         paper = p.plain(paper_node, "paper")
     return Study(name=name, description=description, path=path, fmu=fmu, parameters=parameters,
                  fixed=fixed, scenario=scenario, metrics=metrics, constraints=constraints,
-                 stages=stages, execution=execution, paper=paper)
+                 stages=stages, execution=execution, paper=paper, fmu_options=fmu_options,
+                 lines=dict(p.lines))
 
 
 # ============================================================================ entry points

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from .evaluate import Evaluator, FMURunner, PlanSpec, RunResult, default_fmu_path
+from .evaluate import Evaluator, FMUCompileError, PlanSpec, RunResult, default_fmu_path, prepare_fmu
 from .metrics import metric_rules
 from .regression import fit_by_level
 from .roi import Region, automatic_region, manual_region
@@ -47,29 +47,57 @@ def _progress(total: int, desc: str, enabled: bool):
 
 
 def check_fmu(study: Study, fmu_path: Path) -> list[str]:
-    """Every mapped variable exists with a fitting causality, before any run: (errors)."""
-    with FMURunner(fmu_path) as r:
-        errors = []
-        for p in study.parameters.values():
-            try:
-                r._lookup(p.variable, ("parameter",), "parameter")
-            except ValueError as exc:
-                errors.append(f"parameter {p.name!r}: {exc}")
-        for name in study.fixed:
-            try:
-                r._lookup(name, ("parameter",), "parameter")
-            except ValueError as exc:
-                errors.append(f"fixed: {exc}")
-        for name in study.scenario.inputs:
-            try:
-                r._lookup(name, ("input",), "input")
-            except ValueError as exc:
-                errors.append(f"scenario.inputs: {exc}")
-        for m in study.metrics.values():
-            try:
-                r._lookup(m.output, ("output", "parameter", "calculatedParameter", "local"), "output")
-            except ValueError as exc:
-                errors.append(f"metric {m.name!r}: {exc}")
+    """Everything the study asks of the FMU, checked on its model description before any run (nothing is
+    loaded, so an FMU that still has to be compiled from its sources is checked too).
+
+    FMI version 2.0; the interface ``fmu_options`` asks for (and a binary for this machine, or sources to
+    build one); every study, fixed and sensitivity parameter a settable parameter (causality parameter,
+    variability fixed or tunable; study parameters Real); every scenario input an input; every metric's
+    output a variable that can be read. Returns all problems, each ``file:line: what; closest names``.
+    """
+    from .evaluate import FMUError, binary_problem, read_fmu_info, select_interface, variable_problem
+
+    try:
+        info = read_fmu_info(fmu_path)
+    except (FMUError, FileNotFoundError) as exc:
+        return [f"{study.line('fmu')}: {exc}"]
+    errors: list[str] = []
+    opts = study.fmu_options
+    try:
+        interface = select_interface(info, opts.interface)
+    except FMUError as exc:
+        errors.append(f"{study.line('fmu_options.interface')}: fmu_options.interface: {exc}")
+    else:
+        if interface == "co-simulation":
+            for key, val in (("solver", opts.solver), ("step_size", opts.step_size)):
+                if val is not None:
+                    errors.append(f"{study.line(f'fmu_options.{key}')}: fmu_options.{key} applies to model "
+                                  f"exchange only, but {info.model_name} runs as a co-simulation FMU (its own "
+                                  f"solver); remove '{key}'"
+                                  + (", or set interface: model-exchange" if "model-exchange" in info.interfaces
+                                     else ""))
+        problem = binary_problem(info, interface)
+        if problem:
+            errors.append(f"{study.line('fmu')}: {problem}")
+
+    def check(key: str, what: str, name: str, role: str) -> None:
+        problem = variable_problem(info, name, role)
+        if problem:
+            errors.append(f"{study.line(key)}: {what}: {problem}")
+
+    for p in study.parameters.values():
+        check(f"parameters.{p.name}.variable", f"parameter '{p.name}' (variable: {p.variable})", p.variable,
+              "varied")
+    for name in study.fixed:
+        check(f"fixed.{name}", f"fixed '{name}'", name, "parameter")
+    for name in study.scenario.inputs:
+        check(f"scenario.inputs.{name}", f"scenario.inputs '{name}'", name, "input")
+    for m in study.metrics.values():
+        check(f"metrics.{m.name}.output", f"metric '{m.name}' (output: {m.output})", m.output, "output")
+    sens = study.stages.get("sensitivity")
+    for sp in (getattr(sens, "parameters", None) or {}).values():
+        check(f"stages.sensitivity.parameters.{sp.name}.variable",
+              f"sensitivity parameter '{sp.name}' (variable: {sp.variable})", sp.variable, "varied")
     return errors
 
 
@@ -82,12 +110,19 @@ class StudyRunner:
         fmu_path = Path(study.fmu) if study.fmu else default_fmu_path()
         errors = check_fmu(study, fmu_path)
         if errors:
-            raise ValueError(f"{study.path}: the study does not fit the FMU {fmu_path}:\n  " + "\n  ".join(errors))
+            n = len(errors)
+            raise ValueError(f"{study.path}: the study does not fit the FMU {fmu_path} ({n} problem"
+                             f"{'s' if n > 1 else ''}):\n  " + "\n  ".join(errors))
+        opts = study.fmu_options
+        try:   # an FMU without a binary for this machine is built from its sources, once, before any run
+            run_path = prepare_fmu(fmu_path, opts.interface, workdir=Path(out) / ".fmu")
+        except FMUCompileError as exc:
+            raise FMUCompileError(f"{study.path}: {exc}") from None
         self.params = list(study.parameters)
         outputs = list(dict.fromkeys(m.output for m in study.metrics.values()))
         self.metrics = list(study.metrics)
         spec = PlanSpec(
-            fmu_path=str(fmu_path),
+            fmu_path=str(run_path),
             varied=tuple(study.parameters[p].variable for p in self.params),
             scale=tuple(float(study.parameters[p].scale) for p in self.params),
             offset=tuple(float(study.parameters[p].offset) for p in self.params),
@@ -97,6 +132,10 @@ class StudyRunner:
             stop_time=float(study.scenario.stop_time),
             step=study.scenario.step,
             rules=tuple(metric_rules(study.metrics.values(), outputs)),
+            interface=opts.interface,
+            solver=opts.solver,
+            relative_tolerance=opts.relative_tolerance,
+            step_size=opts.step_size,
         )
         self.spec = spec
         self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume)

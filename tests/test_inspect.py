@@ -1,0 +1,166 @@
+"""`fmusa inspect FMU`: what an FMU offers, and a readable table of its variables (or CSV)."""
+from __future__ import annotations
+
+import csv
+import io
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from fmusa.cli import main
+
+from fmus.me_spring.build import build_spring_fmu
+
+
+def _inspect(capsys, *args: str) -> tuple[int, str, str]:
+    code = main(["inspect", *map(str, args)])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _header(out: str) -> dict[str, str]:
+    head = out.split("\n\n", 1)[0]
+    rows = {}
+    for line in head.splitlines():
+        if line[:1] != " ":
+            key, _, value = line.partition("  ")
+            rows[key.strip()] = value.strip()
+    return rows
+
+
+def _table(out: str) -> list[list[str]]:
+    """Rows of the variable table split on its column starts (taken from the dashes line)."""
+    lines = out.split("\n\n", 1)[1].splitlines()
+    dashes = lines[1]
+    starts = [i for i, ch in enumerate(dashes) if ch == "-" and (i == 0 or dashes[i - 1] == " ")]
+    bounds = list(zip(starts, starts[1:] + [None]))
+    return [[line[a:b].strip() for a, b in bounds] for line in lines[2:] if line and not line.startswith("(")]
+
+
+@pytest.fixture(scope="module")
+def spring(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("inspect_fmus")
+    return {"me": build_spring_fmu(d, "SpringME"),
+            "both": build_spring_fmu(d, "SpringBoth", ("co-simulation", "model-exchange")),
+            "sources": build_spring_fmu(d, "SpringSrc", binary=False, sources=True)}
+
+
+def test_inspect_our_fmu(capsys, fmu_path, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "120")
+    code, out, _ = _inspect(capsys, fmu_path)
+    assert code == 0
+    head = _header(out)
+    assert head["FMI version"] == "2.0"
+    assert head["model name"] == "ScrewVertebra"
+    assert head["interfaces"] == "co-simulation (CS), model identifier ScrewVertebra"
+    assert head["binaries"].startswith("linux64") and "this machine, linux64: yes" in head["binaries"]
+    assert head["sources"] == "yes: fmi2.c, model.c, solver.c"
+    assert head["default experiment"] == "start 0 s, stop 12 s, step 0.01 s"
+    assert head["variables"].startswith("102 (66 parameter, 3 calculatedParameter, 7 input, 26 output")
+    rows = {r[0]: r for r in _table(out)}
+    assert len(rows) == 102
+    assert rows["c_y"][:6] == ["c_y", "parameter", "fixed", "Real", "N/m", "823224"]
+    assert rows["c_y"][6].startswith("Interface stiffness along the screw")
+    assert rows["I_1"][1:4] == ["calculatedParameter", "fixed", "Real"] and rows["I_1"][5] == ""
+    assert rows["mode"][3] == "Integer"
+    assert rows["y_max"][1:3] == ["output", "continuous"]
+    assert rows["phi_inertia"][5] == "0.2837941092"          # long starts shortened to 10 digits
+    # every line fits the terminal; long descriptions are cut with an ellipsis
+    assert max(len(line) for line in out.split("\n\n", 1)[1].splitlines()) <= 120
+    assert any(r[6].endswith("…") for r in rows.values())
+
+
+def test_inspect_filters_by_causality_and_name(capsys, fmu_path):
+    code, out, _ = _inspect(capsys, fmu_path, "--causality", "input")
+    assert code == 0
+    names = [r[0] for r in _table(out)]
+    assert names == ["F_ext_x", "F_ext_y", "F_ext_z", "T_ext_x", "T_ext_y", "T_ext_z", "y_in"]
+    assert "(7 of 102 variables)" in out
+    code, out, _ = _inspect(capsys, fmu_path, "--causality", "output,calculatedParameter", "--name", "*_max")
+    assert sorted(r[0] for r in _table(out)) == ["v_y_max", "y_max"]
+    code, out, _ = _inspect(capsys, fmu_path, "--causality", "parameter", "--name", "d_*")
+    assert sorted(r[0] for r in _table(out)) == sorted(["d_x", "d_y", "d_z", "d_alpha", "d_beta", "d_gamma"])
+    code, out, _ = _inspect(capsys, fmu_path, "--name", "SCREW")       # a plain word: anywhere, any case
+    assert sorted(r[0] for r in _table(out)) == ["D_screw", "L_screw"]
+    code, out, _ = _inspect(capsys, fmu_path, "--causality", "input", "--name", "nothing")
+    assert code == 0 and "no variables match causality input and name 'nothing'" in out
+
+
+def test_inspect_unknown_causality_is_an_error(capsys, fmu_path):
+    code, out, err = _inspect(capsys, fmu_path, "--causality", "outpt")
+    assert code == 2 and "unknown causality 'outpt'; did you mean output?" in err
+
+
+def test_inspect_csv(capsys, fmu_path):
+    code, out, _ = _inspect(capsys, fmu_path, "--csv")
+    assert code == 0
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert len(rows) == 102
+    assert list(rows[0]) == ["name", "causality", "variability", "type", "unit", "start", "description"]
+    c_y = next(r for r in rows if r["name"] == "c_y")
+    assert c_y["unit"] == "N/m" and float(c_y["start"]) == 823224
+    assert c_y["description"] == "Interface stiffness along the screw axis y (eq. 1)"      # not truncated
+    code, out, _ = _inspect(capsys, fmu_path, "--csv", "--causality", "calculatedParameter")
+    assert [r["name"] for r in csv.DictReader(io.StringIO(out))] == ["I_1", "I_2", "I_3"]
+
+
+def test_inspect_model_exchange_fmu(capsys, spring):
+    code, out, _ = _inspect(capsys, spring["me"])
+    assert code == 0
+    head = _header(out)
+    assert head["interfaces"] == "model exchange (ME), model identifier spring"
+    assert head["ME states / events"] == "2 continuous states, 0 event indicators"
+    assert head["sources"] == "no"
+    assert head["default experiment"] == "start 0 s, stop 3 s, tolerance 1e-06"
+    rows = {r[0]: r for r in _table(out)}
+    assert rows["F_max"][:6] == ["F_max", "parameter", "tunable", "Real", "N", "10"]
+    assert rows["y_static"][1] == "calculatedParameter"
+    assert rows["g"][1:3] == ["local", "constant"]
+    assert rows["F_ext"][1] == "input"
+    code, out, _ = _inspect(capsys, spring["both"])
+    assert _header(out)["interfaces"] == ("co-simulation (CS), model identifier spring, "
+                                          "model exchange (ME), model identifier spring")
+
+
+def test_inspect_sources_only_fmu(capsys, spring):
+    code, out, _ = _inspect(capsys, spring["sources"])
+    head = _header(out)
+    assert head["binaries"] == "none"
+    assert head["sources"] == "yes: spring.c  (fmusa builds the linux64 binary from them before a study)"
+
+
+def test_inspect_full_and_narrow_terminal(capsys, fmu_path, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "100")
+    _, out, _ = _inspect(capsys, fmu_path)
+    table = out.split("\n\n", 1)[1].splitlines()
+    assert all(len(line) <= 100 for line in table)
+    assert "Interface stiffness along the screw axis y (eq. 1)" not in out
+    _, out, _ = _inspect(capsys, fmu_path, "--full")
+    assert "Interface stiffness along the screw axis y (eq. 1)" in out
+
+
+def test_inspect_rejects_fmi3_with_a_clear_message(capsys, fmu_path, tmp_path):
+    fake = tmp_path / "Fmi3.fmu"
+    with zipfile.ZipFile(fmu_path) as zin, zipfile.ZipFile(fake, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename == "modelDescription.xml":
+                data = data.replace(b'fmiVersion="2.0"', b'fmiVersion="3.0"', 1)
+            zout.writestr(item, data)
+    code, out, err = _inspect(capsys, fake)
+    assert code == 2
+    assert "is an FMI 3.0 FMU" in err and "fmusa needs FMI 2.0" in err
+    code, out, err = _inspect(capsys, tmp_path / "missing.fmu")
+    assert code == 1 and "FMU not found" in err
+
+
+def test_inspect_command_line(fmu_path):
+    """The installed `fmusa` entry point, piped into a pager that stops early, exits cleanly."""
+    exe = Path(sys.executable).parent / "fmusa"
+    proc = subprocess.run(f"'{exe}' inspect '{fmu_path}' | head -n 3", shell=True, capture_output=True,
+                          text=True)
+    assert proc.stdout.splitlines()[1].split() == ["FMI", "version", "2.0"]
+    assert "Traceback" not in proc.stderr
