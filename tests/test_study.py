@@ -88,7 +88,7 @@ def test_paper_study_loads():
 def test_six_dof_study_loads():
     s = load_study(SIX_DOF)
     assert s.name == "six_dof" and "grid" not in s.stages
-    assert s.fixed == {"F_max": 411, "t_ramp": 0.05}
+    assert s.fixed == {"F_max": 411, "t_ramp": 0.05, "rtol": 1e-3}
     assert s.scenario.stop_time == 0.1
     assert s.scenario.inputs == {"F_ext_x": 20.0, "F_ext_z": -10.0, "T_ext_y": 0.005}
     sens = s.stages["sensitivity"]
@@ -297,7 +297,7 @@ CASES = [
      ["key 'variable' in 'stages.sensitivity.parameters.c_z'", "'c_x' is already varied by 'c_x'"]),
     ("sensitivity variable fixed", SIX_TEXT, "  t_ramp: 0.05 ", "  t_ramp: 0.05\n  m: 0.0003 ",
      "m:       {variable: m", ["key 'variable' in 'stages.sensitivity.parameters.m'", "also in 'fixed'"]),
-    ("missing sensitivity outputs", SIX_TEXT, "    outputs: [max_y, max_v, x_final, z_final, alpha_final, gamma_final]\n",
+    ("missing sensitivity outputs", SIX_TEXT, "    outputs: [max_y, max_v, x_final, z_final, alpha_final, beta_final, gamma_final]\n",
      "", "  sensitivity:", ["key 'outputs' is missing in 'stages.sensitivity'", "outputs: [max_y, max_v]"]),
     ("misspelt sensitivity key", SIX_TEXT, "    parameters:\n", "    params:\n", "params:",
      ["key 'params' is not allowed in 'stages.sensitivity'", "did you mean 'parameters'?"]),
