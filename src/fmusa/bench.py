@@ -248,6 +248,26 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
     }
 
 
+def bench_paper_study(repeats: int = 5) -> dict:
+    """The paper's study, all three stages (grid, region of interest, search; regression too), no figures:
+    the median wall time of fresh runs into an empty directory."""
+    from .study import load_study
+    from .sweep import run_study
+
+    study_file = Path(__file__).resolve().parents[2] / "studies" / "paper.yaml"
+    study = load_study(study_file)
+    walls, runs = [], 0
+    for _ in range(repeats):
+        with tempfile.TemporaryDirectory(prefix="fmusa-bench-paper-") as tmp:
+            t0 = time.perf_counter()
+            res = run_study(study, tmp, figures=False, progress=False)
+            walls.append(time.perf_counter() - t0)
+            runs = res.summary["runs"]
+    return {"paper_study_wall_s": statistics.median(walls), "paper_study_wall_s_all": walls,
+            "paper_study_runs": runs, "paper_study_target_s": 2.0,
+            "paper_study_optimum": res.summary.get("optimum")}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m fmusa.bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("out/bench/bench.json"))
@@ -295,6 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         },
         "timestamp": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
+
+    result.update(bench_paper_study())
 
     if args.sobol_runs > 0:
         workers = args.workers or os.cpu_count() or 1
