@@ -431,6 +431,7 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->ipos = IX_Y;
     sv->ivel = IX_VY;
     sv->rtol = V(rtol);
+    sv->atol = 1e-15;            /* SI units: 1e-15 m, rad, m/s, rad/s: far below anything the study reads */
     sv->h_max = V(h_max);
     sv->eps_v = V(eps_v_eq);
     sv->eps_a = V(eps_a_eq);

@@ -585,7 +585,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                 int i = L.idx[a];
                 double c = 2.0 * h * corr[a];
                 u1[i] += c;
-                double sc = s->rtol * fmax(fmax(fabs(s->u[i]), fabs(u1[i])), s->umax[i]) + 1e-300;
+                double sc = s->rtol * fmax(fmax(fabs(s->u[i]), fabs(u1[i])), s->umax[i]) + s->atol;
                 err = fmax(err, fabs(c) / sc);
             }
             /* dense samples of the linearised solution, blended to end at u1 */

@@ -26,6 +26,8 @@ typedef struct {
     double umax[SOLVER_NMAX];    /* running max |u_i|: the scale of the relative error control */
     double h;                    /* proposed next step */
     double rtol;                 /* local error tolerance (nonlinear part) and dense-output tolerance */
+    double atol;                 /* absolute floor of the error scale: a state that starts at exactly 0 and
+                                  * grows like t^k would otherwise demand a relative accuracy it cannot have */
     double h_max;                /* 0: none */
     double eps_v, eps_a;         /* equilibrium thresholds */
     /* monitors */
