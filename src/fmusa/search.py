@@ -83,17 +83,13 @@ def bisect_inner(evaluate: Evaluate, inner: str, outer: str, z: float, lo: float
         else:
             lo, below = mid, r
     # monotonicity guard: points above the boundary must stay feasible
-    top = evaluate_top = None
     for x in np.geomspace(hi, hi * 1.5, 4)[1:]:
-        r = run(float(x))
-        if not _feasible(r):
-            evaluate_top = float(x)
-            top = r
+        top = run(float(x))
+        if not _feasible(top):
+            failed = [k[3:] for k, v in top.items() if k.startswith("ok_") and not v]
+            warnings.append(f"{outer} = {z:g}: the constraint boundary in {inner} is not monotone: feasible "
+                            f"at {hi:.6g} but not at {x:.6g} ({', '.join(failed) or top.get('status')})")
             break
-    if evaluate_top is not None:
-        failed = [k[3:] for k, v in top.items() if k.startswith("ok_") and not v]
-        warnings.append(f"{outer} = {z:g}: the constraint boundary in {inner} is not monotone: feasible at "
-                        f"{hi:.6g} but not at {evaluate_top:.6g} ({', '.join(failed) or top.get('status')})")
     return Level(z, hi, r_hi, below, n)
 
 

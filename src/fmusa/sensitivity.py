@@ -34,7 +34,6 @@ Example::
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
 import textwrap
 import time
@@ -46,7 +45,6 @@ import numpy as np
 import pandas as pd
 
 from .evaluate import Evaluator, PlanSpec, RunResult, default_fmu_path
-from .metrics import metric_rules
 from .runstore import RunStore
 
 __all__ = ["run_sensitivity", "plot_sensitivity", "salib_problem", "draw_samples", "to_physical",
@@ -117,23 +115,8 @@ def sensitivity_spec(study, stage, base: PlanSpec | None = None, fmu_path: str |
     machine), inputs, outputs, metric rules and how the FMU runs (``fmu_options``) are kept. Without it
     they come from ``study``. ``changes`` replace further fields (e.g. ``relative_tolerance``)."""
     if base is None:
-        fmu_path = fmu_path or (study.fmu if study.fmu else default_fmu_path())
-        outputs = list(dict.fromkeys(m.output for m in study.metrics.values()))
-        opts = getattr(study, "fmu_options", None)
-        extra = {}
-        if opts is not None:
-            extra = {f: getattr(opts, f) for f in ("interface", "solver", "relative_tolerance", "step_size")
-                     if f in PlanSpec.__dataclass_fields__}
-        base = PlanSpec(
-            fmu_path=str(fmu_path), varied=(), scale=(), offset=(),
-            fixed=tuple(study.fixed.items()),
-            inputs=tuple(study.scenario.inputs.items()),
-            outputs=tuple(outputs),
-            stop_time=float(study.scenario.stop_time),
-            step=study.scenario.step,
-            rules=tuple(metric_rules(study.metrics.values(), outputs)),
-            **extra,
-        )
+        from .sweep import study_plan_spec
+        base = study_plan_spec(study, fmu_path or (study.fmu if study.fmu else default_fmu_path()))
     elif fmu_path is not None:
         changes.setdefault("fmu_path", str(fmu_path))
     fixed = dict(study.fixed)
@@ -154,13 +137,10 @@ def _evaluator(spec: PlanSpec, runner, study, **overrides) -> Evaluator:
     third-party FMU in supervised workers, per-run timeout)."""
     ev = getattr(runner, "evaluator", None)
     kw = {"workers": getattr(ev, "workers", None) or study.execution.workers,
-          "scheduler": getattr(ev, "scheduler", None) or study.execution.scheduler}
-    params = inspect.signature(Evaluator).parameters
-    if "isolate" in params:
-        kw["isolate"] = getattr(ev, "isolate", study.fmu is not None)
-    if "timeout_s" in params:
-        kw["timeout_s"] = getattr(ev, "timeout_s", study.execution.timeout_s)
-    kw.update({k: v for k, v in overrides.items() if k in params})
+          "scheduler": getattr(ev, "scheduler", None) or study.execution.scheduler,
+          "isolate": getattr(ev, "isolate", study.fmu is not None),
+          "timeout_s": getattr(ev, "timeout_s", study.execution.timeout_s)}
+    kw.update(overrides)
     return Evaluator(spec, **kw)
 
 
@@ -503,7 +483,6 @@ def plot_sensitivity(result: Mapping, figdir: str | Path) -> list[Path]:
     figdir = Path(figdir)
     figdir.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
-    pmeta = meta.get("parameters", {})
 
     def grid(n):
         ncols = 2 if n > 1 else 1

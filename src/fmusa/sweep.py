@@ -119,25 +119,8 @@ class StudyRunner:
         except FMUCompileError as exc:
             raise FMUCompileError(f"{study.path}: {exc}") from None
         self.params = list(study.parameters)
-        outputs = list(dict.fromkeys(m.output for m in study.metrics.values()))
         self.metrics = list(study.metrics)
-        spec = PlanSpec(
-            fmu_path=str(run_path),
-            varied=tuple(study.parameters[p].variable for p in self.params),
-            scale=tuple(float(study.parameters[p].scale) for p in self.params),
-            offset=tuple(float(study.parameters[p].offset) for p in self.params),
-            fixed=tuple(study.fixed.items()),
-            inputs=tuple(study.scenario.inputs.items()),
-            outputs=tuple(outputs),
-            stop_time=float(study.scenario.stop_time),
-            step=study.scenario.step,
-            rules=tuple(metric_rules(study.metrics.values(), outputs)),
-            interface=opts.interface,
-            solver=opts.solver,
-            relative_tolerance=opts.relative_tolerance,
-            step_size=opts.step_size,
-        )
-        self.spec = spec
+        spec = self.spec = study_plan_spec(study, run_path)
         self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume)
         # any FMU but our own runs in supervised workers: a crash or hang then costs one run
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
@@ -175,6 +158,31 @@ class StudyRunner:
         for name in self.params:          # parameters the stage does not vary keep the first grid value
             full.setdefault(name, self._defaults[name])
         return self.evaluate([full], stage)[0]
+
+
+def study_plan_spec(study: Study, fmu_path: str | Path) -> PlanSpec:
+    """How every run of ``study`` is made: its parameters varied (with their unit mapping), ``fixed`` and
+    the scenario's inputs set, its metrics computed, the FMU run with ``fmu_options``. Stages that vary
+    other variables (sensitivity) replace ``varied``, ``scale`` and ``offset``."""
+    names = list(study.parameters)
+    outputs = list(dict.fromkeys(m.output for m in study.metrics.values()))
+    opts = study.fmu_options
+    return PlanSpec(
+        fmu_path=str(fmu_path),
+        varied=tuple(study.parameters[p].variable for p in names),
+        scale=tuple(float(study.parameters[p].scale) for p in names),
+        offset=tuple(float(study.parameters[p].offset) for p in names),
+        fixed=tuple(study.fixed.items()),
+        inputs=tuple(study.scenario.inputs.items()),
+        outputs=tuple(outputs),
+        stop_time=float(study.scenario.stop_time),
+        step=study.scenario.step,
+        rules=tuple(metric_rules(study.metrics.values(), outputs)),
+        interface=opts.interface,
+        solver=opts.solver,
+        relative_tolerance=opts.relative_tolerance,
+        step_size=opts.step_size,
+    )
 
 
 def grid_points(study: Study) -> list[dict[str, float]]:
