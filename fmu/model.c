@@ -62,6 +62,32 @@ int model_validate(const ModelInstance *mi, char *msg, size_t len)
         if (check(isfinite(mi->v[fin_vr[i]]), msg, len, "parameter %s = %g is invalid: it must be finite",
                   fin[i], mi->v[fin_vr[i]]))
             return 1;
+    {   /* the axial effects (MODEL.md): every one is off at its default */
+        static const char *const eff_nonneg[] = {"gap", "nl_y_b", "yield_ratio", "fric_F", "ve_k", NULL};
+        static const int eff_nonneg_vr[] = {VR_gap, VR_nl_y_b, VR_yield_ratio, VR_fric_F, VR_ve_k};
+        static const char *const eff_pos[] = {"nl_ratio", "yield_F", "fric_x", "ve_tau", "smooth_w", NULL};
+        static const int eff_pos_vr[] = {VR_nl_ratio, VR_yield_F, VR_fric_x, VR_ve_tau, VR_smooth_w};
+        for (int i = 0; eff_nonneg[i]; i++)
+            if (check(isfinite(mi->v[eff_nonneg_vr[i]]) && mi->v[eff_nonneg_vr[i]] >= 0.0, msg, len,
+                      "parameter %s = %g is invalid: it must be finite and >= 0 (0 switches the effect off "
+                      "or is the smallest value)", eff_nonneg[i], mi->v[eff_nonneg_vr[i]]))
+                return 1;
+        for (int i = 0; eff_pos[i]; i++)
+            if (check(isfinite(mi->v[eff_pos_vr[i]]) && mi->v[eff_pos_vr[i]] > 0.0, msg, len,
+                      "parameter %s = %g is invalid: it must be a finite number > 0", eff_pos[i],
+                      mi->v[eff_pos_vr[i]]))
+                return 1;
+        if (check(V(yield_ratio) == 1.0 || V(c_y) > 0.0, msg, len,
+                  "parameter %s = %g is invalid: yield (yield_ratio != 1) needs c_y > 0, since the yield "
+                  "displacement is yield_F / c_y", "c_y", V(c_y)))
+            return 1;
+        if (check(isfinite(V(F_offset)), msg, len, "parameter %s = %g is invalid: it must be finite",
+                  "F_offset", V(F_offset)))
+            return 1;
+        if (check(isfinite(V(y_offset)), msg, len, "parameter %s = %g is invalid: it must be finite",
+                  "y_offset", V(y_offset)))
+            return 1;
+    }
     if (check(isfinite(V(rtol)) && V(rtol) >= 1e-14 && V(rtol) <= 1e-2, msg, len,
               "parameter %s = %g is invalid: use a tolerance between 1e-14 and 1e-2", "rtol", V(rtol)))
         return 1;
@@ -134,6 +160,75 @@ static cplx axial_spring(const ModelInstance *mi, cplx y)
     while (k < n - 2 && creal(y) >= ty[k + 1]) k++;
     double slope = (tf[k + 1] - tf[k]) / (ty[k + 1] - ty[k]);
     return tf[k] + slope * (y - ty[k]);
+}
+
+/* ------------------------------------------------------------------ axial effects (MODEL.md) */
+
+/* softplus S(u) = w ln(1 + e^(u/w)) and its derivative sigma(u), overflow-free and complex-analytic */
+static cplx softplus(cplx u, double w)
+{
+    cplx z = u / w;
+    if (creal(z) > 0.0) return u + w * clog(1.0 + cexp(-z));
+    return w * clog(1.0 + cexp(z));
+}
+
+static cplx sigmoid(cplx u, double w)
+{
+    cplx z = u / w;
+    if (creal(z) >= 0.0) return 1.0 / (1.0 + cexp(-z));
+    cplx e = cexp(z);
+    return e / (1.0 + e);
+}
+
+/* Bouc-Wen rate with n = 4: dz/dt = (v / x_ref) (1 - H(z v) z^4) */
+static cplx bouc_wen(cplx z, cplx v, cplx x_ref)
+{
+    cplx z2 = z * z;
+    return creal(z) * creal(v) > 0.0 ? v / x_ref * (1.0 - z2 * z2) : v / x_ref;
+}
+
+typedef struct {
+    cplx ye, ve;      /* elastic displacement and its rate after the gap */
+    cplx spring;      /* F_s */
+    cplx fric, ve_F;  /* F_f, F_ve */
+} Axial;
+
+/* The axial interface force F_y = F_s(y_e) + d_y v + F_f + F_ve and its parts, from the state u. */
+static Axial axial_force(const ModelInstance *mi, const cplx *u)
+{
+    Axial a;
+    cplx y = u[IX_Y], v = u[IX_VY];
+    double w = V(smooth_w);
+    if (V(gap) > 0.0) {
+        double g = V(gap);
+        a.ye = softplus(y - g, w) - softplus(-y - g, w);
+        a.ve = (sigmoid(y - g, w) + sigmoid(-y - g, w)) * v;
+    } else {
+        a.ye = y;
+        a.ve = v;
+    }
+    if (V(yield_ratio) != 1.0) {
+        double r = V(yield_ratio);
+        a.spring = r * axial_spring(mi, a.ye) + (1.0 - r) * V(yield_F) * u[IX_ZY];
+    } else {
+        a.spring = axial_spring(mi, a.ye);
+    }
+    if (V(nl_ratio) != 1.0) {
+        double yb = V(nl_y_b);
+        a.spring += (V(nl_ratio) - 1.0) * V(c_y) * (softplus(a.ye - yb, w) - softplus(-a.ye - yb, w));
+    }
+    a.fric = V(fric_F) > 0.0 ? V(fric_F) * u[IX_ZF] : 0.0;
+    a.ve_F = V(ve_k) > 0.0 ? u[IX_FVE] : 0.0;
+    return a;
+}
+
+/* Rates of the effect states; 0 for an effect that is off, so its state stays out of the active set. */
+static void effect_rates(const ModelInstance *mi, const cplx *u, const Axial *a, cplx *du)
+{
+    cplx v = u[IX_VY];
+    du[IX_ZY] = V(yield_ratio) != 1.0 ? bouc_wen(u[IX_ZY], a->ve, V(yield_F) / V(c_y)) : 0.0;
+    du[IX_ZF] = V(fric_F) > 0.0 ? bouc_wen(u[IX_ZF], v, V(fric_x)) : 0.0;
+    du[IX_FVE] = V(ve_k) > 0.0 ? V(ve_k) * v - u[IX_FVE] / V(ve_tau) : 0.0;
 }
 
 /* ------------------------------------------------------------------ small complex algebra */
@@ -241,7 +336,8 @@ static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, c
     Gd[2] = cb * th[1] * th[0];
 
     /* interface (eq. 1) */
-    cplx FI[3] = {-(V(c_x) * q[0] + V(d_x) * qd[0]), -(axial_spring(mi, q[1]) + V(d_y) * qd[1]),
+    Axial ax = axial_force(mi, u);
+    cplx FI[3] = {-(V(c_x) * q[0] + V(d_x) * qd[0]), -(ax.spring + V(d_y) * qd[1] + ax.fric + ax.ve_F),
                   -(V(c_z) * q[2] + V(d_z) * qd[2])};
     cplx QI[3] = {-(V(c_alpha) * q[3] + V(d_alpha) * qd[3]), -(V(c_beta) * q[4] + V(d_beta) * qd[4]),
                   -(V(c_gamma) * q[5] + V(d_gamma) * qd[5])};
@@ -340,6 +436,8 @@ static int rhs(void *ctx, cplx t, const cplx *u, cplx *du, char *msg, size_t len
     const ModelInstance *mi = ctx;
     cplx Fp;
     for (int i = 0; i < NQ; i++) du[i] = u[NQ + i];
+    Axial ax = axial_force(mi, u);
+    effect_rates(mi, u, &ax, du);
     return dynamics(mi, t, u, du + NQ, &Fp, msg, len);
 }
 
@@ -356,12 +454,17 @@ static int update_outputs(ModelInstance *mi, char *msg, size_t len)
     for (int i = 0; i < NQ; i++) { mi->v[qvr[i]] = u[i]; mi->v[vvr[i]] = u[NQ + i]; }
     V(a_y) = mi->solver.acc;   /* carried by the solver: no cancellation of F - c y */
     V(F_x) = V(c_x) * u[0] + V(d_x) * u[6];
-    V(F_y) = creal(axial_spring(mi, u[1])) + V(d_y) * u[7];
+    Axial ax = axial_force(mi, uc);
+    V(F_y) = creal(ax.spring) + V(d_y) * u[IX_VY] + creal(ax.fric) + creal(ax.ve_F);
+    V(F_fric) = creal(ax.fric);
+    V(F_ve) = creal(ax.ve_F);
+    V(y_meas) = u[IX_Y] + V(y_offset);
     V(F_z) = V(c_z) * u[2] + V(d_z) * u[8];
     V(T_alpha) = V(c_alpha) * u[3] + V(d_alpha) * u[9];
     V(T_beta) = V(c_beta) * u[4] + V(d_beta) * u[10];
     V(T_gamma) = V(c_gamma) * u[5] + V(d_gamma) * u[11];
     V(F_pull) = creal(Fp);
+    V(F_meas) = creal(Fp) + V(F_offset);
     V(y_max) = mi->solver.pos_max;
     V(v_y_max) = mi->solver.vel_max;
     V(t_eq) = mi->solver.t_eq;

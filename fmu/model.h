@@ -22,8 +22,9 @@ typedef struct {
 /* The variable table (generated from fmu/variables.csv); vr -> entry, NULL for unknown vr. */
 const VarInfo *model_variable(unsigned int vr);
 
-/* State vector: q = (x, y, z, alpha, beta, gamma), then dq/dt. */
-enum { NQ = 6, NX = 12, IX_Y = 1, IX_VY = 7 };
+/* State vector: q = (x, y, z, alpha, beta, gamma), then dq/dt, then the states of the axial effects
+ * (MODEL.md): the Bouc-Wen variables of yield and friction and the Maxwell branch force. */
+enum { NQ = 6, NX = 15, IX_Y = 1, IX_VY = 7, IX_ZY = 12, IX_ZF = 13, IX_FVE = 14 };
 
 typedef struct ModelInstance {
     double v[N_VR];          /* every variable by value reference (Integer and Boolean as 0/1 doubles) */

@@ -6,7 +6,7 @@
 #include <complex.h>
 #include <stddef.h>
 
-#define SOLVER_NMAX 12
+#define SOLVER_NMAX 16
 
 typedef double complex cplx;
 

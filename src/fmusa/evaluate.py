@@ -1120,6 +1120,107 @@ class RunPlan:
         return data
 
 
+class DrivenPlan:
+    """Repeated runs of a co-simulation FMU driven by a sampled signal (the measured drive of a test).
+
+    The drive is taken as piecewise linear between its samples: at each sample the input gets its value
+    and, when the FMU can interpolate inputs, its slope on the coming interval
+    (``fmi2SetRealInputDerivatives``), so the FMU integrates the signal the test imposed rather than a
+    staircase. ``__call__(values, t, u)`` returns the outputs at every sample time, one row each.
+    """
+
+    def __init__(self, runner: FMURunner, varied: Sequence[str], fixed: Mapping[str, Value],
+                 input_name: str, outputs: Sequence[str]) -> None:
+        from fmpy.fmi2 import fmi2Integer, fmi2Real, fmi2ValueReference
+
+        if runner.is_model_exchange:
+            raise ValueError(f"{runner.fmu_path}: a drive from measured data needs a co-simulation FMU "
+                             f"(this one offers model exchange only)")
+        runner._validate(fixed, list(outputs), {input_name: 0.0})
+        self.runner = runner
+        self.varied = list(varied)
+        self.fixed = dict(fixed)
+        self.outputs = list(outputs)
+        self.input_name = input_name
+        vs = [runner._lookup(n, ("parameter",), "parameter") for n in self.varied]
+        for v in vs:
+            if v.type != "Real":
+                raise ValueError(f"parameter {v.name!r} is a {v.type}; only Real parameters can be fitted")
+        inp = runner._lookup(input_name, ("input",), "input")
+        if inp.type != "Real":
+            raise ValueError(f"input {input_name!r} is a {inp.type}; the drive must be a Real input")
+        cs = runner.model_description.coSimulation
+        self.interpolates = bool(getattr(cs, "canInterpolateInputs", False))
+        self._fixed_calls = RunPlan._prepared_sets(runner, self.fixed, ("parameter",), "parameter")
+        self._vr_varied = (fmi2ValueReference * len(vs))(*[v.valueReference for v in vs])
+        self._val_varied = (fmi2Real * len(vs))()
+        self._vr_in = (fmi2ValueReference * 1)(inp.valueReference)
+        self._val_in = (fmi2Real * 1)()
+        self._order = (fmi2Integer * 1)(1)
+        outs = [runner._lookup(n, ("output", "parameter", "calculatedParameter", "local"), "output")
+                for n in self.outputs]
+        if any(o.type != "Real" for o in outs):
+            raise ValueError("driven runs read Real outputs only")
+        self._vr_out = (fmi2ValueReference * len(outs))(*[o.valueReference for o in outs])
+        self._val_out = (fmi2Real * len(outs))()
+
+    def __call__(self, values: Sequence[float], t: np.ndarray, u: np.ndarray) -> np.ndarray:
+        r = self.runner
+        t = np.asarray(t, dtype=float)
+        u = np.asarray(u, dtype=float)
+        if t.ndim != 1 or t.shape != u.shape or len(t) < 2 or not np.all(np.diff(t) > 0):
+            raise ValueError("the drive needs matching 1-D arrays t, u of at least 2 samples with t increasing")
+        r._ready()
+        s = r._slave
+        params = dict(zip(self.varied, (float(x) for x in values)))
+        slopes = np.diff(u) / np.diff(t)
+        n_out = len(self.outputs)
+        data = np.empty((len(t), n_out))
+        vr_out, val_out, vr_in, val_in, order = self._vr_out, self._val_out, self._vr_in, self._val_in, self._order
+        ti = float(t[0])
+        try:
+            r._phase = "while setting parameters"
+            for fn, vr, val in self._fixed_calls:
+                getattr(s, fn)(s.component, vr, len(vr), val)
+            for i, x in enumerate(values):
+                self._val_varied[i] = x
+            if len(self._vr_varied):
+                s.fmi2SetReal(s.component, self._vr_varied, len(self._val_varied), self._val_varied)
+            val_in[0] = u[0]
+            s.fmi2SetReal(s.component, vr_in, 1, val_in)
+            r._phase = "during initialisation"
+            if r.relative_tolerance is None:
+                s.fmi2SetupExperiment(s.component, 0, 0.0, ti, 1, float(t[-1]))
+            else:
+                s.fmi2SetupExperiment(s.component, 1, r.relative_tolerance, ti, 1, float(t[-1]))
+            s.fmi2EnterInitializationMode(s.component)
+            s.fmi2ExitInitializationMode(s.component)
+            s.fmi2GetReal(s.component, vr_out, n_out, val_out)
+            data[0] = val_out
+            set_real, set_der, do_step, get_real = (s.fmi2SetReal, s.fmi2SetRealInputDerivatives,
+                                                   s.fmi2DoStep, s.fmi2GetReal)
+            comp = s.component
+            for k in range(1, len(t)):
+                val_in[0] = u[k - 1]
+                set_real(comp, vr_in, 1, val_in)
+                if self.interpolates:
+                    val_in[0] = slopes[k - 1]
+                    set_der(comp, vr_in, 1, order, val_in)
+                t_next = float(t[k])
+                r._phase = f"in the communication step from t = {ti:.10g} s to {t_next:.10g} s"
+                do_step(comp, ti, t_next - ti, 1)
+                ti = t_next
+                get_real(comp, vr_out, n_out, val_out)
+                data[k] = val_out
+        except Exception as exc:
+            raise r._fail(exc, r._phase, {**self.fixed, **params}) from exc
+        r._state = "done"
+        if not np.all(np.isfinite(data)):
+            r._state = "failed"
+            raise RuntimeError(f"{r.model_description.modelName}: non-finite output with parameters {params}")
+        return data
+
+
 # ---------------------------------------------------------------------- batches, pools, clusters
 @dataclass(frozen=True)
 class PlanSpec:
