@@ -71,7 +71,7 @@ def test_paper_study_loads():
     np.testing.assert_array_equal(pts["c"], [25.0 ** k for k in range(3, 8)])
     np.testing.assert_array_equal(pts["d"], [25.0 ** k for k in range(2, 7)])
     assert s.stages["roi"] == RoiStage(manual=None)
-    assert s.stages["search"] == SearchStage("c", "d", 1e-3, 1e-3, 20)
+    assert s.stages["search"] == SearchStage("c", "d", 1e-3, 1e-3, 20, ["max_y", "max_v", "t_eq"], {})
     assert s.stages["regression"] == RegressionStage("c", ["max_y", "max_v"], "d", 3)
     assert (s.execution.workers, s.execution.scheduler, s.execution.timeout_s) == (None, None, 60.0)
     assert s.paper["optimum"] == {"c": 823224, "d": 488, "t_eq": 0.07674}
@@ -305,6 +305,30 @@ CASES = [
      ["key 'n' in 'stages.sensitivity' must be an integer"]),
     ("name not an identifier", MINIMAL, "name: tiny", "name: my study", "name:",
      ["key 'name' at the top level", "not an identifier"]),
+    ("fixed with a unit: misspelt key", PAPER_TEXT, "  F_max: 411 ", "  F_max: {value: 0.411, units: kN, scale: 1000} ",
+     "F_max: {", ["key 'units' is not allowed in 'fixed.F_max'", "did you mean 'unit'?",
+                  "allowed: value, unit, scale, offset, description"]),
+    ("fixed with a unit: no value", PAPER_TEXT, "  F_max: 411 ", "  F_max: {unit: kN, scale: 1000} ", "F_max: {",
+     ["key 'value' is missing in 'fixed.F_max'", "value: 823.2"]),
+    ("fixed with a unit: zero scale", PAPER_TEXT, "  F_max: 411 ", "  F_max:\n    value: 0.411\n    scale: 0 ",
+     "scale: 0", ["key 'scale' in 'fixed.F_max' must not be 0", "scale: 1000"]),
+    ("fixed with a unit: value with its unit", PAPER_TEXT, "  F_max: 411 ", "  F_max:\n    value: 0.411 kN ",
+     "value: 0.411 kN", ["key 'value' in 'fixed.F_max' must be a number", "'0.411 kN'", "remove the quotes or units"]),
+    ("fixed plain value with its unit", PAPER_TEXT, "  F_max: 411 ", "  F_max: 411 N ", "F_max: 411 N",
+     ["key 'F_max' in 'fixed' must be a number", "{value: 0.411, unit: kN, scale: 1000}"]),
+    ("search response unknown metric", PAPER_TEXT, "    max_outer: 20\n", "    max_outer: 20\n    response: [max_y, v_end]\n",
+     "response: [", ["key 'response' in 'stages.search' names an unknown metric 'v_end'", "known metrics: max_y"]),
+    ("search response empty", PAPER_TEXT, "    max_outer: 20\n", "    max_outer: 20\n    response: []\n",
+     "response: [", ["key 'response' in 'stages.search' must list at least one metric"]),
+    ("negative response_atol", PAPER_TEXT, "    max_outer: 20\n", "    max_outer: 20\n    response_atol: -1.0e-9\n",
+     "response_atol:", ["key 'response_atol' in 'stages.search' must be ≥ 0", "response_atol: {v_end: 1.0e-9}"]),
+    ("response_atol for a metric not in the response", PAPER_TEXT, "    max_outer: 20\n",
+     "    max_outer: 20\n    response_atol:\n      mean_y: 1.0e-9\n", "mean_y: 1.0e-9",
+     ["key 'mean_y' in 'stages.search.response_atol'", "not a response metric of the search",
+      "(response: max_y, max_v, t_eq)", "add 'mean_y' to 'response'"]),
+    ("response_atol not a number", PAPER_TEXT, "    max_outer: 20\n",
+     "    max_outer: 20\n    response_atol: {t_eq: small}\n", "response_atol:",
+     ["key 't_eq' in 'stages.search.response_atol' must be a number", "the string 'small'"]),
 ]
 
 
@@ -312,6 +336,34 @@ CASES = [
 def test_bad_input_names_file_line_key_and_fix(text, old, new, marker, words):
     bad = _edit(text, old, new)
     _fails(bad, _line_of(bad, marker), *words)
+
+
+def test_fixed_values_convert_from_the_study_unit():
+    text = _edit(PAPER_TEXT, "  F_max: 411 ", "  F_max: {value: 0.411, unit: kN, scale: 1000} ")
+    text = _edit(text, "  t_ramp: 10 ", "  t_ramp:\n    value: 10000\n    unit: ms\n    scale: 1.0e-3\n"
+                                       "    description: ramp time in ms ")
+    s = parse_study(text, BAD)
+    assert s.fixed["F_max"] == pytest.approx(411.0, rel=1e-15) and s.fixed["t_ramp"] == pytest.approx(10.0, rel=1e-15)
+    assert s.fmu_values({"c": 1.0, "d": 2.0})["F_max"] == pytest.approx(411.0, rel=1e-15)
+    fv = s.fixed_units["t_ramp"]
+    assert (fv.value, fv.unit, fv.scale, fv.offset, fv.description) == (10000, "ms", 1e-3, 0.0, "ramp time in ms")
+    assert set(s.fixed_units) == {"F_max", "t_ramp"}          # plain numbers stay in the FMU's unit
+    assert s.fixed["eps_v_eq"] == 5e-8 and "eps_v_eq" not in s.fixed_units
+    assert s.lines["fixed.t_ramp"] == _line_of(text, "  t_ramp:")   # the FMU checks report this line
+    # an offset: a temperature in °C for an FMU in K
+    s = parse_study(_edit(MINIMAL, "scenario:", "fixed:\n  T: {value: 37, unit: degC, offset: 273.15}\nscenario:"), BAD)
+    assert s.fixed["T"] == pytest.approx(310.15)
+
+
+def test_search_response_and_floor_defaults():
+    s = parse_study(PAPER_TEXT, BAD)
+    assert s.stages["search"].response == ["max_y", "max_v", "t_eq"] and s.stages["search"].response_atol == {}
+    text = _edit(PAPER_TEXT, "    max_outer: 20\n", "    max_outer: 20\n    response: [max_y, mean_v]\n"
+                                                 "    response_atol: 1.0e-12\n")
+    stage = parse_study(text, BAD).stages["search"]
+    assert stage.response == ["max_y", "mean_v"] and stage.response_atol == {"max_y": 1e-12, "mean_v": 1e-12}
+    text = _edit(PAPER_TEXT, "    max_outer: 20\n", "    max_outer: 20\n    response_atol: {t_eq: 1.0e-3}\n")
+    assert parse_study(text, BAD).stages["search"].response_atol == {"t_eq": 1e-3}
 
 
 def test_search_needs_roi_stage():

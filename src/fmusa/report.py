@@ -423,9 +423,16 @@ def _what_was_run(ctx: _Ctx) -> str:
                                                 for n, p in st.parameters.items())))
     if st.fixed:
         fixed_units = {"F_max": "N", "t_ramp": "s", "eps_v_eq": "m/s", "eps_a_eq": "m/s²"}
-        rows.append(("fixed parameters", ", ".join(f"{k} = {v:g}{(' ' + fixed_units[k]) if k in fixed_units else ''}"
-                                                   if isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                   else f"{k} = {v}" for k, v in st.fixed.items())))
+        mapped = getattr(st, "fixed_units", None) or {}
+
+        def fixed_txt(k, v) -> str:
+            if k in mapped:   # written in the study's unit: show it, and what the FMU gets
+                fv = mapped[k]
+                return f"{k} = {fv.value:g}{(' ' + fv.unit) if fv.unit else ''} (FMU value {v:g})"
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                return f"{k} = {v:g}{(' ' + fixed_units[k]) if k in fixed_units else ''}"
+            return f"{k} = {v}"
+        rows.append(("fixed parameters", ", ".join(fixed_txt(k, v) for k, v in st.fixed.items())))
     sc = st.scenario
     rows.append(("scenario", sc.description or "–"))
     if ctx.F is not None:
@@ -524,8 +531,11 @@ def _roi_section(ctx: _Ctx) -> str:
 
 
 def _response_metrics(ctx: _Ctx) -> list[str]:
-    """The metrics the constraints act on (the search's response), in constraint order."""
-    return list(dict.fromkeys(c.metric for c in ctx.study.constraints)) or list(ctx.study.metrics)[:3]
+    """The search's response metrics (``stages.search.response``; by default the constrained ones)."""
+    search = ctx.study.stages.get("search")
+    response = list(getattr(search, "response", None) or [])
+    return (response or list(dict.fromkeys(c.metric for c in ctx.study.constraints))
+            or list(ctx.study.metrics)[:3])
 
 
 def _mfmt(ctx: _Ctx, m: str, x) -> str:
@@ -639,7 +649,7 @@ def _rel_changes(prev: Mapping | None, cur: Mapping | None, metrics: Sequence[st
 
 def _search_table(ctx: _Ctx, levels: Sequence[dict], stages: Sequence[str], inner_range) -> str:
     inner, outer = ctx.inner, ctx.outer
-    metrics = list(dict.fromkeys(c.metric for c in ctx.study.constraints))
+    metrics = _response_metrics(ctx)
     rows = []
     prev = None
     for k, lv in enumerate(levels):
@@ -663,9 +673,12 @@ def _search_section(ctx: _Ctx) -> str:
     if res.search is None:
         return ""
     out = "### Search path\n\n"
+    stage = ctx.study.stages["search"]
+    floors = ", ".join(f"{m}: {a:g} {ctx.u(m)}".rstrip() for m, a in stage.response_atol.items() if a > 0)
     out += (f"Automatic region ({ctx.outer} halved from {fmt(res.region.outer_range[1])} {ctx.u(ctx.outer)}). "
-            f"'changed?' is the search's own test (any response differs by more than "
-            f"{ctx.study.stages['search'].response_rtol:g} relative from the previous feasible level); "
+            f"'changed?' is the search's own test (any response metric differs by more than "
+            f"{stage.response_rtol:g} relative from the previous feasible level"
+            + (f" and by more than its absolute floor ({floors})" if floors else "") + "); "
             f"'fails just below' names the constraints violated at the largest infeasible {ctx.inner} "
             f"the bisection tried at that level.\n\n")
     out += _search_table(ctx, _get(s, "search", "levels", default=[]), ["search"], res.region.inner_range) + "\n"

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -47,12 +47,17 @@ def _feasible(row: dict) -> bool:
     return bool(row.get("feasible")) and row.get("status") == "ok"
 
 
-def _changed(a: dict, b: dict, metrics: Sequence[str], rtol: float) -> bool:
+def _changed(a: dict, b: dict, metrics: Sequence[str], rtol: float,
+             atol: Mapping[str, float] | None = None) -> bool:
+    """Whether any response metric differs between runs ``a`` and ``b``: by more than ``rtol`` relative
+    and more than its ``atol`` floor (so that a metric that is 0 up to round-off does not count as
+    changed), or exists in one run only."""
+    atol = atol or {}
     for m in metrics:
         x, y = float(a[m]), float(b[m])
         if math.isnan(x) != math.isnan(y):
             return True
-        if not math.isnan(x) and abs(x - y) > rtol * max(abs(x), abs(y), 1e-300):
+        if not math.isnan(x) and abs(x - y) > max(rtol * max(abs(x), abs(y), 1e-300), atol.get(m, 0.0)):
             return True
     return False
 
@@ -94,7 +99,8 @@ def bisect_inner(evaluate: Evaluate, inner: str, outer: str, z: float, lo: float
 
 
 def nested_binary_search(evaluate: Evaluate, region: Region, response: Sequence[str], inner_rtol: float = 1e-3,
-                         response_rtol: float = 1e-3, max_outer: int = 20) -> SearchResult:
+                         response_rtol: float = 1e-3, max_outer: int = 20,
+                         response_atol: Mapping[str, float] | None = None) -> SearchResult:
     inner, outer = region.inner, region.outer
     x_lo, x_hi = region.inner_range
     z_top = region.outer_range[1]
@@ -112,12 +118,14 @@ def nested_binary_search(evaluate: Evaluate, region: Region, response: Sequence[
                     + ("" if feasible_levels else ": the region holds no feasible pair"))
             break
         if feasible_levels:
-            level.changed = _changed(level.row, feasible_levels[-1].row, response, response_rtol)
+            level.changed = _changed(level.row, feasible_levels[-1].row, response, response_rtol, response_atol)
             unchanged_run = 0 if level.changed else unchanged_run + 1
         levels.append(level)
         if unchanged_run >= 2:
-            stop = (f"the response ({', '.join(response)}) changed by less than {response_rtol:g} (relative) "
-                    f"for two consecutive pairs")
+            floors = ", ".join(f"{m} {a:g}" for m, a in (response_atol or {}).items() if a > 0)
+            stop = (f"the response ({', '.join(response)}) changed by less than {response_rtol:g} (relative)"
+                    + (f" or less than its absolute floor ({floors})" if floors else "")
+                    + " for two consecutive pairs")
             break
     found = [lv for lv in levels if lv.inner is not None]
     if not found:

@@ -29,7 +29,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -38,7 +38,7 @@ from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 __all__ = [
     "StudyError", "Study", "Parameter", "Scenario", "Metric", "Constraint", "GridStage", "RoiStage",
-    "SearchStage", "RegressionStage", "SensitivityStage", "SensitivityParameter", "Execution",
+    "SearchStage", "RegressionStage", "SensitivityStage", "SensitivityParameter", "Execution", "FixedValue",
     "FMUOptions", "INTERFACES", "SOLVERS", "load_study", "parse_study", "STAGE_NAMES", "REDUCTIONS", "METHODS", "DISTRIBUTIONS",
 ]
 
@@ -84,6 +84,22 @@ class Parameter:
     def from_fmu(self, v):
         """Study value of FMU value ``v``: the inverse of :meth:`to_fmu`."""
         return (v - self.offset) / self.scale
+
+
+@dataclass(frozen=True)
+class FixedValue:
+    """A ``fixed`` FMU parameter written in the study's own unit (``fixed: {c_y: {value: 823.2, unit: N/mm,
+    scale: 1000}}``): FMU value = ``scale`` × ``value`` + ``offset``, the conversion of a study parameter.
+    The report shows the study's value and unit; the FMU gets :meth:`to_fmu`."""
+    name: str
+    value: float
+    unit: str = ""
+    scale: float = 1.0
+    offset: float = 0.0
+    description: str = ""
+
+    def to_fmu(self) -> float:
+        return self.scale * self.value + self.offset
 
 
 @dataclass(frozen=True)
@@ -201,12 +217,19 @@ class RoiStage:
 class SearchStage:
     """The nested binary search (paper, Section 3): for each ``outer`` value, halved from the
     region's upper bound, bisect ``inner`` for its smallest feasible value; stop when the response
-    no longer changes."""
+    no longer changes.
+
+    ``response`` are the metrics compared between outer levels (default: the constrained ones). A
+    metric counts as changed when it moved by more than ``response_rtol`` (relative) and more than its
+    ``response_atol`` (absolute, in the metric's unit; 0 when not given): without the floor a metric
+    that is 0 up to round-off (a final velocity at rest) would always count as changed."""
     inner: str
     outer: str
     inner_rtol: float = 1e-3
     response_rtol: float = 1e-3
     max_outer: int = 20
+    response: list[str] = field(default_factory=list)
+    response_atol: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -277,7 +300,7 @@ class Study:
     path: Path | None
     fmu: Path | None
     parameters: dict[str, Parameter]
-    fixed: dict[str, float | int | bool]
+    fixed: dict[str, float | int | bool]          # FMU values (converted from the study's units)
     scenario: Scenario
     metrics: dict[str, Metric]
     constraints: list[Constraint]
@@ -285,6 +308,8 @@ class Study:
     execution: Execution
     paper: dict
     fmu_options: FMUOptions = field(default_factory=FMUOptions)
+    #: the ``fixed`` entries written as ``{value, unit, scale, offset}``, in the study's units
+    fixed_units: dict[str, FixedValue] = field(default_factory=dict)
     #: line of each FMU reference in the study file, for the FMU checks' messages: keys such as
     #: ``fmu``, ``parameters.c.variable``, ``fixed.F_max``, ``scenario.inputs.F_ext``,
     #: ``metrics.max_y.output``, ``stages.sensitivity.parameters.c_x.variable``, ``fmu_options.solver``
@@ -624,14 +649,36 @@ def _parse_parameters(p: _Parser, top: _Map) -> dict[str, Parameter]:
     return out
 
 
-def _parse_fixed(p: _Parser, top: _Map) -> dict[str, float | int | bool]:
+def _parse_fixed(p: _Parser, top: _Map) -> tuple[dict[str, float | int | bool], dict[str, FixedValue]]:
+    """``fixed``: name -> number or true/false (the FMU's unit), or name -> ``{value, unit, scale, offset,
+    description}`` (the study's unit, converted like a study parameter). Returns the FMU values and the
+    entries written with units."""
     node = top.opt("fixed")
     if node is None:
-        return {}
+        return {}, {}
     m = p.mapping(node, "fixed", "fixed")
     out: dict[str, float | int | bool] = {}
+    units: dict[str, FixedValue] = {}
     for name, knode, vnode in m.entries():
         p.mark(f"fixed.{name}", knode)
+        if isinstance(vnode, MappingNode):
+            w = f"fixed.{name}"
+            fm = p.mapping(vnode, w, name, knode)
+            fm.allow(("value", "unit", "scale", "offset", "description"))
+            hint = f"{name}: {{value: 823.2, unit: N/mm, scale: 1000}}"
+            value = p.number(fm.need("value", "value: 823.2  (in the study's unit; FMU value = scale × "
+                                              "value + offset)"), "value", w, "value: 823.2")
+            fv = FixedValue(name=name, value=value, unit=fm.text("unit"),
+                            scale=fm.num("scale", 1.0, "scale: 1000  (e.g. N/mm -> N/m)", nonzero=True),
+                            offset=fm.num("offset", 0.0, "offset: 0.0"), description=fm.text("description"))
+            fmu_value = fv.to_fmu()
+            if not math.isfinite(fmu_value):
+                raise p.error(vnode, f"key '{name}' in 'fixed': scale × value + offset is not finite "
+                                     f"({fv.scale:g} × {fv.value:g} + {fv.offset:g}); check the numbers, "
+                                     f"e.g. {hint}")
+            out[name] = fmu_value
+            units[name] = fv
+            continue
         v = p.scalar(vnode) if isinstance(vnode, ScalarNode) else None
         if isinstance(v, bool):
             out[name] = v
@@ -639,8 +686,9 @@ def _parse_fixed(p: _Parser, top: _Map) -> dict[str, float | int | bool]:
         if isinstance(v, int):
             out[name] = v
             continue
-        out[name] = p.number(vnode, name, "fixed", f"{name}: 411  (a number, or true/false)")
-    return out
+        out[name] = p.number(vnode, name, "fixed", f"{name}: 411  (a number, true/false, or "
+                                                   f"{{value: 0.411, unit: kN, scale: 1000}})")
+    return out, units
 
 
 def _parse_scenario(p: _Parser, top: _Map) -> Scenario:
@@ -796,8 +844,9 @@ def _parse_roi(p: _Parser, m: _Map, where: str, parameters: Mapping) -> RoiStage
     return RoiStage(manual=manual)
 
 
-def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping) -> SearchStage:
-    m.allow(("inner", "outer", "inner_rtol", "response_rtol", "max_outer"))
+def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping, metrics: Mapping,
+                  constraints: Sequence[Constraint]) -> SearchStage:
+    m.allow(("inner", "outer", "inner_rtol", "response_rtol", "response_atol", "response", "max_outer"))
     inner = p.name_in(m.need("inner", "inner: c"), "inner", where, parameters, "study parameter",
                       "inner: c")
     onode = m.need("outer", "outer: d")
@@ -805,11 +854,40 @@ def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping) -> Searc
     if outer == inner:
         raise p.error(onode, f"{_key('outer', where)} is the same parameter as 'inner' ({inner!r}); "
                              f"search two different parameters")
+    rnode = m.opt("response")
+    if rnode is not None:
+        response = p.names_in(rnode, "response", where, metrics, "metric", "response: [max_y, max_v, t_eq]")
+    else:   # the constrained metrics, in constraint order
+        response = list(dict.fromkeys(c.metric for c in constraints))
+    atol: dict[str, float] = {}
+    anode = m.opt("response_atol")
+    if anode is not None:
+        hint = ("response_atol: 1.0e-9  (one floor for every response metric, in its unit) or "
+                "response_atol: {v_end: 1.0e-9}")
+        if isinstance(anode, MappingNode):
+            aw = f"{where}.response_atol"
+            am = p.mapping(anode, aw, "response_atol")
+            for name, knode, vnode in am.entries():
+                if name not in response:
+                    shown = _fmt_list(response)
+                    raise p.error(knode, f"{_key(name, aw)}: '{name}' is not a response metric of the search "
+                                         f"(response: {shown}){_suggest(name, response)}; give floors for "
+                                         f"those metrics only, or add '{name}' to 'response'")
+                atol[name] = p.number(vnode, name, aw, f"{name}: 1.0e-9  (in the metric's unit, ≥ 0)")
+                if atol[name] < 0:
+                    raise p.error(vnode, f"{_key(name, aw)} must be ≥ 0, got {atol[name]:g}; e.g. "
+                                         f"{name}: 1.0e-9")
+        else:
+            value = p.number(anode, "response_atol", where, hint)
+            if value < 0:
+                raise p.error(anode, f"{_key('response_atol', where)} must be ≥ 0, got {value:g}; e.g. {hint}")
+            atol = {name: value for name in response}
     return SearchStage(
         inner=inner, outer=outer,
         inner_rtol=m.num("inner_rtol", 1e-3, "inner_rtol: 1.0e-3", positive=True),
         response_rtol=m.num("response_rtol", 1e-3, "response_rtol: 1.0e-3", positive=True),
-        max_outer=m.int_("max_outer", 20, "max_outer: 20", minimum=1))
+        max_outer=m.int_("max_outer", 20, "max_outer: 20", minimum=1),
+        response=response, response_atol=atol)
 
 
 def _parse_regression(p: _Parser, m: _Map, where: str, parameters: Mapping,
@@ -895,7 +973,7 @@ def _parse_sensitivity(p: _Parser, m: _Map, where: str, metrics: Mapping,
 
 
 def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
-                  fixed: Mapping) -> dict[str, object]:
+                  fixed: Mapping, constraints: Sequence[Constraint] = ()) -> dict[str, object]:
     node = top.need("stages", "stages: {sensitivity: {...}}  (one or more of: "
                               + ", ".join(STAGE_NAMES) + ")")
     m = p.mapping(node, "stages", "stages")
@@ -925,7 +1003,7 @@ def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
                 raise p.error(knode, "key 'search' in 'stages': the search needs a region of "
                                      "interest, but no 'roi' stage comes before it; add 'roi:' "
                                      "above 'search'")
-            stage = _parse_search(p, sm, where, parameters)
+            stage = _parse_search(p, sm, where, parameters, metrics, constraints)
             manual = out["roi"].manual
             if manual is not None:
                 for q in (stage.inner, stage.outer):
@@ -1071,12 +1149,12 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None) -> 
     description = top.text("description")
     fmu = _parse_fmu(p, top, base_dir)
     parameters = _parse_parameters(p, top)
-    fixed = _parse_fixed(p, top)
+    fixed, fixed_units = _parse_fixed(p, top)
     scenario = _parse_scenario(p, top)
     _check_conflicts(p, top, parameters, fixed, scenario)
     metrics = _parse_metrics(p, top, parameters)
     constraints = _parse_constraints(p, top, metrics)
-    stages = _parse_stages(p, top, parameters, metrics, fixed)
+    stages = _parse_stages(p, top, parameters, metrics, fixed, constraints)
     execution = _parse_execution(p, top)
     fmu_options = _parse_fmu_options(p, top, scenario)
     paper_node = top.opt("paper")
@@ -1089,7 +1167,7 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None) -> 
     return Study(name=name, description=description, path=path, fmu=fmu, parameters=parameters,
                  fixed=fixed, scenario=scenario, metrics=metrics, constraints=constraints,
                  stages=stages, execution=execution, paper=paper, fmu_options=fmu_options,
-                 lines=dict(p.lines))
+                 fixed_units=fixed_units, lines=dict(p.lines))
 
 
 # ============================================================================ entry points

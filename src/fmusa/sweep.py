@@ -238,21 +238,20 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
             elif name == "search":
                 if result.region is None:
                     raise ValueError(f"{study.path}: stages.search needs stages.roi before it")
-                response = [c.metric for c in study.constraints]
-                response = list(dict.fromkeys(response))
+                response = list(stage.response)      # default: the constrained metrics (study.py)
 
                 def ev(point: dict[str, float], tag: str = "search") -> dict:
                     return runner.evaluate_one(point, tag)
 
                 result.search = nested_binary_search(ev, result.region, response, stage.inner_rtol,
-                                                     stage.response_rtol, stage.max_outer)
+                                                     stage.response_rtol, stage.max_outer, stage.response_atol)
                 summary["optimum"] = result.search.optimum
                 summary["binding_constraint"] = result.search.binding
                 summary["search"] = _search_summary(result.search)
                 if result.paper_region is not None:
                     result.paper_search = nested_binary_search(
                         lambda p: ev(p, "search_paper_roi"), result.paper_region, response, stage.inner_rtol,
-                        stage.response_rtol, stage.max_outer)
+                        stage.response_rtol, stage.max_outer, stage.response_atol)
                     summary["paper_roi_search"] = _search_summary(result.paper_search)
             elif name == "regression":
                 runs = runner.store.frame()
