@@ -204,3 +204,36 @@ def test_resume_after_crashes_simulates_nothing_again(tmp_path, misbehave_fmu):
 def test_workers_leave_no_extracted_fmu_behind(tmp_path, misbehave_fmu, extract_dir, kind):
     run(tmp_path, misbehave_fmu, kind)
     assert sorted(p.name for p in extract_dir.iterdir()) == []
+
+
+# ---------------------------------------------------------------------------------------------- on Dask
+@pytest.fixture(scope="module")
+def dask_cluster():
+    """A Dask LocalCluster of two worker processes (daemonic, as Dask makes them by default)."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        yield cluster
+
+
+@pytest.mark.parametrize("kind", [CRASH, HANG, NAN, ERROR], ids=["segfault", "hang", "nan", "fmi2Error"])
+def test_on_dask_faulty_runs_fail_with_their_reason_and_the_study_goes_on(tmp_path, misbehave_fmu, dask_cluster,
+                                                                         kind):
+    """The same studies on a Dask cluster: each task runs its runs in a supervised process on its Dask
+    worker, so a segfault or a hang costs that run (with its reason), never the Dask worker or the study."""
+    path = write_study(tmp_path, misbehave_fmu, kind)
+    out = tmp_path / "out"
+    workers_before = set(dask_cluster.scheduler_info["workers"])
+    t0 = time.monotonic()
+    result = run_study(load_study(path), out, scheduler=dask_cluster.scheduler_address, figures=False,
+                       progress=False)
+    wall = time.monotonic() - t0
+    check_runs(out, kind)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["runs"] == len(K) and summary["failed"] == len(FAULTY)
+    assert summary["simulated_this_session"] == len(K)
+    assert (result.runs["status"] == "failed").sum() == len(FAULTY)
+    # the Dask workers survived: the same two, no restart by the nanny
+    assert set(dask_cluster.scheduler_info["workers"]) == workers_before and len(workers_before) == 2
+    if kind == HANG:
+        assert wall < 10, f"the hang study took {wall:.1f} s"

@@ -1351,6 +1351,21 @@ class WorkerPool:
         self.timeout_s = timeout_s
         self.workers: list[_Worker] = []
 
+    def _start_worker(self) -> _Worker:
+        """A new worker process. Inside a daemonic process (a Dask worker, by default) multiprocessing
+        refuses to start children; ours are daemonic themselves and exit on the closed pipe when their
+        parent dies, so the refusal is lifted while one starts."""
+        import multiprocessing as mp
+        config = mp.current_process()._config
+        daemon = config.get("daemon")
+        if not daemon:
+            return _Worker(self.ctx, self.spec)
+        config["daemon"] = False
+        try:
+            return _Worker(self.ctx, self.spec)
+        finally:
+            config["daemon"] = daemon
+
     def close(self) -> None:
         for w in self.workers:
             try:
@@ -1369,7 +1384,7 @@ class WorkerPool:
 
         queue = [items[i:i + chunk] for i in range(0, len(items), chunk)]
         while len(self.workers) < min(self.n, len(queue)):
-            self.workers.append(_Worker(self.ctx, self.spec))
+            self.workers.append(self._start_worker())
         for w in self.workers:
             if queue:
                 w.give(queue.pop(0), time.monotonic())
@@ -1412,10 +1427,49 @@ class WorkerPool:
         rest = w.pending[1:]
         w.kill()
         take([RunResult(run_id, tuple(values), None, "failed", reason, now - w.since)])
-        nw = _Worker(self.ctx, self.spec)
+        nw = self._start_worker()
         self.workers[self.workers.index(w)] = nw
         if rest:
             nw.give(rest, now)
+
+
+_DASK_POOLS: dict = {}
+
+
+def _dask_pool(spec: PlanSpec, timeout_s: float | None) -> WorkerPool:
+    """This Dask worker thread's supervised pool (one worker process) for ``spec``, made once. The FMU is
+    unpacked once per Dask worker process, so that supervised processes that crash leave no copy behind."""
+    import atexit
+    import threading
+
+    key = (spec, timeout_s, threading.get_ident())
+    pool = _DASK_POOLS.get(key)
+    if pool is not None:
+        return pool
+    local = _DASK_POOLS.get(("unzipped", spec))
+    if local is None:
+        local = spec
+        if Path(spec.fmu_path).is_file():
+            import fmpy
+            unzipdir = fmpy.extract(spec.fmu_path)
+            atexit.register(shutil.rmtree, unzipdir, ignore_errors=True)
+            local = replace(spec, fmu_path=unzipdir)
+        _DASK_POOLS[("unzipped", spec)] = local
+    pool = WorkerPool(local, 1, timeout_s)
+    atexit.register(pool.close)
+    _DASK_POOLS[key] = pool
+    return pool
+
+
+def run_chunk_supervised(spec: PlanSpec, chunk: Sequence[tuple[int, tuple[float, ...]]],
+                         timeout_s: float | None) -> list[RunResult]:
+    """A Dask task: run ``chunk`` in a supervised process of this Dask worker, as the local pool does. A run
+    that crashes that process, hangs past ``timeout_s`` or fails is recorded as failed with its reason; the
+    process is replaced and the chunk goes on, so the Dask worker itself never dies with the FMU."""
+    pool = _dask_pool(spec, timeout_s)
+    out: list[RunResult] = []
+    pool.map(list(chunk), out.extend, max(1, len(chunk)))
+    return out
 
 
 class Evaluator:
@@ -1503,10 +1557,20 @@ class Evaluator:
             if self._client is None:
                 self._client = Client(self.scheduler)
             n = max(1, sum(self._client.nthreads().values()))
-            futures = [self._client.submit(run_chunk, self.spec, c, pure=False)
-                       for c in self._chunks(items, n)]
+            # each task runs its chunk in a supervised process on its Dask worker (crash, hang, error: a
+            # failed run, never a dead worker); a task Dask itself loses fails its runs with the reason
+            futures, chunks = [], {}
+            for c in self._chunks(items, n):
+                fut = self._client.submit(run_chunk_supervised, self.spec, c, self.timeout_s, pure=False)
+                futures.append(fut)
+                chunks[fut.key] = c
             for fut in as_completed(futures):
-                take(fut.result())
+                try:
+                    batch = fut.result()
+                except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker: record, go on
+                    reason = f"the Dask task failed: {type(exc).__name__}: {str(exc).strip()}"[:2000]
+                    batch = [RunResult(rid, tuple(v), None, "failed", reason, 0.0) for rid, v in chunks[fut.key]]
+                take(batch)
         elif self.isolate or (self.workers > 1 and len(items) >= self.pool_threshold):
             if self._pool is None:
                 self._pool = WorkerPool(self._local_spec(), self.workers, self.timeout_s)
