@@ -1240,6 +1240,8 @@ class PlanSpec:
     solver: str | None = None                # model exchange: CVode (None) or Euler
     relative_tolerance: float | None = None
     step_size: float | None = None
+    # scenario.refine_peaks: peaks and settling times re-sampled this many times finer (fmusa.sampling)
+    refine_factor: int | None = None
 
 
 @dataclass
@@ -1279,6 +1281,9 @@ def run_chunk(spec: PlanSpec, chunk: Sequence[tuple[int, tuple[float, ...]]]) ->
         try:
             data = plan(fmu_values)
             metrics = reduce_series(plan.times, data, spec.rules)
+            if spec.refine_factor and type(plan) is RunPlan:
+                from .sampling import refine_run
+                metrics = refine_run(spec, plan, fmu_values, data, metrics)
             out.append(RunResult(run_id, tuple(values), metrics, "ok", "", time.perf_counter() - t0))
         except Exception as exc:  # the FMU's own error: record it, keep going
             msg = str(exc).strip().replace("\n", " | ")

@@ -10,7 +10,11 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-REDUCTIONS = ("final", "max", "min", "max_abs", "mean", "mean_abs")
+REDUCTIONS = ("final", "max", "min", "max_abs", "mean", "mean_abs", "settle")
+#: Reductions whose value sits at one sample (a peak, a settling time): sampling can miss the true value,
+#: and ``scenario.refine_peaks`` resolves them on a finer grid around that sample.
+PEAK_REDUCTIONS = ("max", "min", "max_abs")
+SAMPLED_REDUCTIONS = PEAK_REDUCTIONS + ("settle",)
 
 
 @dataclass(frozen=True)
@@ -22,6 +26,23 @@ class MetricRule:
     scale: float = 1.0
     offset: float = 0.0
     missing_below: float | None = None
+    settle_tol: float | None = None      # ``settle``: the band |x| <= settle_tol (FMU units)
+
+
+def settle_index(x: np.ndarray, tol: float) -> int | None:
+    """Index of the first sample from which |x| <= tol holds to the end; None when the last sample is
+    outside the band (not settled)."""
+    out = np.abs(np.asarray(x, dtype=float)) > tol
+    if out[-1] or not np.all(np.isfinite(x)):
+        return None
+    bad = np.flatnonzero(out)
+    return 0 if bad.size == 0 else int(bad[-1]) + 1
+
+
+def peak_index(x: np.ndarray, reduce: str) -> int:
+    """Index of the sample a peak reduction (max, min, max_abs) takes its value from."""
+    x = np.asarray(x, dtype=float)
+    return int(np.argmax(x) if reduce == "max" else np.argmin(x) if reduce == "min" else np.argmax(np.abs(x)))
 
 
 def _time_mean(t: np.ndarray, x: np.ndarray) -> float:
@@ -48,6 +69,9 @@ def reduce_series(t: np.ndarray, values: np.ndarray, rules: Sequence[MetricRule]
             v = _time_mean(t, x)
         elif r.reduce == "mean_abs":
             v = _time_mean(t, np.abs(x))
+        elif r.reduce == "settle":   # the time since which |x| <= settle_tol, on the samples
+            i = settle_index(x, r.settle_tol)
+            v = float("nan") if i is None else float(t[i])
         else:  # pragma: no cover - the study loader rejects other names
             raise ValueError(f"unknown reduction {r.reduce!r}; use one of {', '.join(REDUCTIONS)}")
         if r.missing_below is not None and v < r.missing_below:
@@ -59,8 +83,8 @@ def reduce_series(t: np.ndarray, values: np.ndarray, rules: Sequence[MetricRule]
 def metric_rules(metrics: Iterable, outputs: list[str]) -> list[MetricRule]:
     """Rules for the study's metrics, given the order of the outputs the FMU is asked for."""
     index = {name: i for i, name in enumerate(outputs)}
-    return [MetricRule(m.name, index[m.output], m.reduce, m.scale, m.offset, m.missing_below)
-            for m in metrics]
+    return [MetricRule(m.name, index[m.output], m.reduce, m.scale, m.offset, m.missing_below,
+                       getattr(m, "settle_tol", None)) for m in metrics]
 
 
 def constraint_table(values: Mapping[str, np.ndarray], constraints: Iterable) -> dict[str, np.ndarray]:

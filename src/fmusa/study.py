@@ -45,7 +45,9 @@ __all__ = [
 #: Stage names, in the order they are normally run.
 STAGE_NAMES = ("grid", "roi", "search", "regression", "sensitivity")
 #: How a metric reduces the sampled values of its output.
-REDUCTIONS = ("final", "max", "min", "max_abs", "mean", "mean_abs")
+REDUCTIONS = ("final", "max", "min", "max_abs", "mean", "mean_abs", "settle")
+#: Reductions whose value sits at one sample (peaks, settling times): what ``scenario.refine_peaks`` refines.
+SAMPLED_REDUCTIONS = ("max", "min", "max_abs", "settle")
 #: Global sensitivity methods.
 METHODS = ("morris", "sobol")
 #: Distributions of sensitivity parameters.
@@ -107,12 +109,17 @@ class Scenario:
     """What one run simulates: the end time, the communication step and constant inputs.
 
     ``step`` None means one ``doStep`` from 0 to ``stop_time``; the FMU's monitors (y_max, t_eq, …)
-    are updated on every internal step, so their final values are exact without sampling.
+    are updated on every internal step, so their final values are exact without sampling. With a
+    ``step`` the outputs are sampled every ``step`` s, and a peak or a settling time taken from the
+    samples is off by up to ~step²/8·|y''| or one step; ``refine_peaks`` then re-runs each run with
+    ``refine_factor`` times finer steps around those samples (see :mod:`fmusa.sampling`).
     """
     stop_time: float
     step: float | None = None
     inputs: dict[str, float] = field(default_factory=dict)
     description: str = ""
+    refine_peaks: bool = False
+    refine_factor: int = 10
 
 
 @dataclass(frozen=True)
@@ -131,9 +138,11 @@ class Metric:
     offset: float = 0.0
     missing_below: float | None = None
     description: str = ""
+    settle_tol: float | None = None
 
-    def compute(self, samples) -> float:
-        """The metric from the output's samples (a scalar counts as one sample).
+    def compute(self, samples, times=None) -> float:
+        """The metric from the output's samples (a scalar counts as one sample); ``settle`` needs their
+        ``times``.
 
         The reduction is applied first, then ``missing_below`` (on the raw FMU value), then
         ``scale``/``offset``.
@@ -141,6 +150,12 @@ class Metric:
         a = np.atleast_1d(np.asarray(samples, dtype=float))
         if a.size == 0:
             return math.nan
+        if self.reduce == "settle":
+            if times is None:
+                raise ValueError(f"metric {self.name!r} (reduce: settle) needs the sample times")
+            from .metrics import settle_index
+            k = settle_index(a, self.settle_tol)
+            return math.nan if k is None else self.scale * float(np.atleast_1d(times)[k]) + self.offset
         if self.reduce == "final":
             raw = a[-1]
         elif self.reduce == "max":
@@ -694,7 +709,7 @@ def _parse_fixed(p: _Parser, top: _Map) -> tuple[dict[str, float | int | bool], 
 def _parse_scenario(p: _Parser, top: _Map) -> Scenario:
     node = top.need("scenario", "scenario: {stop_time: 12}")
     m = p.mapping(node, "scenario", "scenario", top.key_node("scenario"))
-    m.allow(("stop_time", "step", "inputs", "description"))
+    m.allow(("stop_time", "step", "inputs", "description", "refine_peaks", "refine_factor"))
     stop = p.number(m.need("stop_time", "stop_time: 12  (simulation end time in s, > 0)"),
                     "stop_time", "scenario", "stop_time: 12  (simulation end time in s)",
                     positive=True)
@@ -710,7 +725,21 @@ def _parse_scenario(p: _Parser, top: _Map) -> Scenario:
         for name, knode, vnode in im.entries():
             p.mark(f"scenario.inputs.{name}", knode)
             inputs[name] = p.number(vnode, name, "scenario.inputs", f"{name}: 20")
-    return Scenario(stop_time=stop, step=step, inputs=inputs, description=m.text("description"))
+    refine = False
+    rnode = m.opt("refine_peaks")
+    if rnode is not None:
+        refine = p.boolean(rnode, "refine_peaks", "scenario", "refine_peaks: true")
+        p.mark("scenario.refine_peaks", rnode)
+        if refine and step is None:
+            raise p.error(rnode, "key 'refine_peaks' in 'scenario' refines sampled outputs, but step is null "
+                                 "(one doStep, no samples); set step: 0.01 (the output interval) or remove "
+                                 "refine_peaks")
+    factor = m.int_("refine_factor", 10, "refine_factor: 10", minimum=2)
+    if "refine_factor" in m and m.opt("refine_factor") is not None and not refine:
+        raise p.error(m.items["refine_factor"][1], "key 'refine_factor' in 'scenario' has no effect without "
+                                                   "refine_peaks: true; add it or remove refine_factor")
+    return Scenario(stop_time=stop, step=step, inputs=inputs, description=m.text("description"),
+                    refine_peaks=refine, refine_factor=factor)
 
 
 def _parse_metrics(p: _Parser, top: _Map, parameters: Mapping) -> dict[str, Metric]:
@@ -727,19 +756,29 @@ def _parse_metrics(p: _Parser, top: _Map, parameters: Mapping) -> dict[str, Metr
                                  f"rename the metric (parameters and metrics share result tables)")
         where = f"metrics.{name}"
         mm = p.mapping(vnode, where, name, knode)
-        mm.allow(("output", "reduce", "unit", "scale", "offset", "missing_below", "description"))
+        mm.allow(("output", "reduce", "unit", "scale", "offset", "missing_below", "settle_tol", "description"))
         output = p.string(mm.need("output", "output: y_max  (an FMU output variable)"), "output",
                           where, "output: y_max")
         p.mark(f"{where}.output", mm.items["output"][1])
         rnode = mm.opt("reduce")
         reduce = "final" if rnode is None else p.choice(rnode, "reduce", where, REDUCTIONS,
                                                         "reduction")
+        tol = mm.num("settle_tol", None, "settle_tol: 5.0e-8  (the band |output| <= settle_tol, in the "
+                                         "FMU's unit)", positive=True)
+        if reduce == "settle" and tol is None:
+            raise p.error(mm.items["reduce"][1], f"{_key('reduce', where)}: 'settle' (the time since which "
+                                                 f"|{output}| stays within a band) needs the band; add "
+                                                 f"settle_tol: 5.0e-8 (in the FMU's unit of {output})")
+        if tol is not None and reduce != "settle":
+            raise p.error(mm.items["settle_tol"][1], f"{_key('settle_tol', where)} applies to reduce: settle "
+                                                     f"only, but the reduction is '{reduce}'; remove it or "
+                                                     f"set reduce: settle")
         out[name] = Metric(
             name=name, output=output, reduce=reduce, unit=mm.text("unit"),
             scale=mm.num("scale", 1.0, "scale: 1000  (e.g. m -> mm)", nonzero=True),
             offset=mm.num("offset", 0.0, "offset: 0.0"),
             missing_below=mm.num("missing_below", None, "missing_below: 0"),
-            description=mm.text("description"))
+            description=mm.text("description"), settle_tol=tol)
     return out
 
 
@@ -1153,6 +1192,11 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None) -> 
     scenario = _parse_scenario(p, top)
     _check_conflicts(p, top, parameters, fixed, scenario)
     metrics = _parse_metrics(p, top, parameters)
+    if scenario.refine_peaks and not any(m.reduce in SAMPLED_REDUCTIONS for m in metrics.values()):
+        raise StudyError(f"{p.label}:{p.lines['scenario.refine_peaks']}: key 'refine_peaks' in 'scenario': no "
+                         f"metric takes a peak or a settling time from the samples (reduce: "
+                         f"{', '.join(SAMPLED_REDUCTIONS)}), so there is nothing to refine; remove "
+                         f"refine_peaks")
     constraints = _parse_constraints(p, top, metrics)
     stages = _parse_stages(p, top, parameters, metrics, fixed, constraints)
     execution = _parse_execution(p, top)

@@ -182,6 +182,7 @@ def study_plan_spec(study: Study, fmu_path: str | Path) -> PlanSpec:
         solver=opts.solver,
         relative_tolerance=opts.relative_tolerance,
         step_size=opts.step_size,
+        refine_factor=study.scenario.refine_factor if study.scenario.refine_peaks else None,
     )
 
 
