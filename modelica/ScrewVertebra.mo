@@ -1,5 +1,6 @@
 // ScrewVertebra: rigid anchor screw (6 DOF) in a rigidly fixed C4 vertebra, joined by the diagonal
-// spring-damper matrix force element of Kramer and Bauer (eq. 1, Sections 2.1-2.3, Table 1).
+// spring-damper matrix force element of Kramer and Bauer (eq. 1, Sections 2.1-2.3, Table 1), with the
+// optional axial effects beyond eq. 1 of fmu/MODEL.md (the candidates of `fmusa diagnose`).
 //
 // This is the Modelica statement of fmu/MODEL.md; the co-simulation FMU (fmu/model.c) implements the
 // same equations. Its public variables (names, types, causalities, units, defaults, descriptions) are
@@ -28,6 +29,23 @@
 //  - With unload = true the pullout force falls linearly from F_max at t_unload (>= t_ramp) to 0 at
 //    t_unload + t_ramp; it is 0 before time 0.
 //
+// Effects beyond eq. 1 (fmu/MODEL.md, section of that name): extensions of the axial interface force
+// only, each switched off by its parameters' defaults, so eq. 1 is nested in every one. With
+// w = smooth_w, S(u) = w*log(1 + exp(u/w)) (softplus: max(u, 0) with the corner rounded over w) and
+// sigma(u) = dS/du:
+//  - backlash gap: elastic displacement y_e = S(y - gap) - S(-y - gap), v_e = (sigma(y - gap) +
+//    sigma(-y - gap))*v_y (y_e = y, v_e = v_y exactly when gap = 0);
+//  - spring F_s = yield_ratio*F_el + (1 - yield_ratio)*yield_F*z_y + (nl_ratio - 1)*c_y*(S(y_e -
+//    nl_y_b) - S(-y_e - nl_y_b)), F_el = c_y*y_e or the table force at y_e (bilinear stiffness past
+//    +-nl_y_b; yield softening);
+//  - Bouc-Wen states with n = 4, 0 at the start: der(z_y) = (v_e/y_Y)*(1 - H(z_y*v_e)*z_y^4),
+//    y_Y = yield_F/c_y (yield), and der(z_f) = (v_y/fric_x)*(1 - H(z_f*v_y)*z_f^4), F_fric = fric_F*z_f
+//    (Coulomb friction with pre-sliding); H(x) = 1 for x > 0, else 0;
+//  - Maxwell branch, 0 at the start: der(F_ve) = ve_k*v_y - F_ve/ve_tau;
+//  - total axial force F_y = F_s + d_y*v_y + F_fric + F_ve; measured outputs F_meas = F_pull + F_offset,
+//    y_meas = y + y_offset (sensor bias, the physics is unchanged).
+//  As in the FMU, the states z_y and z_f keep a zero rate while their effect is off.
+//
 // Differences to the FMU that are inherent to a Modelica tool:
 //  - rtol and h_max are the FMU's solver settings; a Modelica tool ignores them (set the tolerance in
 //    the simulation setup, see the experiment annotation).
@@ -35,6 +53,10 @@
 //  - Inputs are used as given; the FMU extrapolates them inside a communication step with the
 //    derivatives set by fmi2SetRealInputDerivatives. In motion-driven mode with use_y_in = true the
 //    tool differentiates y_in twice (index reduction), so y_in must come from a smooth source.
+//  - The Bouc-Wen switch H(z*v) is written with noEvent inside smooth(0, ...): the rates of z_y and z_f
+//    are continuous in z and v, so no event is needed (the FMU's solver does not locate the switch
+//    either). The effect states z_y, z_f, F_ve are states of the Modelica model (protected z_y, z_f;
+//    output F_ve); the FMU carries them as its solver states 13-15.
 model ScrewVertebra
   "Rigid pedicle/anchor screw (6 DOF) in a fixed C4 vertebra joined by a diagonal spring-damper matrix force element (Kramer and Bauer, eq. 1)"
 
@@ -93,6 +115,20 @@ model ScrewVertebra
   parameter Real rtol = 1e-06 "Relative local error tolerance for the nonlinear dynamics (the linear element is exact; dense output uses the smaller of 1e-7 and 100 rtol)";
   parameter Real h_max(unit="s") = 0 "Largest internal step (0: no limit beyond the communication step)";
 
+  // Effects beyond eq. 1 (fmu/MODEL.md): the defaults switch them off
+  parameter Real gap(unit="m") = 0 "Backlash: axial slack, no spring force while |y| < gap (0: off)";
+  parameter Real nl_ratio(unit="1") = 1 "Nonlinear stiffness: axial stiffness past the breakpoint divided by c_y (1: off)";
+  parameter Real nl_y_b(unit="m") = 0.0005 "Nonlinear stiffness: breakpoint displacement";
+  parameter Real yield_ratio(unit="1") = 1 "Yield: post-yield axial stiffness divided by c_y (1: off)";
+  parameter Real yield_F(unit="N") = 100 "Yield: axial force at which the interface yields";
+  parameter Real fric_F(unit="N") = 0 "Coulomb friction: sliding force opposing axial motion (0: off)";
+  parameter Real fric_x(unit="m") = 1e-05 "Coulomb friction: pre-sliding displacement";
+  parameter Real ve_k(unit="N/m") = 0 "Viscoelastic relaxation: stiffness of the Maxwell branch (0: off)";
+  parameter Real ve_tau(unit="s") = 1 "Viscoelastic relaxation: relaxation time of the Maxwell branch";
+  parameter Real F_offset(unit="N") = 0 "Sensor offset: bias added to the measured force F_meas";
+  parameter Real y_offset(unit="m") = 0 "Sensor offset: bias added to the measured displacement y_meas";
+  parameter Real smooth_w(unit="m") = 1e-06 "Width over which the corners of the gap and the breakpoint are rounded";
+
   // Inputs
   input Real F_ext_x(unit="N", start=0) "External force at the screw head along x (vertebra frame)";
   input Real F_ext_y(unit="N", start=0) "External force at the screw head along y (vertebra frame)";
@@ -119,7 +155,7 @@ model ScrewVertebra
 
   // Outputs: element forces with eq. 1's sign, pullout force
   output Real F_x(unit="N") "Interface force along x (c_x*x + d_x*v_x)";
-  output Real F_y(unit="N") "Axial interface force (c_y*y + d_y*v_y or table force + d_y*v_y)";
+  output Real F_y(unit="N") "Axial interface force (c_y*y + d_y*v_y or table force + d_y*v_y; plus the effects of MODEL.md when switched on)";
   output Real F_z(unit="N") "Interface force along z (c_z*z + d_z*v_z)";
   output Real T_alpha(unit="N.m") "Interface torque (c_alpha*alpha + d_alpha*w_alpha)";
   output Real T_beta(unit="N.m") "Interface torque (c_beta*beta + d_beta*w_beta)";
@@ -133,6 +169,12 @@ model ScrewVertebra
   output Real v_y_mean(unit="m/s") "Monitor: time average of |v_y| over [0, t]";
   output Real t_eq(unit="s") "Monitor: time since which |v_y| <= eps_v_eq and |a_y| <= eps_a_eq hold; -1 while not at rest";
   discrete output Integer n_steps "Internal solver steps taken so far";
+
+  // Outputs: effects beyond eq. 1
+  output Real F_meas(unit="N") "Measured force: F_pull + F_offset";
+  output Real y_meas(unit="m") "Measured displacement: y + y_offset";
+  output Real F_fric(unit="N") "Friction part of the axial interface force";
+  output Real F_ve(unit="N") "Maxwell branch part of the axial interface force";
 
 protected
   function tableForce
@@ -155,6 +197,26 @@ protected
       F := tF[i] + (tF[i + 1] - tF[i])*(u - ty[i])/(ty[i + 1] - ty[i]);
     end if;
   end tableForce;
+
+  function softplus
+    "S(u) = w*log(1 + exp(u/w)): max(u, 0) with the corner rounded over w (written so that exp cannot overflow)"
+    input Real u;
+    input Real w "Rounding width, > 0";
+    output Real S;
+  algorithm
+    S := max(u, 0) + w*log(1 + exp(-abs(u)/w));
+    annotation(smoothOrder=1);
+  end softplus;
+
+  function softplusSlope
+    "sigma(u) = dS/du = 1/(1 + exp(-u/w)) of softplus (written so that exp cannot overflow)"
+    input Real u;
+    input Real w "Rounding width, > 0";
+    output Real sigma;
+  algorithm
+    sigma := exp(-max(-u, 0)/w)/(1 + exp(-abs(u)/w));
+    annotation(smoothOrder=1);
+  end softplusSlope;
 
   // Geometry and inertia in the screw frame S
   final parameter Real c[3](each unit="m") = {cg_x, cg_y, cg_z} "Centre of gravity";
@@ -180,7 +242,14 @@ protected
   Real Q_I[3](each unit="N.m") "Generalised interface forces on the Cardan angles";
   Real tau_I[3](each unit="N.m") "Interface torque on the screw, in S";
   Real F_H[3](each unit="N") "Force on the screw head H, in V";
-  Real F_spring_y(unit="N") "Axial spring force: c_y*y or the table force";
+  Real F_spring_y(unit="N") "Axial spring force F_s of the elastic displacement y_e (with the effects)";
+  Real F_el(unit="N") "Elastic force c_y*y_e or the table force at y_e";
+  Real y_e(unit="m") "Elastic axial displacement after the backlash gap";
+  Real v_e(unit="m/s") "Rate of y_e";
+  Real z_y(unit="1") "Bouc-Wen yield state";
+  Real z_f(unit="1") "Bouc-Wen friction state";
+  final parameter Real y_Y(unit="m") = yield_F/c_y "Yield displacement of the Bouc-Wen yield state";
+  final parameter Boolean yield_on = yield_ratio < 1 or yield_ratio > 1 "Yield softening switched on";
   Real F_load(unit="N") "Pullout force of the force-driven load case";
   Real y_drive(unit="m") "Prescribed axial displacement of the motion-driven load case";
   discrete Real y_hold(unit="m", start=0, fixed=true) "max |y| at the local maxima of |y| so far";
@@ -206,6 +275,10 @@ initial equation
     y = 0;
     v_y = 0;
   end if;
+  // The states of the effects start at 0
+  z_y = 0;
+  z_f = 0;
+  F_ve = 0;
 
 initial algorithm
   for i in 2:tab_n loop
@@ -243,9 +316,8 @@ equation
   a_G = a + R*(cross(omega_d, b) + cross(omega, cross(omega, b)));
 
   // Matrix force element (eq. 1): element outputs with eq. 1's sign
-  F_spring_y = if tab_n >= 2 then tableForce(y, tab_n, tab_y, tab_F) else c_y*y;
   F_x = c_x*x + d_x*v_x;
-  F_y = F_spring_y + d_y*v_y;
+  F_y = F_spring_y + d_y*v_y + F_fric + F_ve "total axial force: eq. 1 plus the effects of MODEL.md";
   F_z = c_z*z + d_z*v_z;
   T_alpha = c_alpha*alpha + d_alpha*w_alpha;
   T_beta = c_beta*beta + d_beta*w_beta;
@@ -254,6 +326,29 @@ equation
   F_I = -{F_x, F_y, F_z};
   Q_I = -{T_alpha, T_beta, T_gamma};
   transpose(G)*tau_I = Q_I;
+
+  // Effects beyond eq. 1 (fmu/MODEL.md): the axial spring force F_s and the states of the effects.
+  // Backlash gap: the spring sees the elastic displacement y_e (softplus-rounded corners at +-gap).
+  y_e = if gap > 0 then softplus(y - gap, smooth_w) - softplus(-y - gap, smooth_w) else y;
+  v_e = if gap > 0 then (softplusSlope(y - gap, smooth_w) + softplusSlope(-y - gap, smooth_w))*v_y else v_y;
+  // Spring: yield softening replaces c_y*y_e (or the table force) by yield_ratio*F_el +
+  // (1 - yield_ratio)*yield_F*z_y; bilinear stiffness adds (nl_ratio - 1)*c_y past the breakpoint.
+  F_el = if tab_n >= 2 then tableForce(y_e, tab_n, tab_y, tab_F) else c_y*y_e;
+  F_spring_y = yield_ratio*F_el + (1 - yield_ratio)*yield_F*z_y
+    + (nl_ratio - 1)*c_y*(softplus(y_e - nl_y_b, smooth_w) - softplus(-y_e - nl_y_b, smooth_w));
+  // Bouc-Wen, n = 4: the rate is continuous in (z, v), so the switch H(z*v) needs no event
+  der(z_y) = if yield_on then
+      smooth(0, v_e/y_Y*(1 - (if noEvent(z_y*v_e > 0) then z_y^4 else 0)))
+    else 0;
+  der(z_f) = if fric_F > 0 then
+      smooth(0, v_y/fric_x*(1 - (if noEvent(z_f*v_y > 0) then z_f^4 else 0)))
+    else 0;
+  F_fric = fric_F*z_f;
+  // Maxwell branch: spring ve_k in series with a dashpot ve_k*ve_tau
+  der(F_ve) = ve_k*v_y - F_ve/ve_tau;
+  // Sensor offsets: biases of the measuring channels
+  F_meas = F_pull + F_offset;
+  y_meas = y + y_offset;
 
   // Load case
   F_load = if time < 0 then 0

@@ -14,6 +14,21 @@ from fmusa.cli import main
 
 from fmus.me_spring.build import build_spring_fmu
 
+CONTRACT = Path(__file__).resolve().parents[1] / "fmu" / "variables.csv"
+
+
+@pytest.fixture(scope="module")
+def contract() -> list[dict[str, str]]:
+    """The FMU's variable contract, one row per scalar variable: the counts inspect must report."""
+    with open(CONTRACT, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) >= 118 and len({r["name"] for r in rows}) == len(rows)      # not vacuous
+    return rows
+
+
+def _count(rows: list[dict[str, str]], causality: str) -> int:
+    return sum(r["causality"] == causality for r in rows)
+
 
 def _inspect(capsys, *args: str) -> tuple[int, str, str]:
     code = main(["inspect", *map(str, args)])
@@ -48,7 +63,7 @@ def spring(tmp_path_factory) -> dict[str, Path]:
             "sources": build_spring_fmu(d, "SpringSrc", binary=False, sources=True)}
 
 
-def test_inspect_our_fmu(capsys, fmu_path, monkeypatch):
+def test_inspect_our_fmu(capsys, fmu_path, monkeypatch, contract):
     monkeypatch.setenv("COLUMNS", "120")
     code, out, _ = _inspect(capsys, fmu_path)
     assert code == 0
@@ -59,9 +74,14 @@ def test_inspect_our_fmu(capsys, fmu_path, monkeypatch):
     assert head["binaries"].startswith("linux64") and "this machine, linux64: yes" in head["binaries"]
     assert head["sources"] == "yes: fmi2.c, model.c, solver.c"
     assert head["default experiment"] == "start 0 s, stop 12 s, step 0.01 s"
-    assert head["variables"].startswith("102 (66 parameter, 3 calculatedParameter, 7 input, 26 output")
+    counts = {c: _count(contract, c) for c in ("parameter", "calculatedParameter", "input", "output")}
+    assert counts["calculatedParameter"] == 3 and counts["input"] == 7
+    assert head["variables"] == (f"{len(contract)} ({counts['parameter']} parameter, "
+                                 f"{counts['calculatedParameter']} calculatedParameter, {counts['input']} input, "
+                                 f"{counts['output']} output)")
     rows = {r[0]: r for r in _table(out)}
-    assert len(rows) == 102
+    assert len(rows) == len(contract)
+    assert {name: r[1] for name, r in rows.items()} == {r["name"]: r["causality"] for r in contract}
     assert rows["c_y"][:6] == ["c_y", "parameter", "fixed", "Real", "N/m", "823224"]
     assert rows["c_y"][6].startswith("Interface stiffness along the screw")
     assert rows["I_1"][1:4] == ["calculatedParameter", "fixed", "Real"] and rows["I_1"][5] == ""
@@ -73,12 +93,12 @@ def test_inspect_our_fmu(capsys, fmu_path, monkeypatch):
     assert any(r[6].endswith("…") for r in rows.values())
 
 
-def test_inspect_filters_by_causality_and_name(capsys, fmu_path):
+def test_inspect_filters_by_causality_and_name(capsys, fmu_path, contract):
     code, out, _ = _inspect(capsys, fmu_path, "--causality", "input")
     assert code == 0
     names = [r[0] for r in _table(out)]
     assert names == ["F_ext_x", "F_ext_y", "F_ext_z", "T_ext_x", "T_ext_y", "T_ext_z", "y_in"]
-    assert "(7 of 102 variables)" in out
+    assert f"(7 of {len(contract)} variables)" in out
     code, out, _ = _inspect(capsys, fmu_path, "--causality", "output,calculatedParameter", "--name", "*_max")
     assert sorted(r[0] for r in _table(out)) == ["v_y_max", "y_max"]
     code, out, _ = _inspect(capsys, fmu_path, "--causality", "parameter", "--name", "d_*")
@@ -94,11 +114,11 @@ def test_inspect_unknown_causality_is_an_error(capsys, fmu_path):
     assert code == 2 and "unknown causality 'outpt'; did you mean output?" in err
 
 
-def test_inspect_csv(capsys, fmu_path):
+def test_inspect_csv(capsys, fmu_path, contract):
     code, out, _ = _inspect(capsys, fmu_path, "--csv")
     assert code == 0
     rows = list(csv.DictReader(io.StringIO(out)))
-    assert len(rows) == 102
+    assert [r["name"] for r in rows] == [r["name"] for r in contract]
     assert list(rows[0]) == ["name", "causality", "variability", "type", "unit", "start", "description"]
     c_y = next(r for r in rows if r["name"] == "c_y")
     assert c_y["unit"] == "N/m" and float(c_y["start"]) == 823224
