@@ -17,7 +17,7 @@ FMI_HEADERS := fmi2Functions.h fmi2FunctionTypes.h fmi2TypesPlatform.h
 CC := gcc
 CFLAGS := -std=c99 -O3 -fPIC -shared -Wall -Wextra -fvisibility=hidden
 
-.PHONY: all fmu sweep test bench clean
+.PHONY: all fmu sweep test bench diagnose clean
 .DELETE_ON_ERROR:
 
 all: fmu
@@ -66,6 +66,10 @@ sweep: $(STAMP) $(FMU)
 
 test: $(STAMP) $(FMU)
 	$(VENV)/bin/pytest -q -p no:cacheprovider tests
+
+# The diagnosis of the real C6/C7 shear tests (data/shear-c67) against the authors' own analysis.
+diagnose: $(STAMP) $(FMU)
+	$(VENV)/bin/fmusa diagnose-shear --out out/diagnose
 
 bench: $(STAMP) $(FMU)
 	$(VPY) -m fmusa.bench --out out/bench/bench.json

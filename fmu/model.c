@@ -474,6 +474,7 @@ static int update_outputs(ModelInstance *mi, char *msg, size_t len)
         V(v_y_mean) = span > 0.0 ? mi->solver.absvel_int / span : fabs(u[IX_VY]);
     }
     V(n_steps) = (double)mi->solver.n_steps;
+    if (!mi->solver.monitors) V(y_max) = V(v_y_max) = V(y_mean) = V(v_y_mean) = V(t_eq) = NAN;
     return 0;
 }
 
@@ -536,6 +537,7 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->rtol = V(rtol);
     sv->atol = 1e-15;            /* SI units: 1e-15 m, rad, m/s, rad/s: far below anything the study reads */
     sv->h_max = V(h_max);
+    sv->monitors = V(monitors) != 0.0;
     sv->eps_v = V(eps_v_eq);
     sv->eps_a = V(eps_a_eq);
     sv->rhs = rhs;

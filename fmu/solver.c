@@ -610,7 +610,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             }
             double rtol_d = fmin(1e-7, 100.0 * s->rtol);   /* dense output: never looser than 1e-7 */
             double rd = 0.0;
-            for (int j = 1; j < NSUB; j += 2) {
+            for (int j = 1; j < NSUB && s->monitors; j += 2) {
                 double p0 = w[j - 1][s->ipos], p1 = w[j + 1][s->ipos];
                 double v0 = w[j - 1][s->ivel], v1 = w[j + 1][s->ivel];
                 double ph = 0.5 * (p0 + p1) + 2.0 * dt * (v0 - v1) / 8.0;
@@ -627,7 +627,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                 continue;
             }
             /* accepted: monitors over the samples */
-            for (int j = 0; j < NSUB; j++) {
+            for (int j = 0; j < NSUB && s->monitors; j++) {
                 double p0 = w[j][s->ipos], p1 = w[j + 1][s->ipos];
                 double v0 = w[j][s->ivel], v1 = w[j + 1][s->ivel];
                 /* integrals on the Hermite pieces (exact for cubics); |v| across a sign change by
@@ -648,7 +648,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                     s->t_eq = t + j * dt + (g0 > 0.0 ? locate_rest(s, &L, w[j], zs[j], dt, g0, g1) : 0.0);
                 }
             }
-            if (s->t_eq >= 0.0) {
+            if (s->monitors && s->t_eq >= 0.0) {
                 double s_c = fmax(0.0, s->t_eq - t);
                 double s_new = rest_after_oscillation(s, &L, w[0], zs[0], h, s_c);
                 if (s_new > s_c) s->t_eq = t + s_new;

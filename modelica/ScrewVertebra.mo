@@ -47,7 +47,7 @@
 //  As in the FMU, the states z_y and z_f keep a zero rate while their effect is off.
 //
 // Differences to the FMU that are inherent to a Modelica tool:
-//  - rtol and h_max are the FMU's solver settings; a Modelica tool ignores them (set the tolerance in
+//  - rtol, h_max and monitors are the FMU's solver settings; a Modelica tool ignores them (set the tolerance in
 //    the simulation setup, see the experiment annotation).
 //  - n_steps (the FMU's count of internal solver steps) stays 0 here.
 //  - Inputs are used as given; the FMU extrapolates them inside a communication step with the
@@ -114,6 +114,7 @@ model ScrewVertebra
   // Solver settings of the FMU: a Modelica tool ignores them
   parameter Real rtol = 1e-06 "Relative local error tolerance for the nonlinear dynamics (the linear element is exact; dense output uses the smaller of 1e-7 and 100 rtol)";
   parameter Real h_max(unit="s") = 0 "Largest internal step (0: no limit beyond the communication step)";
+  parameter Boolean monitors = true "Follow the monitors (y_max, v_y_max, y_mean, v_y_mean, t_eq) between steps; false skips the dense-output checks: faster, and the monitors read NaN";
 
   // Effects beyond eq. 1 (fmu/MODEL.md): the defaults switch them off
   parameter Real gap(unit="m") = 0 "Backlash: axial slack, no spring force while |y| < gap (0: off)";

@@ -419,6 +419,102 @@ def _print_inspect(head, info, note, rows, causality, args, width) -> None:
         print(f"({len(rows)} of {len(info.variables)} variables)")
 
 
+# ---------------------------------------------------------------------------- diagnose
+def _add_diagnose(sub: argparse._SubParsersAction) -> None:
+    from .diagnose import CANDIDATES
+
+    p = sub.add_parser(
+        "diagnose", help="calibrate the model to measured tests, name the missing effect, measure the gain",
+        description="Fit the baseline spring-damper and every candidate effect to one or more measured "
+                    "tests (CSV, fitted jointly) by simulating the FMU with the measured drive; rank the "
+                    "candidates on held-out data and by information criteria; write diagnosis.json, "
+                    "figures/ and report.md into --out.")
+    p.add_argument("files", nargs="+", type=Path, metavar="FILE.csv", help="measured tests, one per file")
+    p.add_argument("--drive", required=True, choices=("force", "displacement"),
+                   help="the channel the test imposed; the model is driven by it and predicts the other")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
+    g = p.add_argument_group("columns and units (default: time,displacement,force in s, m, N)")
+    g.add_argument("--time-column", default="time", metavar="NAME")
+    g.add_argument("--displacement-column", default="displacement", metavar="NAME")
+    g.add_argument("--force-column", default="force", metavar="NAME")
+    g.add_argument("--time-unit", default="s", metavar="UNIT", help="s, ms or min")
+    g.add_argument("--displacement-unit", default="m", metavar="UNIT", help="m, cm, mm, um")
+    g.add_argument("--force-unit", default="N", metavar="UNIT", help="N, kN, mN, lbf")
+    g.add_argument("--rate", default=None, metavar="RATE",
+                   help="constant drive rate, e.g. '10 mm/s', to derive time for files without a time column")
+    g.add_argument("--no-zero-drive", action="store_true",
+                   help="keep the drive as measured (default: shift it to start at 0, where the model is at rest)")
+    p.add_argument("--max-points", type=int, default=300,
+                   help="block-average each test to at most this many samples for the fit (default 300)")
+    p.add_argument("--candidates", default=",".join(CANDIDATES),
+                   help=f"comma-separated subset of: {', '.join(CANDIDATES)}")
+    p.add_argument("--starts", type=int, default=6, help="least-squares starts per model (default 6)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
+    p.set_defaults(func=cmd_diagnose)
+
+
+def cmd_diagnose(args: argparse.Namespace) -> int:
+    from .diagnose import run_diagnosis
+    from .measured import ColumnSpec, load_experiments
+
+    if args.max_points < 10:
+        raise ValueError(f"--max-points must be >= 10, got {args.max_points}")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    cands = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
+    spec = ColumnSpec(time=args.time_column, displacement=args.displacement_column, force=args.force_column,
+                      time_unit=args.time_unit, displacement_unit=args.displacement_unit,
+                      force_unit=args.force_unit, rate=args.rate)
+    exps = load_experiments(args.files, args.drive, spec, zero_drive=not args.no_zero_drive,
+                            max_points=args.max_points)
+    diag = run_diagnosis(exps, args.drive, args.out, fmu_path=args.fmu, candidates=cands,
+                         workers=args.workers, max_starts=args.starts)
+    g = diag["gain"]
+    print(f"effect: {diag['effect']}")
+    if diag["effect"] != "none":
+        ps = ", ".join(f"{k} = {v['value']:.4g} {v['unit']} [{v['ci95'][0]:.4g}, {v['ci95'][1]:.4g}]"
+                       for k, v in diag["effect_params"].items())
+        print(f"  {ps}")
+        print(f"  rmse ratio {g['rmse_ratio']:.3f}, held-out rmse ratio {g['heldout_rmse_ratio']:.3f}, "
+              f"delta AIC {g['delta_aic']:.1f}")
+    for t in diag["indistinguishable"]:
+        print(f"  cannot be told from {t['effect']}: {t['separating_test']}")
+    if diag["leftover"]:
+        print(f"  left in the residuals: {diag['leftover']}")
+    for name in ("diagnosis.json", "report.md"):
+        if (args.out / name).exists():
+            print(f"wrote {args.out / name}")
+    return 0
+
+
+def _add_diagnose_shear(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "diagnose-shear", help="diagnose the C6/C7 shear tests of data/shear-c67 and compare with the authors",
+        description="Run `diagnose` on every specimen and direction of the shear-c67 data (the three rates "
+                    "jointly), fit the two-phase elastic model per test, and compare with the authors' "
+                    "breakpoint analysis (test_info.csv) and across rates. Writes DIR/report.md, "
+                    "DIR/summary.json, DIR/bilinear_comparison.csv and one diagnosis folder per unit.")
+    p.add_argument("--data", type=Path, default=None, help="the shear-c67 folder (default: data/shear-c67)")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
+    p.add_argument("--max-points", type=int, default=300, help="samples per test after block averaging")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
+    p.set_defaults(func=cmd_diagnose_shear)
+
+
+def cmd_diagnose_shear(args: argparse.Namespace) -> int:
+    from .shear_study import run_shear_diagnosis
+
+    s = run_shear_diagnosis(args.out, root=args.data, fmu_path=args.fmu, max_points=args.max_points,
+                            workers=args.workers)
+    for k, g in s["groups"].items():
+        print(f"{k}: {g['effect']}" + (f" (cannot be told from {', '.join(g['indistinguishable'])})"
+                                       if g["indistinguishable"] else ""))
+    print(f"wrote {args.out / 'report.md'}")
+    return 0
+
+
 # ---------------------------------------------------------------------------- entry point
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -430,6 +526,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_pullout(sub)
     _add_sweep(sub)
     _add_inspect(sub)
+    _add_diagnose(sub)
+    _add_diagnose_shear(sub)
     return parser
 
 
