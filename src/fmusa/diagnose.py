@@ -387,6 +387,54 @@ def separating_test(a: str, b: str) -> str:
     return SEPARATING_TESTS.get(frozenset({a, b}), "a test that loads, holds and unloads at several rates")
 
 
+# ---------------------------------------------------------------------- what the protocol can show
+
+# Features of a test protocol that separate look-alike effects, and the pairs each one separates.
+PROTOCOL_FEATURES = {
+    "unloading": (frozenset({"nonlinear_stiffness", "yield_softening"}),
+                  frozenset({"coulomb_friction", "sensor_offset"}),
+                  frozenset({"coulomb_friction", "yield_softening"})),
+    "hold": (frozenset({"viscoelastic_relaxation", "coulomb_friction"}),),
+    "several_rates_or_hold": (frozenset({"viscoelastic_relaxation", "nonlinear_stiffness"}),
+                              frozenset({"viscoelastic_relaxation", "yield_softening"})),
+}
+
+
+def protocol_features(experiments: Sequence) -> dict:
+    """What the tests did: unload after the peak, hold still, run at several rates."""
+    unloading = hold = False
+    rates = []
+    for e in experiments:
+        u = np.abs(np.asarray(e.drive_signal, float))
+        pk = float(np.max(u))
+        k = int(np.argmax(u))
+        if pk > 0 and float(np.min(u[k:])) < 0.7 * pk:
+            unloading = True
+        du = np.abs(np.diff(e.drive_signal)) / np.diff(e.t)
+        rate = float(np.median(du[du > 0.1 * np.max(du)])) if np.max(du) > 0 else 0.0
+        rates.append(rate)
+        still = du < 0.02 * np.max(du) if np.max(du) > 0 else np.ones_like(du, bool)
+        if float(np.sum(np.diff(e.t)[still])) > 0.1 * float(e.t[-1] - e.t[0]):
+            hold = True
+    rates = [r for r in rates if r > 0]
+    several = bool(rates) and max(rates) > 3.0 * min(rates)
+    return {"unloading": unloading, "hold": hold, "several_rates": several,
+            "several_rates_or_hold": several or hold}
+
+
+def protocol_blind_spots(effect: str, features: dict) -> list[dict]:
+    """The candidates this protocol cannot separate from ``effect``, whatever the scores say."""
+    out = []
+    for feat, pairs in PROTOCOL_FEATURES.items():
+        if features.get(feat):
+            continue
+        for pair in pairs:
+            if effect in pair:
+                other = next(iter(pair - {effect}))
+                out.append({"effect": other, "missing": feat, "separating_test": separating_test(effect, other)})
+    return out
+
+
 # ---------------------------------------------------------------------- the whole diagnosis
 
 def _fit_job(args) -> Fit | str:
@@ -513,9 +561,18 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
 
     def structure(fit: Fit) -> dict:
         r = np.concatenate([pr - e.response_signal for pr, e in zip(fit.predictions, experiments)])
-        return rs.residual_structure(t_all, r, segments=segments)
+        return rs.residual_structure(t_all, r, segments=segments, unit="N" if drive == "displacement" else "m")
 
     res_base, res_ext = structure(base), structure(ext)
+    features = protocol_features(experiments)
+    indist = [{"effect": t, "reason": "scores within the tie margins",
+               "separating_test": separating_test(effect, t)} for t in ties]
+    if effect != "none":
+        for b in protocol_blind_spots(effect, features):
+            if b["effect"] not in ties and b["effect"] in fits:
+                indist.append({"effect": b["effect"],
+                               "reason": f"the tests have no {b['missing'].replace('_', ' ')}",
+                               "separating_test": b["separating_test"]})
     main = main_parameter(effect, drive) if effect != "none" else None
     eff_names = [p.name for p in model_parameters(effect, drive, sc)][2:] if effect != "none" else []
     out = {
@@ -531,7 +588,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
                  "p_value": nested_p_value(base, ext) if effect != "none" else 1.0},
         "ranking": ranking,
         "failed": failed,
-        "indistinguishable": [{"effect": t, "separating_test": separating_test(effect, t)} for t in ties],
+        "indistinguishable": indist,
+        "protocol": features,
         "residuals": {"baseline": res_base, "extended": res_ext},
         "leftover": res_ext.get("description", "") if res_ext.get("structured") else "",
         "data": {"drive": drive, "response": "force" if drive == "displacement" else "displacement",

@@ -1,0 +1,120 @@
+"""`fmusa diagnose` must find an effect hidden in data it was not told about.
+
+The data come from tests/effects_reference.py, an independent scipy implementation of the effects of
+fmu/MODEL.md: an effect drawn at random with random parameters and noise, under a load-hold-unload
+protocol, in both drive modes. The pipeline (the real FMU through fmpy) must name the effect, recover
+its main parameter within 15 %, and answer `none` on data without an effect.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+import effects_reference as er  # noqa: E402
+
+from fmusa import diagnose as dg  # noqa: E402
+from fmusa.measured import Experiment, downsample  # noqa: E402
+
+EFFECTS = ("none",) + dg.CANDIDATES
+DRIVES = ("displacement", "force")
+
+
+def experiment(effect: str, drive: str, seed: int, points: int = 200) -> tuple[Experiment, dict]:
+    df, truth = er.synthesize(effect, drive, seed=seed)
+    e = Experiment(name=f"{effect}-{drive}", path=Path(f"{effect}.csv"), drive=drive, t=df.time.values,
+                   displacement=df.displacement.values, force=df.force.values)
+    return downsample(e, points), truth
+
+
+@pytest.mark.parametrize("drive", DRIVES)
+@pytest.mark.parametrize("effect", EFFECTS)
+def test_hidden_effect_is_named(effect, drive, fmu_path):
+    seed = zlib.crc32(f"{effect}/{drive}".encode()) % 10_000
+    e, truth = experiment(effect, drive, seed)
+    d = dg.diagnose([e], drive, fmu_path=fmu_path, workers=2)
+    ranking = {r["effect"]: (r["significant"], round(r["heldout_rmse_ratio"], 3), round(r["delta_bic"], 1))
+               for r in d["ranking"]}
+    assert d["effect"] == effect, f"seed {seed}: named {d['effect']}; ranking {ranking}"
+    if effect == "none":
+        assert d["gain"]["rmse_ratio"] == 1.0
+        return
+    main = truth["main_parameter"]
+    assert d["main_parameter"] == main
+    got, want = d["effect_params"][main]["value"], truth["main_value"]
+    assert abs(got - want) <= 0.15 * abs(want), f"{main}: fitted {got:.6g}, true {want:.6g}"
+    lo, hi = d["effect_params"][main]["ci95"]
+    assert lo <= got <= hi
+    assert d["gain"]["heldout_rmse_ratio"] < 0.9 and d["gain"]["delta_aic"] < -10
+
+
+def test_cli_writes_outputs_and_reuses_fits(tmp_path, fmu_path):
+    """The command a user runs: diagnosis.json with the issue's keys, figures, report; a rerun reuses the
+    cached fits (nothing computed is lost) and gives the same answer."""
+    e, truth = experiment("coulomb_friction", "displacement", seed=7, points=120)
+    csv = tmp_path / "test.csv"
+    e.to_frame().to_csv(csv, index=False)
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "fmusa.cli", "diagnose", str(csv), "--drive", "displacement", "--out", str(out),
+           "--fmu", str(fmu_path), "--candidates", "coulomb_friction,sensor_offset", "--starts", "3",
+           "--max-points", "120"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    d = json.loads((out / "diagnosis.json").read_text())
+    for key in ("effect", "effect_params", "baseline", "extended", "gain", "ranking"):
+        assert key in d
+    assert set(d["baseline"]) >= {"params", "rmse"} and set(d["extended"]) >= {"params", "rmse"}
+    assert set(d["gain"]) >= {"rmse_ratio", "heldout_rmse_ratio", "delta_aic"}
+    assert {r["effect"] for r in d["ranking"]} == {"coulomb_friction", "sensor_offset"}
+    assert d["effect"] == "coulomb_friction"
+    assert (out / "report.md").exists() and list((out / "figures").glob("*.png"))
+    stamps = {p.name: p.stat().st_mtime_ns for p in (out / "fits").glob("*.json")}
+    assert len(stamps) == 3
+    r2 = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r2.returncode == 0, r2.stderr
+    assert "fitted" not in r2.stdout          # every fit came from the cache
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "fits").glob("*.json")} == stamps
+    assert json.loads((out / "diagnosis.json").read_text())["effect"] == "coulomb_friction"
+
+
+def test_bad_input_is_named(tmp_path, fmu_path):
+    """A CSV with a NaN: the error names the file, the column and the line, and no output is written."""
+    csv = tmp_path / "bad.csv"
+    t = np.linspace(0, 1, 20)
+    rows = ["time,displacement,force"] + [f"{a},{1e-3 * a},{200 * a}" for a in t]
+    rows[6] = f"{t[5]},{1e-3 * t[5]},nan"
+    csv.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "fmusa.cli", "diagnose", str(csv), "--drive", "displacement",
+                        "--out", str(out), "--fmu", str(fmu_path)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert "bad.csv:7" in r.stderr and "'force'" in r.stderr
+    assert not (out / "diagnosis.json").exists()
+
+
+def test_unknown_candidate_is_refused(fmu_path):
+    e, _ = experiment("none", "displacement", seed=1, points=50)
+    with pytest.raises(dg.DiagnoseError, match="unknown candidate 'friction'"):
+        dg.diagnose([e], "displacement", fmu_path=fmu_path, candidates=("friction",))
+
+
+def test_monotonic_test_cannot_separate_yield_from_nonlinear_stiffness(fmu_path):
+    """Loading only, no unloading: the diagnosis must say that yield and an elastic bend look alike
+    here, and that unloading would separate them."""
+    df, truth = er.synthesize("yield_softening", "displacement", seed=11)
+    keep = df.time.values <= truth["T_load"]
+    e = downsample(Experiment(name="ramp", path=Path("ramp.csv"), drive="displacement", t=df.time.values[keep],
+                              displacement=df.displacement.values[keep], force=df.force.values[keep]), 150)
+    d = dg.diagnose([e], "displacement", fmu_path=fmu_path, workers=2,
+                    candidates=("yield_softening", "nonlinear_stiffness", "sensor_offset"))
+    assert d["protocol"]["unloading"] is False
+    assert d["effect"] in ("yield_softening", "nonlinear_stiffness")
+    other = {"yield_softening": "nonlinear_stiffness", "nonlinear_stiffness": "yield_softening"}[d["effect"]]
+    hit = [i for i in d["indistinguishable"] if i["effect"] == other]
+    assert hit and "unload" in hit[0]["separating_test"]
