@@ -9,14 +9,13 @@ z_final = F_ext_z / c_z), while the rotational dampers and c_z must carry none o
 from __future__ import annotations
 
 import dataclasses
-import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from fmusa import evaluate, sensitivity
+from fmusa import evaluate
 from fmusa.sensitivity import plot_sensitivity, run_sensitivity
 from fmusa.study import SensitivityParameter, load_study
 from fmusa.sweep import StudyRunner

@@ -287,7 +287,7 @@ def test_container_fmu_renames_our_fmu(container_fmu, fmu_path):
 
 
 def test_committed_study_files_load_with_a_built_fmu(axial_fmu, container_fmu, tmp_path):
-    from fmusa.study import load_study, parse_study
+    from fmusa.study import parse_study
 
     for kind, fmu in (("pythonfmu", axial_fmu), ("container", container_fmu)):
         study = parse_study(vendor_study_text(kind, fmu), tmp_path / f"{kind}.yaml")

@@ -144,6 +144,12 @@ def data_scales(experiments: Sequence) -> Scales:
 
 def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
     """The fitted parameters of the baseline (c_y, d_y) plus those of one effect, with data-scaled bounds."""
+    if "+" in effect:   # several effects at once, e.g. "nonlinear_stiffness+viscoelastic_relaxation"
+        parts = effect.split("+")
+        out = model_parameters(parts[0], drive, sc)
+        for part in parts[1:]:
+            out += model_parameters(part, drive, sc)[2:]
+        return out
     c0, y_pk, F_pk = sc.c0, sc.y_pk, sc.F_pk
     d_max = 2.0 * F_pk / sc.v_pk
     base = [Param("c_y", c0 / 100, c0 * 100, (c0,), log=True),

@@ -549,7 +549,7 @@ def ramp_time(table: pd.DataFrame, path: str | Path, *, F: float, eps_y: float, 
     ax.plot(tt, np.full_like(tt, F / eps_y), color="tab:blue", linestyle="--", linewidth=2, zorder=4,
             label=f"translation bound F/ε_y = {fmt(F / eps_y, 6)} {inner_unit}")
     ax.plot(tt, F / (eps_v * tt), color="tab:orange", linestyle="--", linewidth=2, zorder=4,
-            label=f"velocity bound F/(ε_ẏ·t_ramp)")
+            label="velocity bound F/(ε_ẏ·t_ramp)")
     ax.axvline(eps_y / eps_v, color="gray", linestyle=":", linewidth=1.2,
                label=f"t_ramp = ε_y/ε_ẏ = {fmt(eps_y / eps_v)} s: both bind")
     if ours is not None:

@@ -815,7 +815,7 @@ def _physics(ctx: _Ctx) -> _Physics:
         # ---- consistency checks with the paper's numbers
         pc = ph.checks
         popt = _get(ctx.paper, "optimum", default={}) or {}
-        F_, ev, ey = ctx.F, ctx.eps_v, ctx.eps_y
+        F_, ev = ctx.F, ctx.eps_v
         if "c" in popt and "d" in popt:
             cp, dp = float(popt["c"]), float(popt["d"])
             pc["paper_opt"] = (cp, dp)
@@ -905,7 +905,7 @@ def _ramp_section(ctx: _Ctx, ph: _Physics, figdir: Path) -> str:
             f"5 × 5 grid under each to recompute the automatic region ({ph.runs} extra runs in all). "
             f"'smallest feasible {inner}' is a bisection in {inner} at {outer} = {fmt(opt[outer], 6)} "
             f"{ctx.u(outer)} (relative tolerance 1e-4).\n\n")
-    out += f"**Ramp time** (end = t_ramp + 2 s):\n\n"
+    out += "**Ramp time** (end = t_ramp + 2 s):\n\n"
     rows = []
     for r in ph.scen_ramp:
         T = r["t_ramp"]
@@ -939,7 +939,6 @@ def _ramp_section(ctx: _Ctx, ph: _Physics, figdir: Path) -> str:
                                   f"t_ramp = F/(ε_ẏ·F/ε_y) = ε_y/ε_ẏ = {fmt(ey / ev)} s the velocity "
                                   f"threshold decides, above it the translation threshold."))
         out += f"![{name}](figures/{name})\n\n*{name}*: {ctx.figures[-1][1]}\n\n"
-    r10 = next((r for r in ph.scen_ramp if r["t_ramp"] == ctx.t_ramp), None)
     out += ("Reading: max(y) = F/c does not depend on the ramp time; max(ẏ) ≈ F/(c·t_ramp) does. For ramps "
             f"shorter than ε_y/ε_ẏ = {fmt(ey / ev)} s the velocity threshold decides and the smallest feasible "
             f"stiffness grows as 1/t_ramp; for longer ramps the translation threshold fixes it at F/ε_y. "
@@ -1002,7 +1001,6 @@ def _deviations_section(ctx: _Ctx, ph: _Physics) -> str:
     if preg is not None:
         ps = res.paper_search
         lv = _get(ctx.summary, "search", "levels", default=[])
-        tops = [float(x) for x in ctx.study.stages["grid"].points()[outer]] if "grid" in ctx.study.stages else []
         base = getattr(ctx.study.stages.get("grid"), "base", None)
 
         def power(x):
@@ -1034,7 +1032,6 @@ def _deviations_section(ctx: _Ctx, ph: _Physics) -> str:
                     f"{fmt(res.region.outer_range[1])}/2^{round(k_auto)} = {fmt(opt[outer], 6)} {ctx.u(outer)}. ")
         resp = [x.get("response") or {} for x in lv if x.get("inner") is not None]
         if len(resp) >= 2:
-            ys = [r.get("max_y") for r in resp if r.get("max_y") is not None]
             same_c = [x for x in lv if x.get("inner") is not None and x["inner"] == opt[inner]]
             if same_c:
                 d_hi = max(float(x["outer"]) for x in same_c)

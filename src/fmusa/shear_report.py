@@ -52,7 +52,7 @@ def write_figures(summary: dict, cmp_: pd.DataFrame, out: Path) -> list[Path]:
         axes[2].plot(g["rate_mm_s"], g["peak_load_N"] / g["peak_disp_mm"], style, marker="^",
                      label=f"{spec} {direction}")
     for ax, title in zip(axes, ("fmusa: stiffness past the breakpoint", "authors: stiffness_2",
-                                "secant stiffness at the peak (peak load / peak displacement)")):
+                                "secant stiffness at the peak\n(peak load / peak displacement)")):
         ax.set_xscale("log")
         ax.set_xlabel("shear rate [mm/s]")
         ax.set_ylabel("stiffness [N/mm]")
@@ -116,6 +116,17 @@ def write_report(summary: dict, cmp_: pd.DataFrame, groups: dict, out: Path, fig
              f"free intercepts. Median |relative difference|: first stiffness {100 * b['k1_rel_diff_median']:.1f} %, "
              f"second stiffness {100 * b['k2_rel_diff_median']:.1f} %; median |breakpoint difference| "
              f"{b['breakpoint_abs_diff_median_mm']:.3f} mm (breakpoints compared in the raw displacement frame).\n")
+    L.append("By rate (median |relative difference| of k1 and k2, median |breakpoint difference|, median samples):\n")
+    L.append("| rate [mm/s] | k1 | k2 | breakpoint [mm] | samples |")
+    L.append("|---|---|---|---|---|")
+    for rate, v in summary["bilinear_by_rate"].items():
+        L.append(f"| {rate} | {100 * v['k1_rel_diff_median']:.1f} % | {100 * v['k2_rel_diff_median']:.1f} % | "
+                 f"{v['breakpoint_abs_diff_median_mm']:.3f} | {v['points_median']:.0f} |")
+    L.append("")
+    L.append("At 1 and 10 mm/s the two analyses agree closely. At 100 mm/s the records hold only 25–44 samples "
+             "and start with a toe (force lagging the displacement); the authors' lines with free intercepts "
+             "absorb it, while fmusa's continuous curve through the unloaded start cannot, and puts a soft "
+             "first phase there instead, so k1 and the breakpoint differ most at that rate.\n")
     L.append("| test | rate [mm/s] | authors k1 / k2 [N/mm] | fmusa k1 / k2 [N/mm] | authors breakpoint [mm] | fmusa breakpoint [mm] | fmusa RMSE [N] (linear) |")
     L.append("|---|---|---|---|---|---|---|")
     for _, r in cmp_.iterrows():
@@ -132,12 +143,34 @@ def write_report(summary: dict, cmp_: pd.DataFrame, groups: dict, out: Path, fig
         L.append(f"| {r['specimen']} {r['direction']} | {_f(r['k2_ratio_100_1_ours'])} | "
                  f"{_f(r['k2_ratio_100_1_authors'])} | {_f(r['peak_ratio_100_1'])} | {_f(r['linear_k_ratio_100_1'])} |")
     L.append("")
-    up = int((rt["linear_k_ratio_100_1"] > 1.0).sum())
-    L.append(f"The fitted linear stiffness is higher at 100 mm/s than at 1 mm/s in {up} of {len(rt)} units "
-             f"(median ratio {rt['linear_k_ratio_100_1'].median():.2f}; authors' second stiffness: median "
-             f"ratio {rt['k2_ratio_100_1_authors'].median():.2f}). A stiffness that rises with rate is the "
-             f"signature of a Maxwell branch (`viscoelastic_relaxation`); the joint fit across rates tests it "
-             f"directly, since its held-out score predicts each rate from the others.\n")
+    rm = summary.get("rate_models", {})
+    if rm:
+        L.append("Direct test: a Maxwell branch added to the two-phase elastic curve, fitted to all three rates "
+                 "of a unit, each rate predicted from the other two:\n")
+        L.append("| unit | held-out RMSE two-phase [N] | + Maxwell [N] | ratio | ΔBIC | ve_k [N/mm] | ve_tau [s] |")
+        L.append("|---|---|---|---|---|---|---|")
+        for k, v in rm.items():
+            m = v["two_phase_maxwell"]
+            L.append(f"| {k.replace('_', ' ')} | {_f(v['two_phase']['heldout_rmse'])} | {_f(m['heldout_rmse'])} | "
+                     f"{_f(v['heldout_ratio'])} | {_f(v['delta_bic'], '.1f')} | {_f(m['ve_k_N_mm'])} | {_f(m['ve_tau_s'])} |")
+        L.append("")
+        better = [k for k, v in rm.items() if v["heldout_ratio"] < 0.9 and v["delta_bic"] < -10]
+        L.append(f"The Maxwell branch improves the prediction of an unseen rate significantly (held-out ratio "
+                 f"< 0.9 and ΔBIC < -10) in {len(better)} of {len(rm)} units"
+                 + (f" ({', '.join(b.replace('_', ' ') for b in better)})" if better else "") + ".\n")
+    up = int((rt["k2_ratio_100_1_ours"] > 1.0).sum())
+    n_better = len(better) if rm else 0
+    L.append(f"**What the rates show.** Over a 100-fold increase of the rate the stiffness past the breakpoint "
+             f"rises in {up} of {len(rt)} units, by a median factor {rt['k2_ratio_100_1_ours'].median():.2f} "
+             f"(authors' analysis: {rt['k2_ratio_100_1_authors'].median():.2f}); the peak load changes by a median "
+             f"factor {rt['peak_ratio_100_1'].median():.2f}, but the tests stop at different displacements, so the "
+             f"peak loads are not like for like. A rate-dependent (viscoelastic) interface would show as a "
+             f"Maxwell branch that predicts an unseen rate; it does so in {n_better} of {len(rt)} units. The rate "
+             f"dependence in these tests is therefore weak (stiffness past the breakpoint "
+             f"{rt['k2_ratio_100_1_ours'].min():.2f}–{rt['k2_ratio_100_1_ours'].max():.2f}× over two decades of "
+             f"rate) and a single Maxwell branch does not capture it in most units: a rate-independent two-phase "
+             f"elastic bushing is an adequate model for shear rates of 1–100 mm/s here, with the caveat that the 100 mm/s records are short (25–44 "
+             f"samples) and their time base is derived from the nominal rate.\n")
     for p in figs:
         L.append(f"![{p.stem}](figures/{p.name})\n")
     path = out / "report.md"

@@ -29,7 +29,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -826,7 +826,7 @@ def _parse_grid(p: _Parser, m: _Map, where: str, parameters: Mapping) -> GridSta
         ew = f"{where}.exponents"
         em = p.mapping(enode, ew, "exponents")
         for name, knode, vnode in em.entries():
-            p.name_in(knode, name, ew, parameters, "study parameter", f"c: [3, 7]")
+            p.name_in(knode, name, ew, parameters, "study parameter", "c: [3, 7]")
             lo, hi = p.pair(vnode, name, ew, f"{name}: [3, 7]", p.integer)
             if lo > hi:
                 raise p.error(vnode, f"{_key(name, ew)} must be a range [lo, hi] with lo ≤ hi, got "
@@ -837,7 +837,7 @@ def _parse_grid(p: _Parser, m: _Map, where: str, parameters: Mapping) -> GridSta
         vw = f"{where}.values"
         vm = p.mapping(vnode_all, vw, "values")
         for name, knode, vnode in vm.entries():
-            p.name_in(knode, name, vw, parameters, "study parameter", f"c: [1.0e5, 1.0e6]")
+            p.name_in(knode, name, vw, parameters, "study parameter", "c: [1.0e5, 1.0e6]")
             if name in exponents:
                 raise p.error(knode, f"{_key(name, vw)}: parameter '{name}' also has exponents in "
                                      f"'{where}'; keep exactly one of exponents / values")
@@ -850,8 +850,8 @@ def _parse_grid(p: _Parser, m: _Map, where: str, parameters: Mapping) -> GridSta
                 raise p.error(vnode, f"{_key(name, vw)} lists a value twice; remove duplicates")
             values[name] = vals
     if not exponents and not values:
-        raise p.error(m.owner, f"key 'grid' in 'stages' defines no grid points; add 'exponents' "
-                               f"(with 'base') or 'values', e.g. base: 25, exponents: {{c: [3, 7]}}")
+        raise p.error(m.owner, "key 'grid' in 'stages' defines no grid points; add 'exponents' "
+                               "(with 'base') or 'values', e.g. base: 25, exponents: {c: [3, 7]}")
     base = m.num("base", None, "base: 25", positive=True)
     if exponents and base is None:
         raise p.error(m.owner, f"key 'base' is missing {_in(where)}; exponents need it, add it, "
