@@ -268,6 +268,44 @@ def bench_paper_study(repeats: int = 5) -> dict:
             "paper_study_optimum": res.summary.get("optimum")}
 
 
+def bench_diagnose(fmu_path: Path, workers: int | None = None) -> dict:
+    """`fmusa diagnose`: one FMU run on a measured drive (300 samples) with the baseline and with the most
+    expensive effect, and the wall time of a whole diagnosis (six candidates, held-out refits) of one real
+    spinal unit (H2 anterior, three rates, 528 samples) with a cold cache."""
+    import numpy as np
+
+    from . import diagnose as dg
+    from . import shear_c67
+
+    t = np.linspace(0.0, 6.0, 300)
+    y = np.interp(t, [0, 1.5, 3.5, 5.0, 6.0], [0, 1.2e-3, 1.2e-3, 0, 0])
+    F = np.interp(t, [0, 1.5, 3.5, 5.0, 6.0], [0, 250.0, 250.0, 0, 0])
+    out = {}
+    cases = {"displacement_baseline": ("displacement", ["c_y", "d_y"], [2e5, 100.0], y),
+             "force_friction": ("force", ["c_y", "d_y", "fric_F"], [2e5, 100.0, 25.0], F)}
+    for name, (drive, names, values, u) in cases.items():
+        model = dg.ModelRunner(fmu_path, drive, names)
+        try:
+            model.plan(values, t, u)
+            times = []
+            for _ in range(20):
+                t0 = time.perf_counter()
+                model.plan(values, t, u)
+                times.append(time.perf_counter() - t0)
+        finally:
+            model.close()
+        out[f"diagnose_run_ms_{name}"] = 1e3 * statistics.median(times)
+    tests = shear_c67.list_tests()
+    g = tests[(tests.specimen == "H2") & (tests.direction == "Ant")]
+    exps = [shear_c67.load_test(r, max_points=300) for _, r in g.iterrows()]
+    t0 = time.perf_counter()
+    d = dg.diagnose(exps, "displacement", fmu_path=fmu_path, workers=workers)
+    out["diagnose_shear_unit_wall_s"] = time.perf_counter() - t0
+    out["diagnose_shear_unit_points"] = int(sum(len(e.t) for e in exps))
+    out["diagnose_shear_unit_effect"] = d["effect"]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m fmusa.bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("out/bench/bench.json"))
@@ -280,6 +318,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sobol-small-runs", type=int, default=2500,
                     help="runs of the second, smaller Sobol study (memory against run count; 0 skips it)")
     ap.add_argument("--workers", type=int, default=None, help="pool workers (default: all cores)")
+    ap.add_argument("--no-diagnose", dest="diagnose", action="store_false",
+                    help="skip the timings of `fmusa diagnose`")
     args = ap.parse_args(argv)
     fmu_path = (args.fmu or default_fmu_path()).resolve()
 
@@ -317,6 +357,11 @@ def main(argv: list[str] | None = None) -> int:
     }
 
     result.update(bench_paper_study())
+    if args.diagnose:
+        result.update(bench_diagnose(fmu_path, args.workers))
+        print(f"diagnose: one driven run {result['diagnose_run_ms_displacement_baseline']:.2f} ms (baseline, "
+              f"300 samples), {result['diagnose_run_ms_force_friction']:.2f} ms (force drive, friction); a "
+              f"real unit, 6 candidates: {result['diagnose_shear_unit_wall_s']:.1f} s")
 
     if args.sobol_runs > 0:
         workers = args.workers or os.cpu_count() or 1
