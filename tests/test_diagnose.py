@@ -118,3 +118,21 @@ def test_monotonic_test_cannot_separate_yield_from_nonlinear_stiffness(fmu_path)
     other = {"yield_softening": "nonlinear_stiffness", "nonlinear_stiffness": "yield_softening"}[d["effect"]]
     hit = [i for i in d["indistinguishable"] if i["effect"] == other]
     assert hit and "unload" in hit[0]["separating_test"]
+
+
+def test_leftover_rig_oscillation_is_described(fmu_path):
+    """An effect plus an oscillation of the test rig that no candidate models: the effect is still named,
+    and what is left is said: an oscillation at the rig's frequency, of about its size."""
+    df, truth = er.synthesize("coulomb_friction", "displacement", seed=21)
+    f_rig, amp = 7.0, 0.03 * float(np.max(np.abs(truth["clean"])))
+    force = df.force.values + amp * np.sin(2 * np.pi * f_rig * df.time.values + 0.4)
+    e = downsample(Experiment(name="rig", path=Path("rig.csv"), drive="displacement", t=df.time.values,
+                              displacement=df.displacement.values, force=force), 300)
+    d = dg.diagnose([e], "displacement", fmu_path=fmu_path, workers=2,
+                    candidates=("coulomb_friction", "sensor_offset", "viscoelastic_relaxation"))
+    assert d["effect"] == "coulomb_friction"
+    osc = d["residuals"]["extended"]["oscillation"]
+    assert d["residuals"]["extended"]["structured"] and osc is not None
+    assert abs(osc["frequency_hz"] - f_rig) < 0.02 * f_rig
+    assert abs(osc["amplitude"] - amp) < 0.2 * amp
+    assert "Hz" in d["leftover"]
