@@ -473,7 +473,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     g = diag["gain"]
     print(f"effect: {diag['effect']}")
     if diag["effect"] != "none":
-        ps = ", ".join(f"{k} = {v['value']:.4g} {v['unit']} [{v['ci95'][0]:.4g}, {v['ci95'][1]:.4g}]"
+        ps = ", ".join(f"{k} = {v['value']:.4g}{'' if v['unit'] in ('', '1') else ' ' + v['unit']} "
+                       f"[{v['ci95'][0]:.4g}, {v['ci95'][1]:.4g}]"
                        for k, v in diag["effect_params"].items())
         print(f"  {ps}")
         print(f"  rmse ratio {g['rmse_ratio']:.3f}, held-out rmse ratio {g['heldout_rmse_ratio']:.3f}, "
