@@ -272,7 +272,8 @@ def _save(fig, path: Path) -> Path:
 def _grid(n_panels: int, width: float = 5.2, height: float = 3.3):
     cols = 1 if n_panels == 1 else 2 if n_panels <= 4 else 3
     rows = math.ceil(n_panels / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False)
+    # one panel alone is drawn wider, so the figure's title and legend fit above it
+    fig, axes = plt.subplots(rows, cols, figsize=(max(width * cols, 8.0), height * rows), squeeze=False)
     flat = list(axes.ravel())
     for ax in flat[n_panels:]:
         ax.set_visible(False)
