@@ -574,8 +574,10 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     indist = [{"effect": t, "reason": "scores within the tie margins",
                "separating_test": separating_test(effect, t)} for t in ties]
     if effect != "none":
+        significant = {r["effect"] for r in ranking if r["significant"]}
         for b in protocol_blind_spots(effect, features):
-            if b["effect"] not in ties and b["effect"] in fits:
+            # only a look-alike that explains the data too: one that fails here was told apart after all
+            if b["effect"] not in ties and b["effect"] in significant:
                 indist.append({"effect": b["effect"],
                                "reason": f"the tests have no {b['missing'].replace('_', ' ')}",
                                "separating_test": b["separating_test"]})

@@ -74,6 +74,13 @@ def _f(x, fmt=".3g") -> str:
         return "n/a"
 
 
+def _param_text(name: str, v: dict) -> str:
+    """A fitted parameter in the units of the data: mm, N/mm, N, s; ratios bare."""
+    scale, unit = {"m": (1e3, "mm"), "N/m": (1e-3, "N/mm"), "1": (1.0, ""), "": (1.0, "")}.get(
+        v["unit"], (1.0, v["unit"]))
+    return f"{name} = {_f(v['value'] * scale, '.4g')}{' ' + unit if unit else ''}"
+
+
 def write_report(summary: dict, cmp_: pd.DataFrame, groups: dict, out: Path, figs: list[Path]) -> Path:
     L: list[str] = []
     L.append("# Diagnosis of the C6/C7 shear tests (data/shear-c67)\n")
@@ -88,7 +95,7 @@ def write_report(summary: dict, cmp_: pd.DataFrame, groups: dict, out: Path, fig
     L.append("| unit | effect named | held-out RMSE ratio | ΔBIC | effect parameters | cannot be told from | left in the residuals |")
     L.append("|---|---|---|---|---|---|---|")
     for k, g in summary["groups"].items():
-        ps = "; ".join(f"{n} = {_f(v['value'], '.4g')} {v['unit']}" for n, v in g["effect_params"].items())
+        ps = "; ".join(_param_text(n, v) for n, v in g["effect_params"].items())
         L.append(f"| {k.replace('_', ' ')} | **{g['effect']}** | {_f(g['gain']['heldout_rmse_ratio'])} | "
                  f"{_f(g['gain']['delta_bic'], '.1f')} | {ps or '–'} | {', '.join(g['indistinguishable']) or '–'} | "
                  f"{g['leftover'] or '–'} |")
@@ -103,12 +110,20 @@ def write_report(summary: dict, cmp_: pd.DataFrame, groups: dict, out: Path, fig
             sig_rank.setdefault(r["effect"], []).append(r["heldout_rmse_ratio"])
     L.append("Median held-out RMSE ratio of each candidate against the baseline over the six units: " +
              ", ".join(f"{e} {np.nanmedian(v):.3f}" for e, v in sorted(sig_rank.items(), key=lambda kv: np.nanmedian(kv[1]))) + ".\n")
-    L.append("**What these tests cannot tell.** All 18 tests load monotonically to the peak and stop: there "
-             "is no hold and no unloading. An elastic two-phase curve (`nonlinear_stiffness`) and a yielding "
-             "interface (`yield_softening`) give the same loading curve; only unloading separates them (an "
-             "elastic curve retraces, a yield leaves a permanent set). Friction and a sensor offset are "
-             "likewise the same during monotonic loading (both a constant force added); a reversal "
-             "separates them. Rate dependence is visible only across the three rates.\n")
+    ratios = [g["effect_params"]["nl_ratio"]["value"] for g in summary["groups"].values()
+              if g["effect"] == "nonlinear_stiffness"]
+    stiffen = sum(r > 1.0 for r in ratios)
+    L.append("**What these tests can and cannot tell.** All 18 tests load monotonically to the peak and stop: "
+             "there is no hold and no unloading. A *softening* elastic bend and a yielding interface "
+             "(`yield_softening`) give the same loading curve, and only unloading separates them (an elastic "
+             "curve retraces, a yield leaves a permanent set). Here the bend "
+             + (f"stiffens in {stiffen} of {len(ratios)} units where it is named (nl_ratio "
+                f"{min(ratios):.2f}–{max(ratios):.2f}): a yield cannot produce that, and its fit indeed gains "
+                f"nothing, so these data rule yield out; what they cannot rule out is a softening stage beyond "
+                f"the peak, which only a test to failure or an unloading would show. "
+                if ratios else "is not named. ")
+             + "Friction and a sensor offset add the same constant force during monotonic loading; a reversal "
+             "separates them. Relaxation needs a hold or several rates: here the three rates.\n")
     L.append("## Two-phase fit per test against the authors' breakpoint analysis\n")
     b = summary["bilinear"]
     L.append(f"fmusa fits the continuous bilinear elastic model (stiffness c_y up to the breakpoint, "
