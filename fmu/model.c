@@ -302,8 +302,9 @@ static void cos_sin(cplx x, cplx *c, cplx *s)
     *s = csin(x);
 }
 
-/* Accelerations (and, in motion-driven mode, the reaction of the drive) at (t, u). */
-static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, cplx *F_pull,
+/* Accelerations (and, in motion-driven mode, the reaction of the drive) at (t, u); ax is the axial
+ * interface force of u, computed once by the caller, which also needs it for the effect states. */
+static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, const Axial *ax, cplx *acc, cplx *F_pull,
                     char *msg, size_t len)
 {
     const cplx *q = u, *qd = u + NQ;
@@ -336,8 +337,7 @@ static int dynamics(const ModelInstance *mi, cplx t, const cplx *u, cplx *acc, c
     Gd[2] = cb * th[1] * th[0];
 
     /* interface (eq. 1) */
-    Axial ax = axial_force(mi, u);
-    cplx FI[3] = {-(V(c_x) * q[0] + V(d_x) * qd[0]), -(ax.spring + V(d_y) * qd[1] + ax.fric + ax.ve_F),
+    cplx FI[3] = {-(V(c_x) * q[0] + V(d_x) * qd[0]), -(ax->spring + V(d_y) * qd[1] + ax->fric + ax->ve_F),
                   -(V(c_z) * q[2] + V(d_z) * qd[2])};
     cplx QI[3] = {-(V(c_alpha) * q[3] + V(d_alpha) * qd[3]), -(V(c_beta) * q[4] + V(d_beta) * qd[4]),
                   -(V(c_gamma) * q[5] + V(d_gamma) * qd[5])};
@@ -438,7 +438,7 @@ static int rhs(void *ctx, cplx t, const cplx *u, cplx *du, char *msg, size_t len
     for (int i = 0; i < NQ; i++) du[i] = u[NQ + i];
     Axial ax = axial_force(mi, u);
     effect_rates(mi, u, &ax, du);
-    return dynamics(mi, t, u, du + NQ, &Fp, msg, len);
+    return dynamics(mi, t, u, &ax, du + NQ, &Fp, msg, len);
 }
 
 /* ------------------------------------------------------------------ outputs */
@@ -447,14 +447,14 @@ static int update_outputs(ModelInstance *mi, char *msg, size_t len)
 {
     cplx uc[NX], acc[NQ], Fp;
     for (int i = 0; i < NX; i++) uc[i] = mi->u[i];
-    if (dynamics(mi, mi->time, uc, acc, &Fp, msg, len)) return 1;
+    Axial ax = axial_force(mi, uc);
+    if (dynamics(mi, mi->time, uc, &ax, acc, &Fp, msg, len)) return 1;
     const double *u = mi->u;
     static const int qvr[NQ] = {VR_x, VR_y, VR_z, VR_alpha, VR_beta, VR_gamma};
     static const int vvr[NQ] = {VR_v_x, VR_v_y, VR_v_z, VR_w_alpha, VR_w_beta, VR_w_gamma};
     for (int i = 0; i < NQ; i++) { mi->v[qvr[i]] = u[i]; mi->v[vvr[i]] = u[NQ + i]; }
     V(a_y) = mi->solver.acc;   /* carried by the solver: no cancellation of F - c y */
     V(F_x) = V(c_x) * u[0] + V(d_x) * u[6];
-    Axial ax = axial_force(mi, uc);
     V(F_y) = creal(ax.spring) + V(d_y) * u[IX_VY] + creal(ax.fric) + creal(ax.ve_F);
     V(F_fric) = creal(ax.fric);
     V(F_ve) = creal(ax.ve_F);

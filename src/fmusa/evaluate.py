@@ -974,6 +974,29 @@ def pullout(params: Mapping[str, Value] | None = None, stop_time: float = 12.0, 
 
 
 # ---------------------------------------------------------------------- many runs, fast
+def _initialise(r: FMURunner, fixed_calls: list, vr_varied, val_varied, values: Sequence[float],
+                input_calls: list, start: float, stop: float) -> None:
+    """Set the prepared parameters and inputs of one run on a ready instance and initialise it (the part
+    RunPlan and DrivenPlan share; the phases name where a failure happened)."""
+    s = r._slave
+    r._phase = "while setting parameters"
+    for fn, vr, val in fixed_calls:
+        getattr(s, fn)(s.component, vr, len(vr), val)
+    for i, x in enumerate(values):
+        val_varied[i] = x
+    if len(vr_varied):
+        s.fmi2SetReal(s.component, vr_varied, len(val_varied), val_varied)
+    for fn, vr, val in input_calls:
+        getattr(s, fn)(s.component, vr, len(vr), val)
+    r._phase = "during initialisation"
+    if r.relative_tolerance is None:
+        s.fmi2SetupExperiment(s.component, 0, 0.0, start, 1, stop)
+    else:
+        s.fmi2SetupExperiment(s.component, 1, r.relative_tolerance, start, 1, stop)
+    s.fmi2EnterInitializationMode(s.component)
+    s.fmi2ExitInitializationMode(s.component)
+
+
 class RunPlan:
     """Repeated runs of one FMU in which only some Real parameters change.
 
@@ -1058,37 +1081,14 @@ class RunPlan:
         r = self.runner
         if r.is_model_exchange:
             return self._call_me(values)
-        if r._slave is None or r._state != "instantiated":
-            if r._slave is None:
-                r._instantiate()
-            else:
-                try:
-                    r._slave.reset()
-                except Exception:
-                    r._free()
-                    r._instantiate()
+        r._ready()
         s = r._slave
-        r._state = "running"
-        r.messages.clear()
         params = dict(zip(self.varied, values))
         data = np.empty((len(self.times), len(self.outputs)))
         t = 0.0
         try:
-            r._phase = "while setting parameters"
-            for fn, vr, val in self._fixed_calls:
-                getattr(s, fn)(s.component, vr, len(vr), val)
-            for i, x in enumerate(values):
-                self._val_varied[i] = x
-            s.fmi2SetReal(s.component, self._vr_varied, len(self._val_varied), self._val_varied)
-            for fn, vr, val in self._input_calls:
-                getattr(s, fn)(s.component, vr, len(vr), val)
-            r._phase = "during initialisation"
-            if r.relative_tolerance is None:
-                s.fmi2SetupExperiment(s.component, 0, 0.0, 0.0, 1, self.stop_time)
-            else:
-                s.fmi2SetupExperiment(s.component, 1, r.relative_tolerance, 0.0, 1, self.stop_time)
-            s.fmi2EnterInitializationMode(s.component)
-            s.fmi2ExitInitializationMode(s.component)
+            _initialise(r, self._fixed_calls, self._vr_varied, self._val_varied, values, self._input_calls,
+                        0.0, self.stop_time)
             data[0] = self._read()
             for k in range(1, len(self.times)):
                 t_next = self.times[k]
@@ -1179,22 +1179,9 @@ class DrivenPlan:
         vr_out, val_out, vr_in, val_in, order = self._vr_out, self._val_out, self._vr_in, self._val_in, self._order
         ti = float(t[0])
         try:
-            r._phase = "while setting parameters"
-            for fn, vr, val in self._fixed_calls:
-                getattr(s, fn)(s.component, vr, len(vr), val)
-            for i, x in enumerate(values):
-                self._val_varied[i] = x
-            if len(self._vr_varied):
-                s.fmi2SetReal(s.component, self._vr_varied, len(self._val_varied), self._val_varied)
             val_in[0] = u[0]
-            s.fmi2SetReal(s.component, vr_in, 1, val_in)
-            r._phase = "during initialisation"
-            if r.relative_tolerance is None:
-                s.fmi2SetupExperiment(s.component, 0, 0.0, ti, 1, float(t[-1]))
-            else:
-                s.fmi2SetupExperiment(s.component, 1, r.relative_tolerance, ti, 1, float(t[-1]))
-            s.fmi2EnterInitializationMode(s.component)
-            s.fmi2ExitInitializationMode(s.component)
+            _initialise(r, self._fixed_calls, self._vr_varied, self._val_varied, values,
+                        [("fmi2SetReal", vr_in, val_in)], ti, float(t[-1]))
             s.fmi2GetReal(s.component, vr_out, n_out, val_out)
             data[0] = val_out
             set_real, set_der, do_step, get_real = (s.fmi2SetReal, s.fmi2SetRealInputDerivatives,

@@ -75,10 +75,11 @@ def _f(x, fmt=".3g") -> str:
 
 
 def _param_text(name: str, v: dict) -> str:
-    """A fitted parameter in the units of the data: mm, N/mm, N, s; ratios bare."""
-    scale, unit = {"m": (1e3, "mm"), "N/m": (1e-3, "N/mm"), "1": (1.0, ""), "": (1.0, "")}.get(
-        v["unit"], (1.0, v["unit"]))
-    return f"{name} = {_f(v['value'] * scale, '.4g')}{' ' + unit if unit else ''}"
+    """A fitted parameter in the units of the data (mm, N/mm, N, s; ratios bare), as the unit reports."""
+    from .diagnose_report import natural
+
+    value, unit = natural(name, v["value"])
+    return f"{name} = {_f(value, '.4g')}{' ' + unit if unit else ''}"
 
 
 def write_report(summary: dict, cmp_: pd.DataFrame, groups: dict, out: Path, figs: list[Path]) -> Path:

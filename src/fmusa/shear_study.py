@@ -24,28 +24,32 @@ from . import shear_c67
 def fit_bilinear_per_test(tests: pd.DataFrame, fmu: str, max_points: int) -> pd.DataFrame:
     """Our two-phase elastic fit of every test, in the authors' units and frame (raw displacement)."""
     rows = []
-    for _, row in tests.iterrows():
-        exp = shear_c67.load_test(row, max_points=max_points)
-        sc = dg.data_scales([exp])
-        names = [p.name for p in dg.model_parameters("nonlinear_stiffness", "displacement", sc)]
-        model = dg.ModelRunner(fmu, "displacement", names)
-        base = dg.ModelRunner(fmu, "displacement", ["c_y", "d_y"])
-        try:
-            fit = dg.calibrate(model, "nonlinear_stiffness", "displacement", [exp], sc, max_starts=6)
-            lin = dg.calibrate(base, "none", "displacement", [exp], sc)
-        finally:
-            model.close()
-            base.close()
-        sign = 1.0 if row["direction"] == "Ant" else -1.0
-        x0 = float(exp.meta.get("zero_shift", 0.0))
-        c1 = fit.params["c_y"] / 1000.0
-        rows.append({"specimen": row["specimen"], "direction": row["direction"], "rate_mm_s": row["rate_mm_s"],
-                     "k1_N_mm": c1, "k2_N_mm": c1 * fit.params["nl_ratio"],
-                     "bp_mm": 1000.0 * (x0 + sign * fit.params["nl_y_b"]),
-                     "k1_ci": [v / 1000.0 for v in fit.ci95["c_y"]],
-                     "rmse_N": fit.rmse, "linear_rmse_N": lin.rmse, "linear_k_N_mm": lin.params["c_y"] / 1000.0,
-                     "peak_N": float(np.max(np.abs(exp.force))), "points": len(exp.t)})
+    # the fitted names do not depend on the data: one extracted FMU per model for all tests
+    model = dg.ModelRunner(fmu, "displacement", ["c_y", "d_y", "nl_ratio", "nl_y_b"])
+    base = dg.ModelRunner(fmu, "displacement", ["c_y", "d_y"])
+    try:
+        for _, row in tests.iterrows():
+            rows.append(_bilinear_row(row, model, base, max_points))
+    finally:
+        model.close()
+        base.close()
     return pd.DataFrame(rows)
+
+
+def _bilinear_row(row, model: dg.ModelRunner, base: dg.ModelRunner, max_points: int) -> dict:
+    exp = shear_c67.load_test(row, max_points=max_points)
+    sc = dg.data_scales([exp])
+    fit = dg.calibrate(model, "nonlinear_stiffness", "displacement", [exp], sc, max_starts=6)
+    lin = dg.calibrate(base, "none", "displacement", [exp], sc)
+    sign = 1.0 if row["direction"] == "Ant" else -1.0
+    x0 = float(exp.meta.get("zero_shift", 0.0))
+    c1 = fit.params["c_y"] / 1000.0
+    return {"specimen": row["specimen"], "direction": row["direction"], "rate_mm_s": row["rate_mm_s"],
+            "k1_N_mm": c1, "k2_N_mm": c1 * fit.params["nl_ratio"],
+            "bp_mm": 1000.0 * (x0 + sign * fit.params["nl_y_b"]),
+            "k1_ci": [v / 1000.0 for v in fit.ci95["c_y"]],
+            "rmse_N": fit.rmse, "linear_rmse_N": lin.rmse, "linear_k_N_mm": lin.params["c_y"] / 1000.0,
+            "peak_N": float(np.max(np.abs(exp.force))), "points": len(exp.t)}
 
 
 def rate_dependence(exps, fmu: str, diag: dict) -> dict:
@@ -75,20 +79,17 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root=None, fmu_path=None, ma
     fmu = str(fmu_path or default_fmu_path())
     tests = shear_c67.list_tests(root)
     authors = shear_c67.authors_bilinear(root)
-    groups = {}
+    groups, unit_exps = {}, {}
     for (spec, direction), g in tests.groupby(["specimen", "direction"], sort=False):
-        exps = [shear_c67.load_test(r, max_points=max_points) for _, r in g.iterrows()]
+        key = f"{spec}_{direction}"
+        unit_exps[key] = exps = [shear_c67.load_test(r, max_points=max_points) for _, r in g.iterrows()]
         print(f"{spec} {direction}: {len(exps)} tests", flush=True)
-        diag = dg.run_diagnosis(exps, "displacement", out / f"{spec}_{direction}", fmu_path=fmu,
-                                workers=workers, max_starts=max_starts)
-        groups[f"{spec}_{direction}"] = diag
+        groups[key] = dg.run_diagnosis(exps, "displacement", out / key, fmu_path=fmu, workers=workers,
+                                       max_starts=max_starts)
     rate_models = {}
     for key, diag in groups.items():
-        spec, direction = key.split("_")
-        g = tests[(tests["specimen"] == spec) & (tests["direction"] == direction)]
-        exps = [shear_c67.load_test(r, max_points=max_points) for _, r in g.iterrows()]
         print(f"{key}: rate dependence on top of the two-phase curve", flush=True)
-        rate_models[key] = rate_dependence(exps, fmu, diag)
+        rate_models[key] = rate_dependence(unit_exps[key], fmu, diag)
     ours = fit_bilinear_per_test(tests, fmu, max_points)
     cmp_ = ours.merge(authors, on=["specimen", "direction", "rate_mm_s"], how="left")
     summary = summarize(groups, cmp_)
