@@ -19,8 +19,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 import effects_reference as er  # noqa: E402
 
-from fmusa import diagnose as dg  # noqa: E402
-from fmusa.measured import Experiment, downsample  # noqa: E402
+from fmusa.diagnose import run as dg  # noqa: E402
+from fmusa.diagnose.measured import Experiment, downsample  # noqa: E402
 
 EFFECTS = ("none",) + dg.CANDIDATES
 DRIVES = ("displacement", "force")

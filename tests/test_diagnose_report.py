@@ -17,9 +17,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from effects_reference import synthesize  # noqa: E402
 
-import fmusa.diagnose as fd  # noqa: E402
-import fmusa.measured as fm  # noqa: E402
-from fmusa import diagnose_report as dr  # noqa: E402
+from fmusa.diagnose import run as fd  # noqa: E402
+from fmusa.diagnose import measured as fm  # noqa: E402
+from fmusa.diagnose import report as dr  # noqa: E402
 
 FIGURES = ("fit_time.png", "loops.png", "residuals.png", "ranking.png")
 

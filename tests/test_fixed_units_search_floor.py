@@ -7,8 +7,9 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from fmusa.study import parse_study
-from fmusa.sweep import StudyRunner, check_fmu, run_study
+from fmusa.study.loader import parse_study
+from fmusa.pipeline.sweep import StudyRunner, run_study
+from fmusa.study.plan import check_fmu
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_TEXT = (ROOT / "studies" / "paper.yaml").read_text()

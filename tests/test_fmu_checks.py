@@ -16,10 +16,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fmusa.evaluate import (FMUCompileError, FMUError, FMURunner, prepare_fmu, read_fmu_info,
-                            variable_problem)
-from fmusa.study import StudyError, parse_study
-from fmusa.sweep import StudyRunner, check_fmu, run_study
+from fmusa.fmi.info import FMUCompileError, FMUError, read_fmu_info, variable_problem
+from fmusa.fmi.runner import FMURunner
+from fmusa.fmi.build import prepare_fmu
+from fmusa.study.schema import StudyError
+from fmusa.study.loader import parse_study
+from fmusa.api import run_study
+from fmusa.pipeline.sweep import StudyRunner
+from fmusa.study.plan import check_fmu
 
 from fmus.me_spring.build import build_spring_fmu
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from fmusa.evaluate import FMURunner
+from fmusa.fmi.runner import FMURunner
 
 
 @pytest.mark.parametrize("inputs", [{"F_ext_x": 20.0}, {"T_ext_y": 0.005}, {"T_ext_z": 0.005},

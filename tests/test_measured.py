@@ -6,9 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fmusa import shear_c67
-from fmusa.measured import (ColumnSpec, Experiment, MeasuredDataError, downsample, load_experiment,
-                            load_experiments, parse_rate)
+from fmusa.applications.shear_c67 import data as shear_c67
+from fmusa.diagnose.measured import ColumnSpec, Experiment, MeasuredDataError, downsample, load_experiment, load_experiments, parse_rate
 
 N = 20
 

@@ -21,8 +21,8 @@ import pandas as pd
 import pytest
 
 import fmpy
-from fmusa.study import load_study
-from fmusa.sweep import run_study
+from fmusa.study.loader import load_study
+from fmusa.api import run_study
 
 SRC = Path(__file__).resolve().parent / "fmus" / "misbehave"
 FMI_HEADERS = Path(fmpy.__file__).resolve().parent / "c-code"

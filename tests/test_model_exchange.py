@@ -17,10 +17,13 @@ import pandas as pd
 import pytest
 from scipy.linalg import expm
 
-from fmusa.evaluate import FMURunner, PlanSpec, RunPlan, read_fmu_info, run_chunk
-from fmusa.metrics import MetricRule
-from fmusa.study import parse_study
-from fmusa.sweep import run_study
+from fmusa.fmi.runner import FMURunner
+from fmusa.runs.spec import PlanSpec, run_chunk
+from fmusa.fmi.plans import RunPlan
+from fmusa.fmi.info import read_fmu_info
+from fmusa.runs.metrics import MetricRule
+from fmusa.study.loader import parse_study
+from fmusa.api import run_study
 
 from fmus.me_spring.build import build_spring_fmu
 
@@ -114,7 +117,7 @@ def me_grid(fmus, tmp_path_factory):
     path = tmp / "spring_me.yaml"
     path.write_text(_study(str(fmus["me"]), "interface: model-exchange\nsolver: CVode\n"
                                             "relative_tolerance: 1.0e-8"))
-    from fmusa.study import load_study
+    from fmusa.study.loader import load_study
     study = load_study(path)
     assert study.fmu_options.interface == "model-exchange" and study.fmu_options.solver == "CVode"
     assert study.fmu_options.relative_tolerance == 1e-8

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from fmusa.figures import fmt
-from fmusa.study import load_study, parse_study
-from fmusa.sweep import run_study
+from fmusa.format import fmt
+from fmusa.study.loader import load_study, parse_study
+from fmusa.api import run_study
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "studies" / "paper.yaml"

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 from scipy import signal, stats
 
-from fmusa.residuals import (autocorrelation, binned_residuals, by_direction, ljung_box, residual_structure,
-                             runs_test)
+from fmusa.diagnose.residuals import autocorrelation, binned_residuals, by_direction, ljung_box, residual_structure, runs_test
 
 
 # ---------------------------------------------------------------------------------------------- by hand

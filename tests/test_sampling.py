@@ -10,11 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fmusa.evaluate import FMURunner
-from fmusa.metrics import MetricRule, reduce_series
-from fmusa.sampling import refine_intervals, refined_times
-from fmusa.study import StudyError, parse_study
-from fmusa.sweep import run_study
+from fmusa.fmi.runner import FMURunner
+from fmusa.runs.metrics import MetricRule, reduce_series
+from fmusa.runs.refine import refine_intervals, refined_times
+from fmusa.study.schema import StudyError
+from fmusa.study.loader import parse_study
+from fmusa.api import run_study
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_vendor_fmus import build_axial_screw  # noqa: E402

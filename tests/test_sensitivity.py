@@ -15,10 +15,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fmusa import evaluate
-from fmusa.sensitivity import plot_sensitivity, run_sensitivity
-from fmusa.study import SensitivityParameter, load_study
-from fmusa.sweep import StudyRunner
+from fmusa.runs import evaluator as evaluate
+from fmusa.pipeline.sensitivity import plot_sensitivity, run_sensitivity
+from fmusa.study.schema import SensitivityParameter
+from fmusa.study.loader import load_study
+from fmusa.pipeline.sweep import StudyRunner
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "six_dof.yaml"

@@ -1,9 +1,9 @@
 """The real shear tests (data/shear-c67) against the authors' own analysis, an independent one."""
 from __future__ import annotations
 
-from fmusa import diagnose as dg
-from fmusa import shear_c67
-from fmusa.shear_study import fit_bilinear_per_test
+from fmusa.diagnose import run as dg
+from fmusa.applications.shear_c67 import data as shear_c67
+from fmusa.applications.shear_c67.study import fit_bilinear_per_test
 
 
 def test_two_phase_fit_matches_the_authors_breakpoint_analysis(fmu_path):

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fmusa.study import (Constraint, GridStage, Metric, Parameter, RegressionStage, RoiStage,
-                         SearchStage, SensitivityStage, Study, StudyError, load_study, parse_study)
+from fmusa.study.schema import Constraint, GridStage, Metric, Parameter, RegressionStage, RoiStage, SearchStage, SensitivityStage, Study, StudyError
+from fmusa.study.loader import load_study, parse_study
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "studies" / "paper.yaml"

@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fmusa.study import load_study, parse_study
-from fmusa.sweep import run_study
+from fmusa.study.loader import load_study, parse_study
+from fmusa.api import run_study
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "studies" / "paper.yaml"

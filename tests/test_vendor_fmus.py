@@ -186,8 +186,8 @@ def reference_study_text(vendor_text: str, names: dict[str, str | None], vendor_
 
 
 def run(text: str, path: Path, out: Path):
-    from fmusa.study import load_study
-    from fmusa.sweep import run_study
+    from fmusa.study.loader import load_study
+    from fmusa.api import run_study
 
     path.write_text(text, encoding="utf-8")
     t0 = time.perf_counter()
@@ -249,7 +249,7 @@ def test_pythonfmu_export_is_a_valid_third_party_fmu(axial_fmu):
 
 def test_pythonfmu_fmu_solves_the_axial_pullout(axial_fmu):
     """Against the closed-form quasi-static pullout: y = F/c at rest, y' = F/(c t_ramp) on the ramp."""
-    from fmusa.evaluate import FMURunner
+    from fmusa.fmi.runner import FMURunner
 
     c, d = 822.0, 0.5                          # N/mm, N·s/mm: overdamped, d/c = 0.6 ms
     with FMURunner(axial_fmu) as fmu:
@@ -267,7 +267,7 @@ def test_container_fmu_renames_our_fmu(container_fmu, fmu_path):
     from fmpy import read_model_description
     from fmpy.validation import validate_fmu
 
-    from fmusa.evaluate import FMURunner
+    from fmusa.fmi.runner import FMURunner
 
     assert validate_fmu(str(container_fmu)) == []
     md = read_model_description(str(container_fmu))
@@ -287,7 +287,7 @@ def test_container_fmu_renames_our_fmu(container_fmu, fmu_path):
 
 
 def test_committed_study_files_load_with_a_built_fmu(axial_fmu, container_fmu, tmp_path):
-    from fmusa.study import parse_study
+    from fmusa.study.loader import parse_study
 
     for kind, fmu in (("pythonfmu", axial_fmu), ("container", container_fmu)):
         study = parse_study(vendor_study_text(kind, fmu), tmp_path / f"{kind}.yaml")

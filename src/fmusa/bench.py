@@ -31,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluate import FMURunner, RunPlan, default_fmu_path
+from fmusa.fmi.runner import FMURunner
+from fmusa.fmi.plans import RunPlan
+from fmusa.fmi.info import default_fmu_path
 
 MONITORS = ["y_max", "v_y_max", "t_eq"]
 #: Paper optimum and load case, set explicitly (they equal the FMU defaults).
@@ -87,7 +89,7 @@ SOBOL_TARGET_RUNS_PER_S = 2000.0
 
 
 def _six_dof(study_path: Path | None = None):
-    from .study import load_study
+    from fmusa.study.loader import load_study
     study = load_study(study_path or SIX_DOF)
     return study, study.stages["sensitivity"]
 
@@ -98,7 +100,7 @@ def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str
     import dataclasses
     from types import SimpleNamespace
 
-    from .sensitivity import run_sensitivity
+    from fmusa.pipeline.sensitivity import run_sensitivity
 
     study, stage = _six_dof(Path(study_path) if study_path else None)
     if fmu:
@@ -166,8 +168,8 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
 
     from fmpy.fmi2 import fmi2Integer, fmi2ValueReference
 
-    from .evaluate import _plan_for, run_chunk
-    from .sensitivity import draw_samples, sensitivity_spec, to_physical
+    from fmusa.runs.spec import _plan_for, run_chunk
+    from fmusa.pipeline.sensitivity import draw_samples, sensitivity_spec, to_physical
 
     study, stage = _six_dof()
     stage = dataclasses.replace(stage, seed=seed)
@@ -251,8 +253,8 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
 def bench_paper_study(repeats: int = 5) -> dict:
     """The paper's study, all three stages (grid, region of interest, search; regression too), no figures:
     the median wall time of fresh runs into an empty directory."""
-    from .study import load_study
-    from .sweep import run_study
+    from fmusa.study.loader import load_study
+    from fmusa.api import run_study
 
     study_file = Path(__file__).resolve().parents[2] / "studies" / "paper.yaml"
     study = load_study(study_file)
@@ -274,8 +276,8 @@ def bench_diagnose(fmu_path: Path, workers: int | None = None) -> dict:
     spinal unit (H2 anterior, three rates, 528 samples) with a cold cache."""
     import numpy as np
 
-    from . import diagnose as dg
-    from . import shear_c67
+    from fmusa.diagnose import run as dg
+    from fmusa.applications.shear_c67 import data as shear_c67
 
     t = np.linspace(0.0, 6.0, 300)
     y = np.interp(t, [0, 1.5, 3.5, 5.0, 6.0], [0, 1.2e-3, 1.2e-3, 0, 0])

@@ -9,7 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import __version__
+from fmusa import __version__
 
 #: Table 2 of the paper: thresholds of the parameter search.
 EPS_Y = 5e-4        # m, max |y|
@@ -47,7 +47,8 @@ def _add_pullout(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_pullout(args: argparse.Namespace) -> int:
-    from .evaluate import PULLOUT_OUTPUTS, FMURunner, pullout
+    from fmusa.applications.paper.scenario import PULLOUT_OUTPUTS, pullout
+    from fmusa.fmi.runner import FMURunner
 
     with FMURunner(args.fmu) as fmu:
         try:
@@ -170,8 +171,8 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from .study import load_study
-    from .sweep import run_study
+    from fmusa.study.loader import load_study
+    from fmusa.api import run_study
 
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
@@ -305,7 +306,7 @@ def _fmt_num(x) -> str:
 def cmd_inspect(args: argparse.Namespace) -> int:
     import shutil as _shutil
 
-    from .evaluate import FMUError, host_platform, read_fmu_info
+    from fmusa.fmi.info import FMUError, host_platform, read_fmu_info
 
     causality = _causalities(args.causality)
     note = None
@@ -421,7 +422,7 @@ def _print_inspect(head, info, note, rows, causality, args, width) -> None:
 
 # ---------------------------------------------------------------------------- diagnose
 def _add_diagnose(sub: argparse._SubParsersAction) -> None:
-    from .diagnose import CANDIDATES
+    from fmusa.diagnose.run import CANDIDATES
 
     p = sub.add_parser(
         "diagnose", help="calibrate the model to measured tests, name the missing effect, measure the gain",
@@ -455,8 +456,8 @@ def _add_diagnose(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from .diagnose import run_diagnosis
-    from .measured import ColumnSpec, load_experiments
+    from fmusa.diagnose.run import run_diagnosis
+    from fmusa.diagnose.measured import ColumnSpec, load_experiments
 
     if args.max_points < 10:
         raise ValueError(f"--max-points must be >= 10, got {args.max_points}")
@@ -505,7 +506,7 @@ def _add_diagnose_shear(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_diagnose_shear(args: argparse.Namespace) -> int:
-    from .shear_study import run_shear_diagnosis
+    from fmusa.applications.shear_c67.study import run_shear_diagnosis
 
     s = run_shear_diagnosis(args.out, root=args.data, fmu_path=args.fmu, max_points=args.max_points,
                             workers=args.workers)

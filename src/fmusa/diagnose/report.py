@@ -28,8 +28,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
-from . import residuals as rs  # noqa: E402
-from .figures import fmt  # noqa: E402
+from fmusa.diagnose import residuals as rs  # noqa: E402
+from fmusa.format import fmt  # noqa: E402
 
 __all__ = ["write_figures", "write_report", "natural", "param_label", "MAX_PANELS", "EFFECT_MEANING"]
 
@@ -86,7 +86,7 @@ plt.rcParams.update({"font.size": 10, "axes.titlesize": 10.5, "axes.labelsize": 
 # ============================================================================ units and numbers
 def _si_unit(name: str) -> str:
     try:
-        from .diagnose import UNITS
+        from fmusa.diagnose.run import UNITS
         return UNITS.get(name, _SI_UNITS.get(name, ""))
     except Exception:   # pragma: no cover - diagnose always importable in the package
         return _SI_UNITS.get(name, "")

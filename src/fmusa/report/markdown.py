@@ -19,8 +19,11 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from . import figures as F
-from .figures import fmt
+from fmusa.report import figures as F
+from fmusa.format import fmt
+from fmusa.fmi.build import prepare_fmu
+from fmusa.fmi.info import default_fmu_path
+from fmusa.fmi.runner import FMURunner
 
 __all__ = ["write_report", "ScenarioRunner", "open_fmu"]
 
@@ -63,22 +66,24 @@ def _get(d: Mapping | None, *keys, default=None):
     return d
 
 
+def _paper_part(result, key: str):
+    """The paper extension's second search (inside the paper's hand-chosen region), when it ran."""
+    return (result.extra.get("paper") or {}).get(key)
+
+
 # ============================================================================ extra runs
 def open_fmu(study, out: str | Path | None = None):
     """An FMURunner for the study's FMU, prepared as the pipeline prepares it: built from its sources into
     ``<out>/.fmu`` when it has no binary for this machine, with the study's ``fmu_options``."""
-    from . import evaluate as ev
-
-    path = Path(study.fmu) if study.fmu else ev.default_fmu_path()
+    path = Path(study.fmu) if study.fmu else default_fmu_path()
     opts = getattr(study, "fmu_options", None)
     kwargs: dict = {}
     if opts is not None:
-        if hasattr(ev, "prepare_fmu"):
-            path = ev.prepare_fmu(path, opts.interface, workdir=Path(out) / ".fmu" if out is not None else None)
-        accepted = inspect.signature(ev.FMURunner.__init__).parameters
+        path = prepare_fmu(path, opts.interface, workdir=Path(out) / ".fmu" if out is not None else None)
+        accepted = inspect.signature(FMURunner.__init__).parameters
         kwargs = {k: getattr(opts, k) for k in ("interface", "solver", "relative_tolerance", "step_size")
                   if k in accepted and hasattr(opts, k)}
-    return ev.FMURunner(path, **kwargs)
+    return FMURunner(path, **kwargs)
 
 
 class ScenarioRunner:
@@ -87,7 +92,7 @@ class ScenarioRunner:
     pipeline does. One FMU instance; one prepared RunPlan per scenario."""
 
     def __init__(self, study, inner: str, outer: str, out: str | Path | None = None) -> None:
-        from .metrics import metric_rules
+        from fmusa.runs.metrics import metric_rules
 
         self.study = study
         self.inner, self.outer = inner, outer
@@ -103,7 +108,7 @@ class ScenarioRunner:
         self.runner.close()
 
     def _plan(self, overrides: Mapping[str, float], stop: float):
-        from .evaluate import RunPlan
+        from fmusa.fmi.plans import RunPlan
 
         key = (tuple(sorted(overrides.items())), float(stop))
         plan = self._plans.get(key)
@@ -116,7 +121,7 @@ class ScenarioRunner:
 
     def __call__(self, c: float, d: float, overrides: Mapping[str, float] | None = None,
                  stop: float | None = None) -> dict:
-        from .metrics import reduce_series
+        from fmusa.runs.metrics import reduce_series
 
         st = self.study
         stop = float(stop if stop is not None else st.scenario.stop_time)
@@ -164,7 +169,7 @@ class ScenarioRunner:
 
     def grid_region(self, xs, zs, overrides=None, stop=None):
         """The automatic region of interest of the grid xs × zs under a changed scenario."""
-        from .roi import automatic_region
+        from fmusa.analysis.roi import automatic_region
 
         rows = [self(x, z, overrides, stop) for x in xs for z in zs]
         df = pd.DataFrame(rows)
@@ -282,13 +287,13 @@ def _make_figures(ctx: _Ctx, figdir: Path) -> None:
             F.grid_heatmap(runs, m, figdir / name, inner=inner, outer=outer, inner_unit=ctx.u(inner),
                            outer_unit=ctx.u(outer), metric_unit=ctx.u(m),
                            title=f"{_GRID_TITLES.get(m, st.metrics[m].description or m)}\n{scen}",
-                           region=res.region, paper_region=res.paper_region,
+                           region=res.region, paper_region=_paper_part(res, "region"),
                            threshold=ctx.thresholds.get(m) if m in ("max_y", "max_v") else None,
                            ok_column=ctx.ok_col.get(m) if m in ("max_y", "max_v") else None,
                            shift=shift, shift_label=f"{m} − t_ramp" if shift else "")
             cap = (f"{_GRID_TITLES.get(m, st.metrics[m].description or m)} on the {inner} × {outer} grid"
                    + ("; solid red frame: our automatic region of interest" if res.region is not None else "")
-                   + ("; dashed blue: the paper's region" if res.paper_region is not None else ""))
+                   + ("; dashed blue: the paper's region" if _paper_part(res, "region") is not None else ""))
             if m in ("max_y", "max_v") and m in ctx.thresholds:
                 cap += f"; hatched cells violate {m} ≤ {fmt(ctx.thresholds[m])} {ctx.u(m)}"
             if shift:
@@ -339,9 +344,9 @@ def _make_figures(ctx: _Ctx, figdir: Path) -> None:
                                       f"t_eq = {_get(ctx.paper, 'optimum', 't_eq', default='–')} s is drawn "
                                       f"as reported."))
         searches = [("automatic region", levels, opt, F.AUTO_COLOR)]
-        if res.paper_search is not None:
+        if _paper_part(res, "search") is not None:
             searches.append(("paper's region", _get(s, "paper_roi_search", "levels", default=[]),
-                             res.paper_search.optimum, F.PAPER_COLOR))
+                             _paper_part(res, "search").optimum, F.PAPER_COLOR))
         ref = ((ctx.F / ctx.eps_y, f"F/ε_y = {fmt(ctx.F / ctx.eps_y, 6)} {ctx.u(inner)}")
                if ctx.F is not None and ctx.eps_y else None)
         notes = []
@@ -412,7 +417,7 @@ def _scenario_text(ctx: _Ctx) -> str:
 # ============================================================================ sections
 def _what_was_run(ctx: _Ctx) -> str:
     st, s, runs = ctx.study, ctx.summary, ctx.runs
-    from .evaluate import default_fmu_path
+    from fmusa.fmi.info import default_fmu_path
 
     try:
         fmu = Path(st.fmu) if st.fmu else default_fmu_path()
@@ -509,9 +514,9 @@ def _grid_extremes(ctx: _Ctx) -> str:
 
 
 def _roi_section(ctx: _Ctx) -> str:
-    from . import roi as roi_mod
+    from fmusa.analysis import roi as roi_mod
 
-    reg, preg = ctx.result.region, ctx.result.paper_region
+    reg, preg = ctx.result.region, _paper_part(ctx.result, "region")
     if reg is None:
         return ""
     inner, outer = ctx.inner, ctx.outer
@@ -564,9 +569,9 @@ def _optimum_section(ctx: _Ctx) -> str:
                              paper_c, ", ".join(res.search.binding) or "–"))
     else:
         rows.append(("ours, automatic region", "none found", "", "", *("" for _ in ms), res.search.stop_reason))
-    if res.paper_search is not None and res.paper_search.optimum is not None:
-        rows.append(_opt_row("ours, inside the paper's region", res.paper_search.optimum, res.paper_search.row,
-                             inner, outer, ctx, paper_c, ", ".join(res.paper_search.binding) or "–"))
+    if _paper_part(res, "search") is not None and _paper_part(res, "search").optimum is not None:
+        rows.append(_opt_row("ours, inside the paper's region", _paper_part(res, "search").optimum, _paper_part(res, "search").row,
+                             inner, outer, ctx, paper_c, ", ".join(_paper_part(res, "search").binding) or "–"))
     if popt:
         eps_y = _get(ctx.paper, "thresholds", "eps_y")
         known = {"max_y": f"{fmt(eps_y)} (Sec. 3)" if eps_y is not None else "–",
@@ -683,12 +688,12 @@ def _search_section(ctx: _Ctx) -> str:
             f"the bisection tried at that level.\n\n")
     out += _search_table(ctx, _get(s, "search", "levels", default=[]), ["search"], res.region.inner_range) + "\n"
     out += f"\nStop: {res.search.stop_reason}.\n"
-    if res.paper_search is not None:
-        out += (f"\nInside the paper's region ({ctx.outer} halved from {fmt(res.paper_region.outer_range[1])} "
+    if _paper_part(res, "search") is not None:
+        out += (f"\nInside the paper's region ({ctx.outer} halved from {fmt(_paper_part(res, 'region').outer_range[1])} "
                 f"{ctx.u(ctx.outer)}):\n\n")
         out += _search_table(ctx, _get(s, "paper_roi_search", "levels", default=[]), ["search_paper_roi"],
-                             res.paper_region.inner_range) + "\n"
-        out += f"\nStop: {res.paper_search.stop_reason}.\n"
+                             _paper_part(res, "region").inner_range) + "\n"
+        out += f"\nStop: {_paper_part(res, 'search').stop_reason}.\n"
     return out
 
 
@@ -997,9 +1002,9 @@ def _deviations_section(ctx: _Ctx, ph: _Physics) -> str:
         else:
             out += "\n\n"
     # (3) region and d
-    preg = res.paper_region
+    preg = _paper_part(res, "region")
     if preg is not None:
-        ps = res.paper_search
+        ps = _paper_part(res, "search")
         lv = _get(ctx.summary, "search", "levels", default=[])
         base = getattr(ctx.study.stages.get("grid"), "base", None)
 
@@ -1129,7 +1134,7 @@ def _sensitivity_section(ctx: _Ctx, figdir: Path) -> str:
         out += _table(["item", "value"], rows) + "\n\n"
     paths: list[Path] = []
     try:
-        from .sensitivity import plot_sensitivity
+        from fmusa.pipeline.sensitivity import plot_sensitivity
         paths = list(plot_sensitivity(sens, figdir))
     except Exception:  # noqa: BLE001 - older/other sensitivity results: our own bar charts
         try:
@@ -1173,16 +1178,16 @@ def _sampling_section(ctx: _Ctx, max_runs: int = 5) -> str:
     """How the output sampling moves the metrics taken from samples (peaks, settling times), stated and
     measured on a few runs: the bound h²/8·|y''| (|y''| from the samples around the peak) or one interval,
     against a re-run sampled 100 times finer around the same samples (:func:`fmusa.sampling.sampling_check`)."""
-    from .metrics import SAMPLED_REDUCTIONS
+    from fmusa.runs.metrics import SAMPLED_REDUCTIONS
 
     st = ctx.study
     sc = st.scenario
     sampled = [m for m in st.metrics.values() if m.reduce in SAMPLED_REDUCTIONS]
     if sc.step is None or not sampled or not len(ctx.runs) or "status" not in ctx.runs:
         return ""
-    from .evaluate import RunPlan
-    from .sampling import sampling_check
-    from .sweep import study_plan_spec
+    from fmusa.fmi.plans import RunPlan
+    from fmusa.runs.refine import sampling_check
+    from fmusa.study.plan import study_plan_spec
 
     ok = ctx.runs[ctx.runs["status"] == "ok"]
     if not len(ok):

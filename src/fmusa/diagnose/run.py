@@ -194,7 +194,8 @@ class ModelRunner:
 
     def __init__(self, fmu_path: str | os.PathLike, drive: str, names: Sequence[str],
                  fixed: dict | None = None, rtol: float = 1e-5) -> None:
-        from fmusa.evaluate import DrivenPlan, FMURunner
+        from fmusa.fmi.plans import DrivenPlan
+        from fmusa.fmi.runner import FMURunner
 
         settings, self.input_name, self.output = FMU_SETTINGS[drive]
         self.runner = FMURunner(fmu_path, instance_name="diagnose")
@@ -533,8 +534,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     Returns a dict with the keys of diagnosis.json plus the fits (``_fits``) for the figures. With
     ``cache_dir`` each fit is saved as it completes and reused by a rerun on the same data, so an
     interrupted diagnosis loses nothing already computed."""
-    from fmusa.evaluate import default_fmu_path
-    from fmusa import residuals as rs
+    from fmusa.fmi.info import default_fmu_path
+    from fmusa.diagnose import residuals as rs
 
     if drive not in FMU_SETTINGS:
         raise DiagnoseError(f"--drive {drive!r}: use 'force' or 'displacement'")
@@ -646,7 +647,7 @@ def run_diagnosis(experiments: Sequence, drive: str, out_dir: str | os.PathLike,
     diag = diagnose(experiments, drive, cache_dir=out / "fits", progress=kw.pop("progress", True), **kw)
     write_json(diag, out / "diagnosis.json")
     try:
-        from fmusa import diagnose_report
+        from fmusa.diagnose import report as diagnose_report
     except ImportError:  # pragma: no cover - the report module is part of the package
         return diag
     figs = diagnose_report.write_figures(diag, experiments, out)

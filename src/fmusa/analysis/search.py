@@ -15,7 +15,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from .roi import Region
+from fmusa.analysis.roi import Region
 
 Evaluate = Callable[[dict[str, float]], dict]
 

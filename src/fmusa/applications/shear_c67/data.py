@@ -25,7 +25,7 @@ from typing import Mapping
 
 import pandas as pd
 
-from .measured import ColumnSpec, Experiment, MeasuredDataError, downsample, load_experiment
+from fmusa.diagnose.measured import ColumnSpec, Experiment, MeasuredDataError, downsample, load_experiment
 
 __all__ = ["DEFAULT_ROOT", "DRIVE", "list_tests", "parse_name", "column_spec", "load_test",
            "authors_bilinear"]

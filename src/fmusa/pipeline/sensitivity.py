@@ -44,8 +44,11 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from .evaluate import Evaluator, PlanSpec, RunResult, default_fmu_path
-from .runstore import RunStore
+from fmusa.runs.evaluator import Evaluator
+from fmusa.runs.spec import PlanSpec, RunResult
+from fmusa.fmi.info import default_fmu_path
+from fmusa.runs.store import RunStore
+from fmusa.runs.progress import progress_bar
 
 __all__ = ["run_sensitivity", "plot_sensitivity", "salib_problem", "draw_samples", "to_physical",
            "sensitivity_spec", "REFERENCE_RTOL", "MORRIS_LEVELS"]
@@ -115,7 +118,7 @@ def sensitivity_spec(study, stage, base: PlanSpec | None = None, fmu_path: str |
     machine), inputs, outputs, metric rules and how the FMU runs (``fmu_options``) are kept. Without it
     they come from ``study``. ``changes`` replace further fields (e.g. ``relative_tolerance``)."""
     if base is None:
-        from .sweep import study_plan_spec
+        from fmusa.study.plan import study_plan_spec
         base = study_plan_spec(study, fmu_path or (study.fmu if study.fmu else default_fmu_path()))
     elif fmu_path is not None:
         changes.setdefault("fmu_path", str(fmu_path))
@@ -165,8 +168,7 @@ def evaluate_keys(store: RunStore, evaluator: Evaluator, keys: Sequence[tuple[fl
 
     bar = None
     if progress:
-        from .sweep import _progress
-        bar = _progress(len(items), f"sensitivity ({stage_label})", True)
+        bar = progress_bar(len(items), f"sensitivity ({stage_label})", True)
     try:
         evaluator.map(items, on_result=keep, progress=bar)
     finally:

@@ -21,7 +21,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .metrics import PEAK_REDUCTIONS, SAMPLED_REDUCTIONS, MetricRule, peak_index, reduce_series, settle_index
+from fmusa.runs.metrics import PEAK_REDUCTIONS, SAMPLED_REDUCTIONS, MetricRule, peak_index, reduce_series, settle_index
 
 __all__ = ["refine_intervals", "refined_times", "refine_run", "peak_curvature", "sampling_check"]
 
@@ -71,7 +71,7 @@ def _fine_plan(spec, plan, factor: int):
     key = (spec, factor, id(plan.runner))
     fp = _FINE_PLANS.get(key)
     if fp is None or fp.runner is not plan.runner:
-        from .evaluate import RunPlan
+        from fmusa.fmi.plans import RunPlan
         uniform = not _variable_steps(plan.runner)
         step = max(spec.step / factor, spec.stop_time / 5e4) if uniform else None
         fp = RunPlan(plan.runner, spec.varied, dict(spec.fixed), spec.outputs, spec.stop_time, step,

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from . import diagnose as dg
-from . import shear_c67
+from fmusa.diagnose import run as dg
+from fmusa.applications.shear_c67 import data as shear_c67
 
 
 def fit_bilinear_per_test(tests: pd.DataFrame, fmu: str, max_points: int) -> pd.DataFrame:
@@ -72,7 +72,7 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root=None, fmu_path=None, ma
                         workers: int | None = None, max_starts: int = 6) -> dict:
     """Diagnose every specimen and direction (three rates jointly), fit the per-test bilinear model,
     compare with the authors, and write out_dir/summary.json, out_dir/report.md and figures."""
-    from .evaluate import default_fmu_path
+    from fmusa.fmi.info import default_fmu_path
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -96,7 +96,7 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root=None, fmu_path=None, ma
     summary["rate_models"] = rate_models
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     cmp_.drop(columns=["k1_ci"]).to_csv(out / "bilinear_comparison.csv", index=False)
-    from . import shear_report
+    from fmusa.applications.shear_c67 import report as shear_report
     figs = shear_report.write_figures(summary, cmp_, out)
     shear_report.write_report(summary, cmp_, groups, out, figs)
     return summary

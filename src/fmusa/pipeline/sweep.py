@@ -1,8 +1,9 @@
-"""A study from its YAML file to runs.csv, summary.json, figures and report.md.
+"""A study from its dataclasses to runs.csv and summary.json: every stage that runs the FMU.
 
 Stages run in the order of the study file: grid → roi → search → regression → sensitivity. Every run goes
 through one RunStore, so a point asked for twice is simulated once and an interrupted study resumes where
-it stopped.
+it stopped. Applications (the paper's study, say) add their own FMU work after the stages through
+:class:`StudyExtension`; figures and report.md are drawn afterwards by :mod:`fmusa.report` from the result.
 """
 from __future__ import annotations
 
@@ -11,18 +12,22 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, Sequence
 
 import numpy as np
 import pandas as pd
 
-from .evaluate import Evaluator, FMUCompileError, PlanSpec, RunResult, default_fmu_path, prepare_fmu
-from .metrics import metric_rules
-from .regression import fit_by_level
-from .roi import Region, automatic_region, manual_region
-from .runstore import RunStore
-from .search import SearchResult, nested_binary_search
-from .study import Study
+from fmusa.runs.evaluator import Evaluator
+from fmusa.fmi.info import FMUCompileError, default_fmu_path
+from fmusa.runs.spec import RunResult
+from fmusa.fmi.build import prepare_fmu
+from fmusa.analysis.regression import fit_by_level
+from fmusa.analysis.roi import Region, automatic_region, manual_region
+from fmusa.runs.store import RunStore
+from fmusa.analysis.search import SearchResult, nested_binary_search
+from fmusa.study.schema import Study
+from fmusa.runs.progress import progress_bar
+from fmusa.study.plan import check_fmu, grid_points, study_plan_spec
 
 
 @dataclass
@@ -32,73 +37,18 @@ class SweepResult:
     runs: pd.DataFrame
     summary: dict
     region: Region | None = None
-    paper_region: Region | None = None
     search: SearchResult | None = None
-    paper_search: SearchResult | None = None
     sensitivity: dict | None = None
+    #: results of study extensions, by extension name (plain data the report renders)
     extra: dict = field(default_factory=dict)
 
 
-def _progress(total: int, desc: str, enabled: bool):
-    if not enabled or total < 50:
-        return None
-    from tqdm import tqdm
-    return tqdm(total=total, desc=desc, unit="run", leave=False, mininterval=0.5)
+class StudyExtension(Protocol):
+    """FMU work an application adds after the study's stages (e.g. a second search inside a region chosen
+    by hand), writing plain data into ``result.extra[name]`` and ``result.summary``."""
+    name: str
 
-
-def check_fmu(study: Study, fmu_path: Path) -> list[str]:
-    """Everything the study asks of the FMU, checked on its model description before any run (nothing is
-    loaded, so an FMU that still has to be compiled from its sources is checked too).
-
-    FMI version 2.0; the interface ``fmu_options`` asks for (and a binary for this machine, or sources to
-    build one); every study, fixed and sensitivity parameter a settable parameter (causality parameter,
-    variability fixed or tunable; study parameters Real); every scenario input an input; every metric's
-    output a variable that can be read. Returns all problems, each ``file:line: what; closest names``.
-    """
-    from .evaluate import FMUError, binary_problem, read_fmu_info, select_interface, variable_problem
-
-    try:
-        info = read_fmu_info(fmu_path)
-    except (FMUError, FileNotFoundError) as exc:
-        return [f"{study.line('fmu')}: {exc}"]
-    errors: list[str] = []
-    opts = study.fmu_options
-    try:
-        interface = select_interface(info, opts.interface)
-    except FMUError as exc:
-        errors.append(f"{study.line('fmu_options.interface')}: fmu_options.interface: {exc}")
-    else:
-        if interface == "co-simulation":
-            for key, val in (("solver", opts.solver), ("step_size", opts.step_size)):
-                if val is not None:
-                    errors.append(f"{study.line(f'fmu_options.{key}')}: fmu_options.{key} applies to model "
-                                  f"exchange only, but {info.model_name} runs as a co-simulation FMU (its own "
-                                  f"solver); remove '{key}'"
-                                  + (", or set interface: model-exchange" if "model-exchange" in info.interfaces
-                                     else ""))
-        problem = binary_problem(info, interface)
-        if problem:
-            errors.append(f"{study.line('fmu')}: {problem}")
-
-    def check(key: str, what: str, name: str, role: str) -> None:
-        problem = variable_problem(info, name, role)
-        if problem:
-            errors.append(f"{study.line(key)}: {what}: {problem}")
-
-    for p in study.parameters.values():
-        check(f"parameters.{p.name}.variable", f"parameter '{p.name}' (variable: {p.variable})", p.variable,
-              "varied")
-    for name in study.fixed:
-        check(f"fixed.{name}", f"fixed '{name}'", name, "parameter")
-    for name in study.scenario.inputs:
-        check(f"scenario.inputs.{name}", f"scenario.inputs '{name}'", name, "input")
-    for m in study.metrics.values():
-        check(f"metrics.{m.name}.output", f"metric '{m.name}' (output: {m.output})", m.output, "output")
-    sens = study.stages.get("sensitivity")
-    for sp in (getattr(sens, "parameters", None) or {}).values():
-        check(f"stages.sensitivity.parameters.{sp.name}.variable",
-              f"sensitivity parameter '{sp.name}' (variable: {sp.variable})", sp.variable, "varied")
-    return errors
+    def after_stages(self, result: SweepResult, runner: "StudyRunner") -> None: ...
 
 
 class StudyRunner:
@@ -128,6 +78,8 @@ class StudyRunner:
                                    isolate=study.fmu is not None, timeout_s=study.execution.timeout_s)
         self.progress = progress
         self.simulated = 0
+        #: values of the study parameters a stage does not vary (the first grid point)
+        self.defaults: dict[str, float] = {}
 
     def close(self) -> None:
         self.evaluator.close()
@@ -141,7 +93,7 @@ class StudyRunner:
             if self.store.get(k) is None and k not in todo:
                 todo[k] = self.store.new_id()
         if todo:
-            bar = _progress(len(todo), stage, self.progress)
+            bar = progress_bar(len(todo), stage, self.progress)
             items = [(rid, k) for k, rid in todo.items()]
 
             def keep(r: RunResult) -> None:
@@ -156,48 +108,16 @@ class StudyRunner:
     def evaluate_one(self, point: dict[str, float], stage: str) -> dict:
         full = dict(point)
         for name in self.params:          # parameters the stage does not vary keep the first grid value
-            full.setdefault(name, self._defaults[name])
+            full.setdefault(name, self.defaults[name])
         return self.evaluate([full], stage)[0]
 
 
-def study_plan_spec(study: Study, fmu_path: str | Path) -> PlanSpec:
-    """How every run of ``study`` is made: its parameters varied (with their unit mapping), ``fixed`` and
-    the scenario's inputs set, its metrics computed, the FMU run with ``fmu_options``. Stages that vary
-    other variables (sensitivity) replace ``varied``, ``scale`` and ``offset``."""
-    names = list(study.parameters)
-    outputs = list(dict.fromkeys(m.output for m in study.metrics.values()))
-    opts = study.fmu_options
-    return PlanSpec(
-        fmu_path=str(fmu_path),
-        varied=tuple(study.parameters[p].variable for p in names),
-        scale=tuple(float(study.parameters[p].scale) for p in names),
-        offset=tuple(float(study.parameters[p].offset) for p in names),
-        fixed=tuple(study.fixed.items()),
-        inputs=tuple(study.scenario.inputs.items()),
-        outputs=tuple(outputs),
-        stop_time=float(study.scenario.stop_time),
-        step=study.scenario.step,
-        rules=tuple(metric_rules(study.metrics.values(), outputs)),
-        interface=opts.interface,
-        solver=opts.solver,
-        relative_tolerance=opts.relative_tolerance,
-        step_size=opts.step_size,
-        refine_factor=study.scenario.refine_factor if study.scenario.refine_peaks else None,
-    )
-
-
-def grid_points(study: Study) -> list[dict[str, float]]:
-    axes = study.stages["grid"].points()
-    names = list(study.parameters)
-    missing = [n for n in names if n not in axes]
-    if missing:
-        raise ValueError(f"{study.path}: stages.grid gives no values for {', '.join(missing)}")
-    mesh = np.meshgrid(*[axes[n] for n in names], indexing="ij")
-    return [dict(zip(names, map(float, vals))) for vals in zip(*[m.ravel() for m in mesh])]
-
-
 def run_study(study: Study, out: str | Path, resume: bool = False, workers: int | None = None,
-              scheduler: str | None = None, figures: bool = True, progress: bool = True) -> SweepResult:
+              scheduler: str | None = None, progress: bool = True,
+              extensions: Sequence[StudyExtension] = ()) -> SweepResult:
+    """Run every stage of ``study`` into ``out`` (runs.csv as runs finish, summary.json at the end) and
+    then each extension's ``after_stages``. Draws nothing: :func:`fmusa.report.markdown.write_report`
+    renders the result."""
 
 
     out = Path(out)
@@ -209,12 +129,12 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     try:
         stage_times: dict[str, float] = {}
         grid_df = None
-        runner._defaults = {}
+        runner.defaults = {}
         for name, stage in study.stages.items():
             ts = time.perf_counter()
             if name == "grid":
                 pts = grid_points(study)
-                runner._defaults = dict(pts[0])
+                runner.defaults = dict(pts[0])
                 runner.evaluate(pts, "grid")
                 grid_df = runner.store.frame("grid")
                 summary["grid"] = {"points": len(pts), "axes": {k: [float(x) for x in v]
@@ -232,10 +152,6 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                                          f"before stages.roi (or give roi.manual)")
                     result.region = automatic_region(grid_df, inner, outer)
                 summary["roi"] = result.region.as_dict()
-                paper_roi = (study.paper or {}).get("roi")
-                if paper_roi and not stage.manual:
-                    result.paper_region = Region(inner, outer, tuple(map(float, paper_roi[inner])),
-                                                 tuple(map(float, paper_roi[outer])), "paper (by hand)")
             elif name == "search":
                 if result.region is None:
                     raise ValueError(f"{study.path}: stages.search needs stages.roi before it")
@@ -248,25 +164,20 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                                                      stage.response_rtol, stage.max_outer, stage.response_atol)
                 summary["optimum"] = result.search.optimum
                 summary["binding_constraint"] = result.search.binding
-                summary["search"] = _search_summary(result.search)
-                if result.paper_region is not None:
-                    result.paper_search = nested_binary_search(
-                        lambda p: ev(p, "search_paper_roi"), result.paper_region, response, stage.inner_rtol,
-                        stage.response_rtol, stage.max_outer, stage.response_atol)
-                    summary["paper_roi_search"] = _search_summary(result.paper_search)
+                summary["search"] = search_summary(result.search)
             elif name == "regression":
                 runs = runner.store.frame()
                 pts = runs[runs["stage"].isin(["search"])]
                 summary["regression"] = fit_by_level(pts, stage.x, list(stage.y), stage.by, stage.degree)
-                if result.paper_search is not None:
-                    pp = runs[runs["stage"] == "search_paper_roi"]
-                    summary["regression_paper_roi"] = fit_by_level(pp, stage.x, list(stage.y), stage.by,
-                                                                   stage.degree)
             elif name == "sensitivity":
-                from .sensitivity import run_sensitivity
+                from fmusa.pipeline.sensitivity import run_sensitivity
                 result.sensitivity = run_sensitivity(study, stage, out, runner, progress=progress)
                 summary["sensitivity"] = result.sensitivity["summary"]
             stage_times[name] = time.perf_counter() - ts
+        for ext in extensions:
+            ts = time.perf_counter()
+            ext.after_stages(result, runner)
+            stage_times[ext.name] = time.perf_counter() - ts
         runs = runner.store.frame()
         result.runs = runs
         summary["runs"] = int(len(runs))
@@ -276,15 +187,18 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         summary["wall_s"] = time.perf_counter() - t0
     finally:
         runner.close()
-    if figures:
-        from .report import write_report
-        write_report(result)
-        summary["wall_s_with_report"] = time.perf_counter() - t0
-    (out / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2))
+    write_summary(result)
     return result
 
 
-def _search_summary(s: SearchResult) -> dict:
+def write_summary(result: SweepResult) -> Path:
+    """``<out>/summary.json`` from ``result.summary`` (written before any figure, and again by the report)."""
+    path = Path(result.out) / "summary.json"
+    path.write_text(json.dumps(jsonable(result.summary), indent=2))
+    return path
+
+
+def search_summary(s: SearchResult) -> dict:
     return {
         "optimum": s.optimum,
         "binding_constraint": s.binding,
@@ -297,11 +211,11 @@ def _search_summary(s: SearchResult) -> dict:
     }
 
 
-def _jsonable(x):
+def jsonable(x):
     if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
     if isinstance(x, (np.floating, float)):
         return None if not math.isfinite(float(x)) else float(x)
     if isinstance(x, (np.integer,)):

@@ -14,7 +14,7 @@ from typing import Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from .metrics import constraint_table
+from fmusa.runs.metrics import constraint_table
 
 FLOAT = "%.17g"   # round-trips a double exactly, so reloaded keys match new ones
 

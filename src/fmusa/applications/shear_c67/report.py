@@ -76,7 +76,7 @@ def _f(x, fmt=".3g") -> str:
 
 def _param_text(name: str, v: dict) -> str:
     """A fitted parameter in the units of the data (mm, N/mm, N, s; ratios bare), as the unit reports."""
-    from .diagnose_report import natural
+    from fmusa.diagnose.report import natural
 
     value, unit = natural(name, v["value"])
     return f"{name} = {_f(value, '.4g')}{' ' + unit if unit else ''}"

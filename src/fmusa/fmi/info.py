@@ -1,0 +1,342 @@
+"""What an FMU declares, read without loading it, and the load-time checks (version, interface, binary, variable roles)."""
+from __future__ import annotations
+
+import difflib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable
+
+
+
+
+FMU_NAME = "ScrewVertebra.fmu"
+ENV_FMU = "FMUSA_FMU"
+Value = float | int | bool
+
+
+def default_fmu_path() -> Path:
+    """The ScrewVertebra FMU: ``$FMUSA_FMU`` if set, else ``dist/ScrewVertebra.fmu`` in the first
+    directory above this file that has one (the repository root for an editable install)."""
+    env = os.environ.get(ENV_FMU)
+    if env:
+        return Path(env).expanduser().resolve()
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        candidate = parent / "dist" / FMU_NAME
+        if candidate.is_file():
+            return candidate
+    raise FileNotFoundError(
+        f"cannot find dist/{FMU_NAME} in any directory above {here.parent}; "
+        f"build it with `make fmu` or set {ENV_FMU} to the FMU's path")
+
+
+
+# ---------------------------------------------------------------------- what an FMU holds, checks, compiling
+#: The FMI 2.0 interfaces fmusa runs, in order of preference for ``interface: auto``.
+INTERFACES = ("co-simulation", "model-exchange")
+#: Values of ``fmu_options.interface``.
+INTERFACE_CHOICES = ("auto",) + INTERFACES
+#: fmpy's solvers for model exchange FMUs.
+SOLVERS = ("CVode", "Euler")
+_FMPY_TYPE = {"co-simulation": "CoSimulation", "model-exchange": "ModelExchange"}
+_SHORT = {"co-simulation": "CS", "model-exchange": "ME"}
+
+
+class FMUError(ValueError):
+    """An FMU fmusa cannot run as asked: not FMI 2.0, the requested interface missing, no binary for
+    this platform and no sources to build one, or an unreadable model description."""
+
+
+class FMUCompileError(RuntimeError):
+    """Building an FMU's binary from its C sources failed; the message names the FMU and holds the
+    compiler's output."""
+
+
+def host_platform() -> str:
+    """The FMI 2.0 platform directory of this machine (``linux64`` on Linux x86-64)."""
+    import fmpy
+    return fmpy.platform
+
+
+def _an(word: str) -> str:
+    return f"an {word}" if word[:1].lower() in "aeiou" else f"a {word}"
+
+
+def _archive_names(path: Path) -> list[str]:
+    if path.is_dir():
+        return [p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file()]
+    import zipfile
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return [n for n in zf.namelist() if not n.endswith("/")]
+    except zipfile.BadZipFile:
+        raise FMUError(f"{path}: not an FMU (not a ZIP archive)") from None
+
+
+def _root_attributes(path: Path) -> dict[str, str]:
+    """Attributes of <fmiModelDescription> (fmiVersion, modelName…), read without fmpy, so that an
+    FMI 1 or FMI 3 FMU is recognised before anything tries to parse it as FMI 2."""
+    import xml.etree.ElementTree as ET
+    import zipfile
+    try:
+        if path.is_dir():
+            data = (path / "modelDescription.xml").read_bytes()
+        else:
+            with zipfile.ZipFile(path) as zf:
+                data = zf.read("modelDescription.xml")
+    except (OSError, KeyError):
+        raise FMUError(f"{path}: not an FMU (no modelDescription.xml)") from None
+    try:
+        root = ET.fromstring(data)
+    except ET.ParseError as exc:
+        raise FMUError(f"{path}: modelDescription.xml is not well-formed XML ({exc})") from None
+    return dict(root.attrib)
+
+
+@dataclass(frozen=True, eq=False)
+class FMUInfo:
+    """What an FMU declares and contains, read from its model description and its file list (no binary
+    is loaded). Made by :func:`read_fmu_info`."""
+    path: Path
+    fmi_version: str
+    model_name: str
+    description: str
+    generation_tool: str
+    guid: str
+    interfaces: dict            # interface ("co-simulation"/"model-exchange") -> model identifier
+    binaries: dict              # platform directory -> list of files in it
+    source_files: tuple         # the files listed under <SourceFiles>
+    has_sources: bool           # the archive has sources/*.c (or .cpp)
+    default_experiment: dict    # start_time, stop_time, tolerance, step_size (those declared)
+    variables: tuple            # fmpy ModelVariable objects, in model-description order
+    n_states: int
+    n_event_indicators: int
+    model_description: object   # the fmpy ModelDescription
+    warnings: tuple = ()        # e.g. fmpy's schema validation problems (the FMU is still read)
+
+    @property
+    def platforms(self) -> list[str]:
+        """Platforms with a binary (``linux64``, ``win64``, ``darwin64``…)."""
+        return sorted(p for p, files in self.binaries.items() if files)
+
+    def variable(self, name: str):
+        return self._by_name.get(name)
+
+    @property
+    def _by_name(self) -> dict:
+        d = self.__dict__.get("_names")
+        if d is None:
+            d = {v.name: v for v in self.variables}
+            object.__setattr__(self, "_names", d)
+        return d
+
+    def binary_name(self, interface: str) -> str:
+        import fmpy
+        return f"{self.interfaces[interface]}{fmpy.sharedLibraryExtension}"
+
+    def has_binary(self, interface: str, platform: str | None = None) -> bool:
+        """Whether the shared library of ``interface`` is there for ``platform`` (default: this machine)."""
+        platform = platform or host_platform()
+        return self.binary_name(interface) in self.binaries.get(platform, [])
+
+    @property
+    def can_compile(self) -> bool:
+        return self.has_sources and bool(self.source_files)
+
+
+def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo:
+    """Read what ``path`` (an ``.fmu`` file or an extracted FMU directory) declares and contains.
+
+    Raises :class:`FMUError` when it is not an FMU, or (``require_fmi2``) not an FMI 2.0 FMU. fmpy's
+    schema validation problems do not stop the reading: they are kept in ``warnings``.
+    """
+    import fmpy
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"FMU not found: {path}")
+    names = _archive_names(path)
+    attrs = _root_attributes(path)
+    version = attrs.get("fmiVersion", "?")
+    model = attrs.get("modelName", path.stem)
+    if require_fmi2 and version != "2.0":
+        major = version.split(".")[0]
+        raise FMUError(f"{path}: {model} is an FMI {version} FMU (fmiVersion=\"{version}\" in its "
+                       f"modelDescription.xml); fmusa needs FMI 2.0. Export the model again as an FMI "
+                       f"2.0 co-simulation or model exchange FMU"
+                       + (" (FMI 1.0 FMUs cannot be converted)" if major == "1" else
+                          " (most tools that export FMI 3.0 can also export FMI 2.0)" if major == "3" else ""))
+    warnings: list[str] = []
+    try:
+        md = fmpy.read_model_description(str(path), validate=True)
+    except Exception as exc:  # schema or consistency problems: read it anyway, keep the problems
+        try:
+            md = fmpy.read_model_description(str(path), validate=False)
+        except Exception as exc2:
+            raise FMUError(f"{path}: cannot read modelDescription.xml: {exc2}") from None
+        warnings.append(f"fmpy's validation of modelDescription.xml failed: {str(exc).strip()}")
+    interfaces = {}
+    if getattr(md, "coSimulation", None) is not None:
+        interfaces["co-simulation"] = md.coSimulation.modelIdentifier
+    if getattr(md, "modelExchange", None) is not None:
+        interfaces["model-exchange"] = md.modelExchange.modelIdentifier
+    binaries: dict[str, list[str]] = {}
+    for n in names:
+        parts = n.split("/")
+        if len(parts) == 3 and parts[0] == "binaries":
+            binaries.setdefault(parts[1], []).append(parts[2])
+    has_sources = any(n.startswith("sources/") and n.rsplit(".", 1)[-1] in ("c", "cc", "cpp", "cxx")
+                      for n in names)
+    source_files: list[str] = []
+    for bc in getattr(md, "buildConfigurations", None) or []:
+        for sfs in bc.sourceFileSets:
+            source_files += [f for f in sfs.sourceFiles if f not in source_files]
+    de = md.defaultExperiment
+    experiment = {}
+    if de is not None:
+        for key, attr in (("start_time", "startTime"), ("stop_time", "stopTime"),
+                          ("tolerance", "tolerance"), ("step_size", "stepSize")):
+            val = getattr(de, attr, None)
+            if val is not None:
+                try:
+                    experiment[key] = float(val)
+                except ValueError:
+                    experiment[key] = val
+    return FMUInfo(path=path, fmi_version=md.fmiVersion, model_name=md.modelName or model,
+                   description=md.description or "", generation_tool=md.generationTool or "",
+                   guid=md.guid or "", interfaces=interfaces, binaries=binaries,
+                   source_files=tuple(source_files), has_sources=has_sources,
+                   default_experiment=experiment, variables=tuple(md.modelVariables),
+                   n_states=int(md.numberOfContinuousStates or 0),
+                   n_event_indicators=int(md.numberOfEventIndicators or 0),
+                   model_description=md, warnings=tuple(warnings))
+
+
+def select_interface(info: FMUInfo, requested: str = "auto") -> str:
+    """The interface a study runs: co-simulation when the FMU has it (``auto``), else model exchange;
+    or the one ``requested``. Raises :class:`FMUError` when the FMU does not implement it."""
+    have = list(info.interfaces)
+    if not have:
+        raise FMUError(f"{info.path}: {info.model_name} declares neither <CoSimulation> nor "
+                       f"<ModelExchange> in its modelDescription.xml")
+    if requested in (None, "auto"):
+        return "co-simulation" if "co-simulation" in have else "model-exchange"
+    if requested not in INTERFACES:
+        raise FMUError(f"unknown interface {requested!r}; use one of {', '.join(INTERFACE_CHOICES)}")
+    if requested not in have:
+        other = have[0]
+        raise FMUError(f"interface {requested} was asked for, but {info.model_name} implements only "
+                       f"{other} ({_SHORT[other]}); set interface: {other} or auto"
+                       + ("" if other == "model-exchange" else
+                          " (a co-simulation FMU brings its own solver)"))
+    return requested
+
+
+def binary_problem(info: FMUInfo, interface: str) -> str | None:
+    """Why ``interface`` cannot run on this machine (no binary and no sources), or None."""
+    if info.has_binary(interface) or info.can_compile:
+        return None
+    plat = host_platform()
+    have = ", ".join(info.platforms) or "none"
+    src = ("it has no C sources (sources/ and <SourceFiles>) to build one from" if not info.has_sources
+           else "its sources/ are not listed under <SourceFiles> in modelDescription.xml, so they "
+                "cannot be built")
+    return (f"{info.model_name} has no {plat} binary for {interface} "
+            f"(binaries/{plat}/{info.binary_name(interface)}; platforms with binaries: {have}), and "
+            f"{src}; export the FMU for {plat}, or with source code")
+
+
+def closest_names(name: str, pool: Iterable[str], n: int = 5) -> list[str]:
+    """Names in ``pool`` closest to ``name`` (difflib), best first; case-insensitive as a fallback."""
+    pool = list(pool)
+    close = difflib.get_close_matches(name, pool, n=n, cutoff=0.4)
+    if not close:
+        lower = {p.lower(): p for p in pool}
+        close = [lower[c] for c in difflib.get_close_matches(name.lower(), list(lower), n=n, cutoff=0.4)]
+    return close
+
+
+#: Variable types fmusa can set and read.
+_TYPES = ("Real", "Integer", "Enumeration", "Boolean")
+
+
+def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
+    """Why FMU variable ``name`` cannot play ``role``, or None when it can.
+
+    ``role`` is ``"varied"`` (a study parameter: a settable Real parameter), ``"parameter"`` (set once per
+    run: a settable parameter of any supported type), ``"input"`` or ``"output"`` (read after the run).
+    The message lists the closest names the FMU does have.
+    """
+    vs = info.variables
+    v = info.variable(name)
+    if role in ("varied", "parameter"):
+        pool = [x.name for x in vs if x.causality == "parameter" and x.variability in ("fixed", "tunable")]
+        wider = pool
+        what = "parameter"
+    elif role == "input":
+        pool = [x.name for x in vs if x.causality == "input"]
+        wider = pool
+        what = "input"
+    else:
+        pool = [x.name for x in vs if x.causality == "output"]
+        wider = [x.name for x in vs if x.causality != "independent"]
+        what = "output"
+
+    def hint(prefix: str = "closest") -> str:
+        others = [n for n in pool if n != name]
+        close = closest_names(name, others)
+        if not close and v is None:
+            close = closest_names(name, [n for n in wider if n != name])
+            if close:
+                return f"; closest names: {', '.join(close)}"
+        if close:
+            return f"; {prefix} {what} names: {', '.join(close)}"
+        if v is not None:
+            return ""
+        if others:
+            more = f" … ({len(others)} in all)" if len(others) > 12 else ""
+            return f"; its {what}s are: {', '.join(others[:12])}{more}"
+        return f"; it has no {what}s"
+
+    if v is None:
+        return f"{info.model_name} has no variable {name!r}{hint()}"
+    causality, variability = v.causality or "local", v.variability or "continuous"
+    if v.type not in _TYPES:
+        return f"{name!r} is of type {v.type}; fmusa sets and reads only Real, Integer, Boolean and Enumeration"
+    if role in ("varied", "parameter"):
+        if causality == "calculatedParameter":
+            deps = None
+            for u in getattr(info.model_description, "initialUnknowns", None) or []:
+                if u.variable is v and u.dependencies:
+                    deps = [d.name for d in u.dependencies]
+            source = (f" ({', '.join(deps)})" if deps else
+                      f" (its description: {v.description!r})" if v.description else "")
+            return (f"{name!r} is a calculatedParameter: the FMU computes it from other parameters, so it "
+                    f"cannot be set; set the parameters it is computed from{source} instead")
+        if variability == "constant":
+            return (f"{name!r} is a constant (variability constant, causality {causality}): its value is "
+                    f"fixed in the FMU and cannot be set{hint('settable')}")
+        if causality == "input":
+            return f"{name!r} is an input, not a parameter; set it under scenario.inputs instead"
+        if causality != "parameter":
+            return (f"{name!r} is {_an(causality)} variable (causality {causality}), not a parameter, and "
+                    f"cannot be set{hint('settable')}")
+        if variability not in ("fixed", "tunable"):
+            return (f"{name!r} has variability {variability}; only fixed or tunable parameters can be "
+                    f"set{hint('settable')}")
+        if role == "varied" and v.type != "Real":
+            return (f"{name!r} is {_an(v.type)} parameter; a study parameter must be Real (set "
+                    f"{v.type} parameters under fixed)")
+        return None
+    if role == "input":
+        if causality == "input":
+            return None
+        if causality == "parameter":
+            return f"{name!r} is a parameter, not an input; set it under fixed instead"
+        return f"{name!r} is {_an(causality)} variable (causality {causality}), not an input{hint()}"
+    if causality == "independent":
+        return f"{name!r} is the independent variable (time); metrics read outputs"
+    return None
+
+
