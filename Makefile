@@ -69,7 +69,7 @@ test: $(STAMP) $(FMU)
 
 # The diagnosis of the real C6/C7 shear tests (data/shear-c67) against the authors' own analysis.
 diagnose: $(STAMP) $(FMU)
-	$(VENV)/bin/fmusa diagnose-shear --out out/diagnose
+	$(VENV)/bin/fmusa diagnose-shear --data data/shear-c67 --out out/diagnose
 
 bench: $(STAMP) $(FMU)
 	$(VPY) -m fmusa.bench --out out/bench/bench.json

@@ -19,10 +19,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 import effects_reference as er  # noqa: E402
 
-from fmusa.diagnose import run as dg  # noqa: E402
+from fmusa.diagnose.effects import CANDIDATES, DiagnoseError  # noqa: E402
+from fmusa.diagnose.run import diagnose  # noqa: E402
 from fmusa.diagnose.measured import Experiment, downsample  # noqa: E402
 
-EFFECTS = ("none",) + dg.CANDIDATES
+EFFECTS = ("none",) + CANDIDATES
 DRIVES = ("displacement", "force")
 
 
@@ -38,7 +39,7 @@ def experiment(effect: str, drive: str, seed: int, points: int = 200) -> tuple[E
 def test_hidden_effect_is_named(effect, drive, fmu_path):
     seed = zlib.crc32(f"{effect}/{drive}".encode()) % 10_000
     e, truth = experiment(effect, drive, seed)
-    d = dg.diagnose([e], drive, fmu_path=fmu_path, workers=2)
+    d = diagnose([e], drive, fmu_path=fmu_path, workers=2)
     ranking = {r["effect"]: (r["significant"], round(r["heldout_rmse_ratio"], 3), round(r["delta_bic"], 1))
                for r in d["ranking"]}
     assert d["effect"] == effect, f"seed {seed}: named {d['effect']}; ranking {ranking}"
@@ -100,8 +101,8 @@ def test_bad_input_is_named(tmp_path, fmu_path):
 
 def test_unknown_candidate_is_refused(fmu_path):
     e, _ = experiment("none", "displacement", seed=1, points=50)
-    with pytest.raises(dg.DiagnoseError, match="unknown candidate 'friction'"):
-        dg.diagnose([e], "displacement", fmu_path=fmu_path, candidates=("friction",))
+    with pytest.raises(DiagnoseError, match="unknown candidate 'friction'"):
+        diagnose([e], "displacement", fmu_path=fmu_path, candidates=("friction",))
 
 
 def test_monotonic_test_cannot_separate_yield_from_nonlinear_stiffness(fmu_path):
@@ -111,7 +112,7 @@ def test_monotonic_test_cannot_separate_yield_from_nonlinear_stiffness(fmu_path)
     keep = df.time.values <= truth["T_load"]
     e = downsample(Experiment(name="ramp", path=Path("ramp.csv"), drive="displacement", t=df.time.values[keep],
                               displacement=df.displacement.values[keep], force=df.force.values[keep]), 150)
-    d = dg.diagnose([e], "displacement", fmu_path=fmu_path, workers=2,
+    d = diagnose([e], "displacement", fmu_path=fmu_path, workers=2,
                     candidates=("yield_softening", "nonlinear_stiffness", "sensor_offset"))
     assert d["protocol"]["unloading"] is False
     assert d["effect"] in ("yield_softening", "nonlinear_stiffness")
@@ -128,7 +129,7 @@ def test_leftover_rig_oscillation_is_described(fmu_path):
     force = df.force.values + amp * np.sin(2 * np.pi * f_rig * df.time.values + 0.4)
     e = downsample(Experiment(name="rig", path=Path("rig.csv"), drive="displacement", t=df.time.values,
                               displacement=df.displacement.values, force=force), 300)
-    d = dg.diagnose([e], "displacement", fmu_path=fmu_path, workers=2,
+    d = diagnose([e], "displacement", fmu_path=fmu_path, workers=2,
                     candidates=("coulomb_friction", "sensor_offset", "viscoelastic_relaxation"))
     assert d["effect"] == "coulomb_friction"
     osc = d["residuals"]["extended"]["oscillation"]
@@ -136,3 +137,36 @@ def test_leftover_rig_oscillation_is_described(fmu_path):
     assert abs(osc["frequency_hz"] - f_rig) < 0.02 * f_rig
     assert abs(osc["amplitude"] - amp) < 0.2 * amp
     assert "Hz" in d["leftover"]
+
+
+def test_screw_vertebra_interface_is_the_one_place_of_its_variables():
+    """The drive reaches the FMU through the interface: mode, input switch, input, output, solver settings."""
+    from fmusa.diagnose.interface import SCREW_VERTEBRA as sv
+
+    assert sv.settings("displacement", 1e-5) == {"mode": 2, "use_y_in": True, "rtol": 1e-5, "monitors": False}
+    assert sv.settings("force", 1e-6) == {"mode": 1, "F_max": 0.0, "rtol": 1e-6, "monitors": False}
+    assert (sv.input_name("displacement"), sv.output_name("displacement")) == ("y_in", "F_meas")
+    assert (sv.input_name("force"), sv.output_name("force")) == ("F_ext_y", "y_meas")
+    with pytest.raises(DiagnoseError, match="--drive 'velocity'"):
+        sv.settings("velocity", 1e-5)
+
+
+def test_interface_is_passed_through_to_the_fmu(fmu_path):
+    """A fitted parameter renamed by the interface reaches the same FMU variable; a wrong output name is
+    refused by the FMU runner, naming the variable, so nothing of ScrewVertebra is hidden in the fit."""
+    from dataclasses import replace
+
+    from fmusa.diagnose.calibrate import ModelRunner
+    from fmusa.diagnose.interface import SCREW_VERTEBRA
+
+    e, _ = experiment("coulomb_friction", "displacement", seed=3, points=60)
+    renamed = replace(SCREW_VERTEBRA, parameter_names={"stiffness": "c_y"})
+    a = ModelRunner(fmu_path, "displacement", ["c_y", "d_y"])
+    b = ModelRunner(fmu_path, "displacement", ["stiffness", "d_y"], interface=renamed)
+    try:
+        np.testing.assert_array_equal(a.predict([2e5, 50.0], [e])[0], b.predict([2e5, 50.0], [e])[0])
+    finally:
+        a.close()
+        b.close()
+    with pytest.raises(Exception, match="F_measured"):
+        ModelRunner(fmu_path, "displacement", ["c_y"], interface=replace(SCREW_VERTEBRA, force_output="F_measured"))

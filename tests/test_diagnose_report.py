@@ -1,4 +1,4 @@
-"""Figures and report of `fmusa diagnose` (fmusa.diagnose_report) on a small real diagnosis.
+"""Figures and report of `fmusa diagnose` (fmusa.diagnose.figures, fmusa.diagnose.report) on a small real diagnosis.
 
 The diagnosis runs the real pipeline (FMU, calibration, held-out refits, ranking, residual statistics) on
 a short synthetic load-hold-unload test from tests/effects_reference.py, with two candidates and two starts
@@ -17,9 +17,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from effects_reference import synthesize  # noqa: E402
 
-from fmusa.diagnose import run as fd  # noqa: E402
 from fmusa.diagnose import measured as fm  # noqa: E402
-from fmusa.diagnose import report as dr  # noqa: E402
+from fmusa.diagnose import views  # noqa: E402
+from fmusa.diagnose.figures import write_figures  # noqa: E402
+from fmusa.diagnose.report import write_report  # noqa: E402
+from fmusa.diagnose.run import diagnose  # noqa: E402
+from fmusa.format import fmt  # noqa: E402
 
 FIGURES = ("fit_time.png", "loops.png", "residuals.png", "ranking.png")
 
@@ -30,7 +33,7 @@ def _diagnose(fmu_path, effect: str, drive: str, seed: int):
                       t=df["time"].to_numpy(), displacement=df["displacement"].to_numpy(),
                       force=df["force"].to_numpy())
     e = fm.downsample(e, 120)
-    diag = fd.diagnose([e], drive, fmu_path=fmu_path, candidates=("sensor_offset", "coulomb_friction"),
+    diag = diagnose([e], drive, fmu_path=fmu_path, candidates=("sensor_offset", "coulomb_friction"),
                        workers=1, max_starts=2)
     return diag, [e], truth
 
@@ -39,8 +42,8 @@ def _diagnose(fmu_path, effect: str, drive: str, seed: int):
 def friction(fmu_path, tmp_path_factory):
     diag, exps, truth = _diagnose(fmu_path, "coulomb_friction", "displacement", 1)
     out = tmp_path_factory.mktemp("diag_friction")
-    figs = dr.write_figures(diag, exps, out)
-    report = dr.write_report(diag, exps, out, figs)
+    figs = write_figures(diag, exps, out)
+    report = write_report(diag, exps, out, figs)
     return diag, exps, out, figs, report
 
 
@@ -73,10 +76,10 @@ def test_report_contains_the_numbers_of_the_diagnosis(friction):
     assert diag["effect"] == "coulomb_friction"          # the friction is strong: the pipeline names it
     assert f"# Diagnosis: `{diag['effect']}`" in text
     gain = diag["gain"]
-    assert f"(ratio {dr.ratio_text(gain['rmse_ratio'])})" in text
-    assert f"(ratio {dr.ratio_text(gain['heldout_rmse_ratio'])})" in text
-    assert f"ΔBIC = {dr._delta(gain['delta_bic'])}" in text
-    assert f"ΔAIC = {dr._delta(gain['delta_aic'])}" in text
+    assert f"(ratio {views.ratio_text(gain['rmse_ratio'])})" in text
+    assert f"(ratio {views.ratio_text(gain['heldout_rmse_ratio'])})" in text
+    assert f"ΔBIC = {views.delta_text(gain['delta_bic'])}" in text
+    assert f"ΔAIC = {views.delta_text(gain['delta_aic'])}" in text
     # the ranking table: one row per candidate with its own ratios, in ranking order
     rows = [ln for ln in text.splitlines() if re.match(r"^\| \d+ \| `", ln)]
     assert len(rows) == len(diag["ranking"]) == 2
@@ -85,14 +88,14 @@ def test_report_contains_the_numbers_of_the_diagnosis(friction):
         assert cells[0] == str(i)
         assert cells[1].startswith(f"`{r['effect']}`")
         assert cells[2] == ("yes" if r["significant"] else "no")
-        assert cells[6] == dr.ratio_text(r["rmse_ratio"])
-        assert cells[7] == dr.ratio_text(r["heldout_rmse_ratio"])
-        assert cells[9] == dr._delta(r["delta_bic"])
+        assert cells[6] == views.ratio_text(r["rmse_ratio"])
+        assert cells[7] == views.ratio_text(r["heldout_rmse_ratio"])
+        assert cells[9] == views.delta_text(r["delta_bic"])
     # parameters in natural units with their intervals: the friction force in N, the stiffness in N/mm
     fric = diag["effect_params"]["fric_F"]
-    assert f"fric_F (Coulomb friction force) = {dr.fmt(fric['value'], 4)} N" in text
+    assert f"fric_F (Coulomb friction force) = {fmt(fric['value'], 4)} N" in text
     c = diag["extended"]["params"]["c_y"]
-    assert dr.fmt(c * 1e-3, 4) in text and "N/mm" in text
+    assert fmt(c * 1e-3, 4) in text and "N/mm" in text
     # residual diagnosis before / after with the statistics asked for
     for word in ("Ljung–Box", "runs test", "lag-1 autocorrelation", "Residuals before and after",
                  "Candidates the data cannot tell apart", "Caveats", "assume white", "too narrow"):
@@ -104,24 +107,24 @@ def test_report_contains_the_numbers_of_the_diagnosis(friction):
 
 
 def test_natural_units():
-    assert dr.natural("c_y", 3.7e5) == (pytest.approx(370.0), "N/mm")
-    assert dr.natural("gap", 2e-4) == (pytest.approx(0.2), "mm")
-    assert dr.natural("fric_F", 12.0) == (12.0, "N")
-    assert dr.natural("ve_tau", 0.5) == (0.5, "s")
-    assert dr.natural("nl_ratio", 2.0) == (2.0, "")
+    assert views.natural("c_y", 3.7e5) == (pytest.approx(370.0), "N/mm")
+    assert views.natural("gap", 2e-4) == (pytest.approx(0.2), "mm")
+    assert views.natural("fric_F", 12.0) == (12.0, "N")
+    assert views.natural("ve_tau", 0.5) == (0.5, "s")
+    assert views.natural("nl_ratio", 2.0) == (2.0, "")
 
 
 def test_report_without_effect(fmu_path, tmp_path):
     """Clean data without an effect: the report says none, gives the best candidate's numbers, and the
     figures still draw (no 'after' row)."""
     diag, exps, truth = _diagnose(fmu_path, "none", "force", 3)
-    figs = dr.write_figures(diag, exps, tmp_path)
-    report = dr.write_report(diag, exps, tmp_path, figs)
+    figs = write_figures(diag, exps, tmp_path)
+    report = write_report(diag, exps, tmp_path, figs)
     _check_figures(tmp_path, figs)
     text = report.read_text()
     assert f"# Diagnosis: `{diag['effect']}`" in text
     if diag["effect"] == "none":
         best = diag["ranking"][0]
         assert f"The best-ranked candidate, `{best['effect']}`" in text
-        assert dr.ratio_text(best["heldout_rmse_ratio"]) in text
+        assert views.ratio_text(best["heldout_rmse_ratio"]) in text
     assert "[mm]" in text                                  # force drive: residuals and RMSE in mm

@@ -8,7 +8,8 @@ import pandas as pd
 import pytest
 
 from fmusa.study.loader import parse_study
-from fmusa.pipeline.sweep import StudyRunner, run_study
+from fmusa.api import run_study
+from fmusa.pipeline.sweep import StudyRunner
 from fmusa.study.plan import check_fmu
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,13 +1,18 @@
-"""The measured-data input layer (fmusa.measured) and the shear-c67 glue: every bad input gives a
+"""The measured-data input layer (fmusa.diagnose.measured) and the shear-c67 glue: every bad input gives a
 MeasuredDataError naming file, line and column; units, derived time, zeroing and downsampling are
 exact on synthetic files; the 18 real shear tests load with sensible durations."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fmusa.applications.shear_c67 import data as shear_c67
 from fmusa.diagnose.measured import ColumnSpec, Experiment, MeasuredDataError, downsample, load_experiment, load_experiments, parse_rate
+
+#: The repository's copy of the shear data (specimens H1–H3).
+SHEAR = Path(__file__).resolve().parents[1] / "data" / "shear-c67"
 
 N = 20
 
@@ -296,7 +301,7 @@ def test_load_experiments_unique_names_and_all_errors(tmp_path):
 
 # ============================================================================ the real data
 def test_shear_tests_load():
-    tests = shear_c67.list_tests()
+    tests = shear_c67.list_tests(SHEAR)
     assert len(tests) == 18
     assert set(tests.specimen) == {"H1", "H2", "H3"} and set(tests.direction) == {"Ant", "Pos"}
     assert sorted(set(tests.rate_mm_s)) == [1.0, 10.0, 100.0]
@@ -317,7 +322,7 @@ def test_shear_tests_load():
 
 
 def test_shear_authors_bilinear():
-    fits = shear_c67.authors_bilinear()
+    fits = shear_c67.authors_bilinear(SHEAR)
     assert len(fits) == 18
     assert {"specimen", "direction", "rate_mm_s", "stiffness_1", "stiffness_2", "breakpoint_mm",
             "intercept_1", "intercept_2", "r2_1", "peak_load_N", "peak_disp_mm"} <= set(fits)
@@ -334,5 +339,6 @@ def test_shear_authors_bilinear():
 def test_shear_bad_name(tmp_path):
     with pytest.raises(MeasuredDataError, match="H<k>_C67"):
         shear_c67.load_test(write(tmp_path, table(), "whatever.csv"))
-    with pytest.raises(MeasuredDataError, match="root="):
+    with pytest.raises(MeasuredDataError, match="data folder not found.*--data FOLDER") as info:
         shear_c67.list_tests(tmp_path / "none")
+    assert str(tmp_path / "none") in str(info.value)

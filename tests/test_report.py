@@ -9,8 +9,7 @@ from pathlib import Path
 import pytest
 
 from fmusa.format import fmt
-from fmusa.study.loader import load_study, parse_study
-from fmusa.api import run_study
+from fmusa.api import load_study, parse_study, run_study
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "studies" / "paper.yaml"

@@ -13,7 +13,7 @@ import pytest
 from fmusa.fmi.runner import FMURunner
 from fmusa.runs.metrics import MetricRule, reduce_series
 from fmusa.runs.refine import refine_intervals, refined_times
-from fmusa.study.schema import StudyError
+from fmusa.study.schema import Metric, StudyError
 from fmusa.study.loader import parse_study
 from fmusa.api import run_study
 
@@ -143,6 +143,31 @@ def test_refined_grid_and_intervals():
     np.testing.assert_allclose(g[1:10], [0.1, 0.125, 0.15, 0.175, 0.2, 0.225, 0.25, 0.275, 0.3])
     v = reduce_series(t, x, rules)
     assert v[0] == 3.0 and v[1] == pytest.approx(0.3)
+
+
+def test_time_mean_of_unevenly_sampled_signal_is_one_value():
+    """A study metric and a worker's reduction are one implementation: the time mean (trapezoid rule) of
+    t² on [0, 1], sampled unevenly, is 1/3 up to the trapezoid error; a plain mean of the samples is not."""
+    t = np.concatenate([np.linspace(0.0, 0.5, 400, endpoint=False), np.linspace(0.5, 1.0, 41)])
+    x = t ** 2
+    h = np.diff(t)
+    trapezoid_error = float(np.sum(h ** 3) / 6)      # (b - a) h² f''/12 with f'' = 2, interval by interval
+    mean = Metric("m", "y", reduce="mean")
+    assert mean.compute(x, t) == pytest.approx(1 / 3 + trapezoid_error, rel=1e-12)
+    assert abs(mean.compute(x, t) - 1 / 3) < 1e-4 < abs(x.mean() - 1 / 3)
+    rules = [MetricRule("m", 0, "mean"), MetricRule("a", 1, "mean_abs", scale=2.0, offset=1.0)]
+    both = reduce_series(t, np.column_stack([x, -x]), rules)
+    assert both[0] == mean.compute(x, t)
+    assert both[1] == Metric("a", "y", reduce="mean_abs", scale=2.0, offset=1.0).compute(-x, t)
+    # every reduction: the study's metric gives what the worker gives
+    for reduce in ("final", "max", "min", "max_abs", "mean", "mean_abs"):
+        m = Metric("m", "y", reduce=reduce, scale=3.0, offset=-1.0, missing_below=-0.5)
+        worker = reduce_series(t, np.sin(7 * t)[:, None], [MetricRule("m", 0, reduce, 3.0, -1.0, -0.5)])[0]
+        np.testing.assert_equal(m.compute(np.sin(7 * t), t), worker, err_msg=reduce)   # min: NaN (missing)
+    settle = Metric("s", "y", reduce="settle", settle_tol=0.01)
+    assert settle.compute(np.exp(-10 * t), t) == pytest.approx(t[np.argmax(np.exp(-10 * t) <= 0.01)])
+    with pytest.raises(ValueError, match="needs the sample times"):
+        settle.compute(np.exp(-10 * t))
 
 
 def test_refine_peaks_is_validated_at_load(tmp_path):

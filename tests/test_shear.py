@@ -1,21 +1,38 @@
-"""The real shear tests (data/shear-c67) against the authors' own analysis, an independent one."""
+"""The real shear tests (data/shear-c67) against the authors' own analysis, an independent one; and the
+shear report on other specimens of the same data set says what those data show, not what H1–H3 showed."""
 from __future__ import annotations
 
-from fmusa.diagnose import run as dg
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
 from fmusa.applications.shear_c67 import data as shear_c67
-from fmusa.applications.shear_c67.study import fit_bilinear_per_test
+from fmusa.applications.shear_c67.study import fit_bilinear_per_test, run_shear_diagnosis
+from fmusa.diagnose.run import diagnose
+
+ROOT = Path(__file__).resolve().parents[1]
+#: The repository's copy of the data (specimens H1–H3).
+SHEAR = ROOT / "data" / "shear-c67"
+#: The project's shared copy with more specimens (H1–H3, H10–H21; H4–H9 are never used).
+SHARED = ROOT.parent / "shared" / "data" / "shear-c67"
 
 
 def test_two_phase_fit_matches_the_authors_breakpoint_analysis(fmu_path):
     """At 1 and 10 mm/s (hundreds of samples per test) our continuous bilinear fit through the FMU must
     agree with the authors' two-line fit: second stiffness within 3 %, first within 10 %, breakpoint
     within 0.1 mm."""
-    tests = shear_c67.list_tests()
+    tests = shear_c67.list_tests(SHEAR)
     pick = tests[((tests.specimen == "H1") & (tests.direction == "Ant") & (tests.rate_mm_s == 1))
                  | ((tests.specimen == "H2") & (tests.direction == "Pos") & (tests.rate_mm_s == 10))]
     assert len(pick) == 2
     ours = fit_bilinear_per_test(pick, str(fmu_path), max_points=300)
-    cmp_ = ours.merge(shear_c67.authors_bilinear(), on=["specimen", "direction", "rate_mm_s"])
+    cmp_ = ours.merge(shear_c67.authors_bilinear(SHEAR), on=["specimen", "direction", "rate_mm_s"])
     for _, r in cmp_.iterrows():
         assert abs(r.k2_N_mm / r.stiffness_2 - 1) < 0.03, r.to_dict()
         assert abs(r.k1_N_mm / r.stiffness_1 - 1) < 0.10, r.to_dict()
@@ -27,11 +44,11 @@ def test_monotonic_real_tests_name_a_stiffening_bend(fmu_path):
     """H2 anterior, three rates jointly: the curve bends upwards (stiffens). Without unloading, yield and
     an elastic bend look alike only when the bend softens; a stiffening bend is one yield cannot make, so
     yield must not be called a look-alike here."""
-    tests = shear_c67.list_tests()
+    tests = shear_c67.list_tests(SHEAR)
     g = tests[(tests.specimen == "H2") & (tests.direction == "Ant")]
     exps = [shear_c67.load_test(r, max_points=150) for _, r in g.iterrows()]
-    d = dg.diagnose(exps, "displacement", fmu_path=fmu_path, workers=2, max_starts=4,
-                    candidates=("nonlinear_stiffness", "yield_softening", "sensor_offset"))
+    d = diagnose(exps, "displacement", fmu_path=fmu_path, workers=2, max_starts=4,
+                 candidates=("nonlinear_stiffness", "yield_softening", "sensor_offset"))
     assert d["protocol"] == {"unloading": False, "hold": False, "several_rates": True,
                              "several_rates_or_hold": True}
     assert d["effect"] == "nonlinear_stiffness"
@@ -41,3 +58,95 @@ def test_monotonic_real_tests_name_a_stiffening_bend(fmu_path):
     assert not next(r for r in d["ranking"] if r["effect"] == "yield_softening")["significant"]
     assert d["residuals"]["extended"]["structured"]        # real data: structure is left, and it is said
     assert d["leftover"]
+
+
+def _copy_specimen(dst: Path, specimen: str, direction: str) -> None:
+    """One specimen's tests of one direction from the shared copy, with its rows of the two tables."""
+    folder = f"H{int(specimen[1:]):02d}"
+    (dst / folder).mkdir(parents=True, exist_ok=True)
+    for p in (SHARED / folder).glob(f"{specimen}_C67_{direction}_*_mm_s.csv"):
+        shutil.copy(p, dst / folder / p.name)
+    for table in ("test_info.csv", "specimen_info.csv"):
+        df = pd.read_csv(SHARED / table)
+        keep = df[df["ID"] == specimen]
+        if "direction" in keep:
+            keep = keep[keep["direction"] == direction]
+        out = dst / table
+        keep.to_csv(out, mode="a" if out.exists() else "w", header=not out.exists(), index=False)
+
+
+@pytest.mark.skipif(not (SHARED / "H10").is_dir(), reason="the shared shear-c67 copy with H10 is not here")
+def test_report_on_other_specimens_names_them(fmu_path, tmp_path):
+    """H10 anterior and H11 posterior (three rates each, few samples, two candidates): the report names
+    those specimens, directions, rates and counts, and nothing of H1–H3 or of the 18 tests of the
+    repository's copy."""
+    data = tmp_path / "shear"
+    _copy_specimen(data, "H10", "Ant")
+    _copy_specimen(data, "H11", "Pos")
+    out = tmp_path / "out"
+    s = run_shear_diagnosis(out, data, fmu_path=str(fmu_path), max_points=60, workers=1, max_starts=2,
+                            candidates=("nonlinear_stiffness", "sensor_offset"))
+    assert list(s["groups"]) == ["H10_Ant", "H11_Pos"]
+    assert s["data"]["specimens"] == ["H10", "H11"] and s["data"]["tests"] == 6
+    assert json.loads((out / "summary.json").read_text())["data"]["specimens"] == ["H10", "H11"]
+    text = (out / "report.md").read_text()
+    assert f"# Diagnosis of the C6/C7 shear tests ({data})" in text
+    assert "Measured data (specimens H10 and H11, anterior and posterior shear at 1, 10 and 100 mm/s" in text
+    assert "block-averaged to at most 60 samples" in text
+    assert "three rates fitted jointly" in text and "fitted to the other two" in text
+    assert "e.g. `H10_Ant/report.md`" in text
+    assert "ranking of both candidates" in text and "over the two units" in text
+    assert "All 6 tests load monotonically" in text
+    assert "| H10 Ant | 100 |" in text and "| H11 Pos | 1 |" in text
+    specimens = set(re.findall(r"\bH\d+\b", text))
+    assert specimens == {"H10", "H11"}, specimens
+    for stale in ("H1–H3", "six units", "18 tests", "six candidates", "PROVENANCE.md", "at most 300 samples"):
+        assert stale not in text, stale
+
+
+def test_missing_data_folder_is_named_with_the_fix(tmp_path):
+    """`fmusa diagnose-shear` run outside the repository: the error names the folder, where it looked, and
+    --data; nothing is written."""
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "fmusa.cli", "diagnose-shear", "--out", str(out)], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert "data/shear-c67: shear-c67 data folder not found" in r.stderr
+    assert str(tmp_path) in r.stderr and "--data FOLDER" in r.stderr
+    assert not out.exists()
+
+
+def test_report_states_only_what_one_rate_can_show(tmp_path):
+    """A unit tested at one rate with a softening bend: the report says one test per unit, held-out blocks,
+    that the protocol cannot tell yield from the bend, and that rates say nothing here (no FMU needed)."""
+    from fmusa.applications.shear_c67.report import write_report
+    from fmusa.applications.shear_c67.study import summarize
+
+    ranking = [{"effect": "nonlinear_stiffness", "significant": True, "heldout_rmse_ratio": 0.5, "delta_bic": -40.0,
+                "rmse_ratio": 0.5},
+               {"effect": "yield_softening", "significant": True, "heldout_rmse_ratio": 0.55, "delta_bic": -35.0,
+                "rmse_ratio": 0.52}]
+    diag = {"effect": "nonlinear_stiffness", "indistinguishable": [{"effect": "yield_softening"}],
+            "gain": {"heldout_rmse_ratio": 0.5, "delta_bic": -40.0},
+            "effect_params": {"nl_ratio": {"value": 0.6}, "nl_y_b": {"value": 4e-4}},
+            "baseline": {"params": {"c_y": 2e5}}, "ranking": ranking, "leftover": "",
+            "data": {"experiments": [{"name": "H12_C67_Ant_10_mm_s"}],
+                     "heldout": "4 contiguous blocks in time (leave one out)"},
+            "protocol": {"unloading": False, "hold": False, "several_rates": False, "several_rates_or_hold": False}}
+    cmp_ = pd.DataFrame([{"specimen": "H12", "direction": "Ant", "rate_mm_s": 10.0, "k1_N_mm": 200.0,
+                          "k2_N_mm": 120.0, "bp_mm": 0.4, "rmse_N": 2.0, "linear_rmse_N": 9.0,
+                          "linear_k_N_mm": 150.0, "peak_N": 150.0, "points": 180, "stiffness_1": 205.0,
+                          "stiffness_2": 121.0, "breakpoint_mm": 0.41, "peak_load_N": 150.0, "peak_disp_mm": 1.0}])
+    data = {"root": "elsewhere/shear", "provenance": None, "specimens": ["H12"], "directions": ["Ant"],
+            "rates_mm_s": [10.0], "tests": 1, "max_points": 300}
+    text = write_report(summarize({"H12_Ant": diag}, cmp_, data), cmp_, tmp_path, []).read_text()
+    assert "Measured data (specimen H12, anterior shear at 10 mm/s under displacement control)." in text
+    assert "(one test per unit)" in text and "4 contiguous blocks in time" in text
+    assert "The one test loads monotonically to the peak and stops" in text
+    assert "softens in 1 of the 1 units" in text and "`yield_softening` itself is significant in 1 of 1" in text
+    assert "these tests have neither" in text
+    assert "Every unit was tested at one rate only" in text
+    assert "At 10 mm/s the two analyses agree closely" in text
+    assert set(re.findall(r"\bH\d+\b", text)) == {"H12"}
+    for stale in ("three rates", "100 mm/s", "posterior", "Maxwell branch improves"):
+        assert stale not in text, stale

@@ -394,6 +394,49 @@ def test_manual_roi_must_cover_the_searched_parameters():
     _fails(bad, _line_of(bad, "  search:"), "key 'search' in 'stages'", "no range for it", "d: [lo, hi]")
 
 
+ONE_PARAMETER = MINIMAL.replace("  max_y: {output: y_max}\n", "  max_y: {output: y_max}\nconstraints:\n"
+                                "  - {name: translation, metric: max_y, max: 5.0e-4}\n")
+
+
+def test_search_over_one_parameter():
+    text = ONE_PARAMETER + "  roi:\n  search: {inner: c}\n"
+    stage = parse_study(text, BAD).stages["search"]
+    assert stage == SearchStage("c", None, response=["max_y"]) and stage.warm_start is False
+    text = ONE_PARAMETER + "  roi: {manual: {c: [1.0e5, 3.0e5]}}\n  search: {inner: c}\n"
+    assert parse_study(text, BAD).stages["roi"].manual == {"c": (1e5, 3e5)}
+
+
+def test_search_warm_start():
+    assert parse_study(PAPER_TEXT, BAD).stages["search"].warm_start is False     # the paper's search
+    text = _edit(PAPER_TEXT, "    max_outer: 20\n", "    max_outer: 20\n    warm_start: true\n")
+    assert parse_study(text, BAD).stages["search"].warm_start is True
+    bad = _edit(PAPER_TEXT, "    max_outer: 20\n", "    max_outer: 20\n    warm_start: yes please\n")
+    _fails(bad, _line_of(bad, "warm_start:"), "key 'warm_start' in 'stages.search' must be true or false")
+    bad = ONE_PARAMETER + "  roi:\n  search: {inner: c, warm_start: true}\n"
+    _fails(bad, _line_of(bad, "  search:"), "key 'warm_start' in 'stages.search'", "no 'outer' parameter",
+           "remove warm_start or add outer")
+
+
+def test_regression_source():
+    assert parse_study(PAPER_TEXT, BAD).stages["regression"].source == "search"
+    text = ONE_PARAMETER + "  regression: {x: c, y: [max_y], degree: 2}\n"
+    assert parse_study(text, BAD).stages["regression"] == RegressionStage("c", ["max_y"], None, 2, "grid")
+    # too few grid values for the degree
+    bad = ONE_PARAMETER + "  regression: {x: c, y: [max_y]}\n"
+    _fails(bad, _line_of(bad, "  regression:"), "fits the grid runs", "3 value(s) of 'c'",
+           "degree-3 polynomial")
+    # nothing to fit: no grid and no search before it
+    bad = _edit(ONE_PARAMETER, "  grid:\n    values: {c: [3.0e5, 1e5, 2.0E+5]}\n",
+                "  regression: {x: c, y: [max_y], degree: 1}\n  grid:\n    values: {c: [3.0e5, 1e5, 2.0E+5]}\n")
+    _fails(bad, _line_of(bad, "  regression:"), "has no runs to fit", "no 'grid' stage comes before it")
+    # the search's runs, but the search comes after the regression
+    reg = "  regression:                # eq. 3"
+    block = PAPER_TEXT[PAPER_TEXT.index(reg):PAPER_TEXT.index("\nexecution:")]
+    bad = _edit(_edit(PAPER_TEXT, block, ""), "  search:  ", block.rstrip("\n") + "\n  search:  ")
+    _fails(bad, _line_of(bad, "  regression:"), "has no runs to fit", "comes after 'regression'",
+           "move 'regression' below 'search'")
+
+
 def test_duplicate_stage():
     bad = MINIMAL + "  grid:\n    values: {c: [1.0]}\n"
     _fails(bad, _line_of(bad, "  grid:\n    values: {c: [1.0]}"), "key 'grid' appears twice in 'stages'")

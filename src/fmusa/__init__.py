@@ -1,7 +1,84 @@
-"""fmusa: run an FMI 2.0 co-simulation FMU many times to find a-priori unknown model parameters.
+"""fmusa: run an FMI 2.0 FMU many times to find a-priori unknown model parameters.
 
 The package is built around the ScrewVertebra FMU (dist/ScrewVertebra.fmu) of Kramer & Bauer's
-screw-vertebra pullout model. Only :mod:`fmusa.evaluate` talks to FMUs.
+screw-vertebra pullout model, but runs any FMI 2.0 co-simulation or model exchange FMU. Only
+:mod:`fmusa.fmi` talks to FMUs.
+
+The public API, what the README's Python examples use::
+
+    import fmusa
+    study = fmusa.load_study("studies/paper.yaml")
+    result = fmusa.run_study(study, "out/paper")          # runs.csv, summary.json, figures, report.md
+    with fmusa.FMURunner() as fmu:                         # dist/ScrewVertebra.fmu, or $FMUSA_FMU
+        df = fmu.run({"c_y": 8e5}, stop_time=12, step=0.01, outputs=["y"])
+    info = fmusa.read_fmu_info("dist/ScrewVertebra.fmu")
+    diag = fmusa.diagnose(experiments, "displacement")     # experiments: fmusa.diagnose.measured
+
+Each name is imported on first use (PEP 562 ``__getattr__``), so ``import fmusa`` (and with it the
+``fmusa`` command's ``--help``) loads neither numpy, pandas, scipy nor fmpy. Errors in the user's input
+are :class:`FmusaError` subclasses.
 """
+from __future__ import annotations
+
+import importlib as _importlib
+import sys as _sys
+import types as _types
+from typing import TYPE_CHECKING
+
+from fmusa.errors import FmusaError
 
 __version__ = "0.1.0"
+
+#: Public name -> the module that defines it (imported when the name is first used).
+_EXPORTS: dict[str, str] = {
+    "load_study": "fmusa.api",
+    "run_study": "fmusa.api",
+    "write_report": "fmusa.api",
+    "FMURunner": "fmusa.fmi.runner",
+    "read_fmu_info": "fmusa.fmi.info",
+}
+#: Where :func:`diagnose` is defined (``fmusa.diagnose`` itself is the subpackage, made callable).
+_DIAGNOSE = "fmusa.diagnose.run"
+
+__all__ = ["__version__", "FmusaError", "load_study", "run_study", "write_report", "FMURunner", "read_fmu_info",
+           "diagnose"]
+
+if TYPE_CHECKING:   # for type checkers and IDEs; at run time each comes from __getattr__
+    from fmusa.api import load_study, run_study, write_report
+    from fmusa.fmi.info import read_fmu_info
+    from fmusa.fmi.runner import FMURunner
+
+
+def __getattr__(name: str) -> object:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'fmusa' has no attribute {name!r}")
+    value = getattr(_importlib.import_module(module), name)
+    globals()[name] = value          # later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    hidden = ("TYPE_CHECKING", "annotations")
+    return sorted(set(__all__) | {k for k in globals() if not k.startswith("_") and k not in hidden})
+
+
+class _CallablePackage(_types.ModuleType):
+    """The class of the ``fmusa.diagnose`` subpackage: a module that is also the function
+    ``diagnose(experiments, drive, ...)`` of :mod:`fmusa.diagnose.run`, so that ``fmusa.diagnose(...)``
+    works and ``fmusa.diagnose.measured`` (and every other import of the subpackage) still does."""
+
+    def __call__(self, *args: object, **kwargs: object) -> object:
+        return getattr(_importlib.import_module(_DIAGNOSE), "diagnose")(*args, **kwargs)
+
+
+def _callable_diagnose() -> None:
+    """Make the subpackage callable as soon as fmusa is imported (it holds only a docstring, so this costs
+    nothing), whatever is imported later and in which order."""
+    pkg = _importlib.import_module("fmusa.diagnose")
+    if not isinstance(pkg, _CallablePackage):
+        pkg.__class__ = _CallablePackage
+
+
+_callable_diagnose()
+diagnose = _sys.modules["fmusa.diagnose"]

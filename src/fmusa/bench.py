@@ -168,7 +168,7 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
 
     from fmpy.fmi2 import fmi2Integer, fmi2ValueReference
 
-    from fmusa.runs.spec import _plan_for, run_chunk
+    from fmusa.runs.spec import plan_for, run_chunk
     from fmusa.pipeline.sensitivity import draw_samples, sensitivity_spec, to_physical
 
     study, stage = _six_dof()
@@ -176,9 +176,8 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
     spec = sensitivity_spec(study, stage, fmu_path=fmu_path)
     P = to_physical(stage, draw_samples(stage, "sobol", n=max(1, samples // (len(stage.parameters) + 2) + 1)))
     P = P[:samples]
-    plan = _plan_for(spec)
+    plan = plan_for(spec)
     r = plan.runner
-    s = r._slave
     vr_steps = (fmi2ValueReference * 1)(r.variables["n_steps"].valueReference)
     steps_val = (fmi2Integer * 1)()
     failed: list[str] = []
@@ -187,30 +186,21 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
     for j, row in enumerate(P):
         # 1) the run by hand, timed in parts (what RunPlan.__call__ does)
         t0 = time.perf_counter()
-        s.reset()
-        for fn, vr, val in plan._fixed_calls:
-            getattr(s, fn)(s.component, vr, len(vr), val)
-        for i, x in enumerate(row):
-            plan._val_varied[i] = x
-        s.fmi2SetReal(s.component, plan._vr_varied, len(plan._val_varied), plan._val_varied)
-        for fn, vr, val in plan._input_calls:
-            getattr(s, fn)(s.component, vr, len(vr), val)
-        s.fmi2SetupExperiment(s.component, 0, 0.0, 0.0, 1, plan.stop_time)
-        s.fmi2EnterInitializationMode(s.component)
-        s.fmi2ExitInitializationMode(s.component)
+        plan.start(row)                                  # reset, set parameters, initialise
+        s = r.instance
         t1 = time.perf_counter()
         c1 = time.process_time()
         s.fmi2DoStep(s.component, 0.0, plan.stop_time, 1)
         cpu_step.append(time.process_time() - c1)
         t2 = time.perf_counter()
-        plan._read()
+        plan.read()
         t3 = time.perf_counter()
         s.fmi2GetInteger(s.component, vr_steps, 1, steps_val)
         steps.append(steps_val[0])
         t_setup.append(t1 - t0)
         t_step.append(t2 - t1)
         t_read.append(t3 - t2)
-        r._state = "done"
+        r.mark_done()
         # 2) the same run as a worker does it (run_chunk: RunPlan, metrics, RunResult), right after
         t0, c0 = time.perf_counter(), time.process_time()
         res = run_chunk(spec, [(j, tuple(map(float, row)))])
@@ -265,9 +255,41 @@ def bench_paper_study(repeats: int = 5) -> dict:
             res = run_study(study, tmp, figures=False, progress=False)
             walls.append(time.perf_counter() - t0)
             runs = res.summary["runs"]
-    return {"paper_study_wall_s": statistics.median(walls), "paper_study_wall_s_all": walls,
-            "paper_study_runs": runs, "paper_study_target_s": 2.0,
-            "paper_study_optimum": res.summary.get("optimum")}
+    out = {"paper_study_wall_s": statistics.median(walls), "paper_study_wall_s_all": walls,
+           "paper_study_runs": runs, "paper_study_target_s": 2.0,
+           "paper_study_optimum": res.summary.get("optimum"),
+           # FMU runs of the automatic-region search (a vendor FMU costs seconds per run: runs are the cost)
+           "paper_search_runs": res.summary["stage_runs"]["search"]["simulated"]}
+    out.update(bench_paper_search_warm(study, res.summary["optimum"]))
+    return out
+
+
+def bench_paper_search_warm(study=None, default_optimum: dict | None = None) -> dict:
+    """The paper's stages with ``search.warm_start``: FMU runs of the search (``paper_search_runs_warm``,
+    target <= 80 against ``paper_search_runs``), its optimum and the relative difference of each parameter
+    from the default search's (target <= inner_rtol)."""
+    import dataclasses
+
+    from fmusa.pipeline.sweep import run_study as run_stages
+    from fmusa.study.loader import load_study
+
+    if study is None:
+        study = load_study(Path(__file__).resolve().parents[2] / "studies" / "paper.yaml")
+    stage = study.stages["search"]
+    warm = dataclasses.replace(study, stages={**study.stages,
+                                              "search": dataclasses.replace(stage, warm_start=True)})
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-warm-") as tmp:
+        if default_optimum is None:
+            default_optimum = run_stages(study, Path(tmp) / "default", progress=False).summary["optimum"]
+        res = run_stages(warm, Path(tmp) / "warm", progress=False)
+    opt = res.summary["optimum"]
+    rel = {k: abs(opt[k] - v) / abs(v) for k, v in default_optimum.items()} if opt else None
+    return {"paper_search_runs_warm": res.summary["stage_runs"]["search"]["simulated"],
+            "paper_search_runs_warm_asked": res.summary["stage_runs"]["search"]["asked"],
+            "paper_search_runs_warm_target": 80,
+            "paper_search_optimum_warm": opt,
+            "paper_search_optimum_warm_rel_diff": rel,
+            "paper_search_warm_within_inner_rtol": bool(rel) and max(rel.values()) <= stage.inner_rtol}
 
 
 def bench_diagnose(fmu_path: Path, workers: int | None = None) -> dict:
@@ -276,8 +298,9 @@ def bench_diagnose(fmu_path: Path, workers: int | None = None) -> dict:
     spinal unit (H2 anterior, three rates, 528 samples) with a cold cache."""
     import numpy as np
 
-    from fmusa.diagnose import run as dg
     from fmusa.applications.shear_c67 import data as shear_c67
+    from fmusa.diagnose.calibrate import ModelRunner
+    from fmusa.diagnose.run import diagnose
 
     t = np.linspace(0.0, 6.0, 300)
     y = np.interp(t, [0, 1.5, 3.5, 5.0, 6.0], [0, 1.2e-3, 1.2e-3, 0, 0])
@@ -286,7 +309,7 @@ def bench_diagnose(fmu_path: Path, workers: int | None = None) -> dict:
     cases = {"displacement_baseline": ("displacement", ["c_y", "d_y"], [2e5, 100.0], y),
              "force_friction": ("force", ["c_y", "d_y", "fric_F"], [2e5, 100.0, 25.0], F)}
     for name, (drive, names, values, u) in cases.items():
-        model = dg.ModelRunner(fmu_path, drive, names)
+        model = ModelRunner(fmu_path, drive, names)
         try:
             model.plan(values, t, u)
             times = []
@@ -297,11 +320,11 @@ def bench_diagnose(fmu_path: Path, workers: int | None = None) -> dict:
         finally:
             model.close()
         out[f"diagnose_run_ms_{name}"] = 1e3 * statistics.median(times)
-    tests = shear_c67.list_tests()
+    tests = shear_c67.list_tests(shear_c67.DEFAULT_DATA)   # make bench runs from the repository root
     g = tests[(tests.specimen == "H2") & (tests.direction == "Ant")]
     exps = [shear_c67.load_test(r, max_points=300) for _, r in g.iterrows()]
     t0 = time.perf_counter()
-    d = dg.diagnose(exps, "displacement", fmu_path=fmu_path, workers=workers)
+    d = diagnose(exps, "displacement", fmu_path=fmu_path, workers=workers)
     out["diagnose_shear_unit_wall_s"] = time.perf_counter() - t0
     out["diagnose_shear_unit_points"] = int(sum(len(e.t) for e in exps))
     out["diagnose_shear_unit_effect"] = d["effect"]

@@ -2,14 +2,22 @@
 
 Each subcommand is a function ``cmd_<name>(args) -> int`` registered in :func:`build_parser`;
 new subcommands (sweep, inspect, diagnose, …) add a ``_add_<name>`` function there.
+
+Every ``cmd_`` function imports what it needs when it runs, and this module's top imports only the
+standard library and :mod:`fmusa.errors`, so ``fmusa --help`` and ``fmusa inspect`` answer quickly (no
+pandas, scipy or matplotlib). A :class:`~fmusa.errors.FmusaError` (a mistake in the input: study file,
+FMU, data, option) is printed as one line ``fmusa <command>: message``; anything else is a bug and
+keeps its traceback.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
 from fmusa import __version__
+from fmusa.errors import FmusaError, UsageError
 
 #: Table 2 of the paper: thresholds of the parameter search.
 EPS_Y = 5e-4        # m, max |y|
@@ -30,6 +38,30 @@ def _fmt(x: float) -> str:
     return f"{x:.6g}"
 
 
+def _int_at_least(low: int):
+    """An argparse ``type``: an integer >= ``low`` (argparse reports anything else as a usage error)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
+        return value
+    return parse
+
+
+def _positive_float(text: str) -> float:
+    """An argparse ``type``: a positive finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text}")
+    return value
+
+
 # ---------------------------------------------------------------------------- pullout
 def _add_pullout(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -40,8 +72,8 @@ def _add_pullout(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
     p.add_argument("--set", action="append", metavar="NAME=VALUE", dest="sets",
                    help="override an FMU parameter (repeatable), e.g. --set c_y=1e6 --set d_y=500")
-    p.add_argument("--stop-time", type=float, default=12.0, help="simulation end in s (default 12)")
-    p.add_argument("--step", type=float, default=0.01, help="communication step in s (default 0.01)")
+    p.add_argument("--stop-time", type=_positive_float, default=12.0, help="simulation end in s (default 12)")
+    p.add_argument("--step", type=_positive_float, default=0.01, help="communication step in s (default 0.01)")
     p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
     p.set_defaults(func=cmd_pullout)
 
@@ -51,11 +83,7 @@ def cmd_pullout(args: argparse.Namespace) -> int:
     from fmusa.fmi.runner import FMURunner
 
     with FMURunner(args.fmu) as fmu:
-        try:
-            params = {name: fmu.parse_value(name, value) for name, value in _parse_sets(args.sets)}
-        except ValueError as exc:
-            print(f"fmusa pullout: {exc}", file=sys.stderr)
-            return 2
+        params = {name: fmu.parse_value(name, value) for name, value in _parse_sets(args.sets)}  # FMUError
         effective = {**fmu.start_values(), **params}
         df = pullout(params, stop_time=args.stop_time, step=args.step, runner=fmu)
     df = df[["time", *PULLOUT_OUTPUTS]]
@@ -162,7 +190,8 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted study in --out: runs already in runs.csv are not redone")
-    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
+    p.add_argument("--workers", type=_int_at_least(1), default=None,
+                   help="local worker processes (default: all cores)")
     p.add_argument("--scheduler", default=None,
                    help="address of a Dask distributed scheduler (e.g. tcp://127.0.0.1:8786) to run on")
     p.add_argument("--no-figures", action="store_true", help="skip figures and report.md")
@@ -171,11 +200,8 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from fmusa.study.loader import load_study
-    from fmusa.api import run_study
+    from fmusa.api import load_study, run_study     # load_study: with the applications' blocks checked
 
-    if args.workers is not None and args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
     study = load_study(args.study)
     if args.out.exists() and (args.out / "runs.csv").exists() and not args.resume:
         print(f"note: {args.out / 'runs.csv'} exists and is started afresh; use --resume to continue it",
@@ -233,7 +259,7 @@ def _causalities(items: list[str] | None) -> set[str] | None:
                 import difflib
                 close = difflib.get_close_matches(word, CAUSALITIES, n=1)
                 hint = f"; did you mean {close[0]}?" if close else ""
-                raise ValueError(f"unknown causality {word!r}{hint} (known: {', '.join(CAUSALITIES)})")
+                raise UsageError(f"unknown causality {word!r}{hint} (known: {', '.join(CAUSALITIES)})")
             out.add(c)
     return out
 
@@ -421,15 +447,20 @@ def _print_inspect(head, info, note, rows, causality, args, width) -> None:
 
 
 # ---------------------------------------------------------------------------- diagnose
-def _add_diagnose(sub: argparse._SubParsersAction) -> None:
-    from fmusa.diagnose.run import CANDIDATES
-
+def _add_diagnose(sub: argparse._SubParsersAction, full: bool = True) -> None:
+    """The diagnose subcommand; its options only when ``full`` (they need the candidate effects, an import
+    that ``fmusa --help`` and the other subcommands do without)."""
     p = sub.add_parser(
         "diagnose", help="calibrate the model to measured tests, name the missing effect, measure the gain",
         description="Fit the baseline spring-damper and every candidate effect to one or more measured "
                     "tests (CSV, fitted jointly) by simulating the FMU with the measured drive; rank the "
                     "candidates on held-out data and by information criteria; write diagnosis.json, "
                     "figures/ and report.md into --out.")
+    p.set_defaults(func=cmd_diagnose)
+    if not full:
+        return
+    from fmusa.diagnose.effects import CANDIDATES
+
     p.add_argument("files", nargs="+", type=Path, metavar="FILE.csv", help="measured tests, one per file")
     p.add_argument("--drive", required=True, choices=("force", "displacement"),
                    help="the channel the test imposed; the model is driven by it and predicts the other")
@@ -445,14 +476,13 @@ def _add_diagnose(sub: argparse._SubParsersAction) -> None:
                    help="constant drive rate, e.g. '10 mm/s', to derive time for files without a time column")
     g.add_argument("--no-zero-drive", action="store_true",
                    help="keep the drive as measured (default: shift it to start at 0, where the model is at rest)")
-    p.add_argument("--max-points", type=int, default=300,
+    p.add_argument("--max-points", type=_int_at_least(10), default=300,
                    help="block-average each test to at most this many samples for the fit (default 300)")
     p.add_argument("--candidates", default=",".join(CANDIDATES),
                    help=f"comma-separated subset of: {', '.join(CANDIDATES)}")
-    p.add_argument("--starts", type=int, default=6, help="least-squares starts per model (default 6)")
-    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
+    p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
     p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
-    p.set_defaults(func=cmd_diagnose)
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
@@ -493,14 +523,20 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
 def _add_diagnose_shear(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "diagnose-shear", help="diagnose the C6/C7 shear tests of data/shear-c67 and compare with the authors",
-        description="Run `diagnose` on every specimen and direction of the shear-c67 data (the three rates "
-                    "jointly), fit the two-phase elastic model per test, and compare with the authors' "
+        description="Run `diagnose` on every specimen and direction of the shear-c67 data (all rates of a "
+                    "unit jointly), fit the two-phase elastic model per test, and compare with the authors' "
                     "breakpoint analysis (test_info.csv) and across rates. Writes DIR/report.md, "
                     "DIR/summary.json, DIR/bilinear_comparison.csv and one diagnosis folder per unit.")
-    p.add_argument("--data", type=Path, default=None, help="the shear-c67 folder (default: data/shear-c67)")
+    p.add_argument("--data", type=Path, default=Path("data/shear-c67"), metavar="FOLDER",
+                   help="the shear-c67 folder: H01/…, test_info.csv (default: data/shear-c67, relative to "
+                        "the current directory)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
-    p.add_argument("--max-points", type=int, default=300, help="samples per test after block averaging")
-    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--specimens", default=None, metavar="H1,H2",
+                   help="comma-separated specimens to diagnose (default: every one in --data)")
+    p.add_argument("--max-points", type=_int_at_least(10), default=300,
+                   help="samples per test after block averaging")
+    p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
+    p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
     p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
     p.set_defaults(func=cmd_diagnose_shear)
 
@@ -508,8 +544,9 @@ def _add_diagnose_shear(sub: argparse._SubParsersAction) -> None:
 def cmd_diagnose_shear(args: argparse.Namespace) -> int:
     from fmusa.applications.shear_c67.study import run_shear_diagnosis
 
+    specimens = [x.strip() for x in args.specimens.split(",") if x.strip()] if args.specimens else None
     s = run_shear_diagnosis(args.out, root=args.data, fmu_path=args.fmu, max_points=args.max_points,
-                            workers=args.workers)
+                            workers=args.workers, max_starts=args.starts, specimens=specimens)
     for k, g in s["groups"].items():
         print(f"{k}: {g['effect']}" + (f" (cannot be told from {', '.join(g['indistinguishable'])})"
                                        if g["indistinguishable"] else ""))
@@ -518,7 +555,13 @@ def cmd_diagnose_shear(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- entry point
-def build_parser() -> argparse.ArgumentParser:
+#: The subcommands, each added to the parser by its ``_add_`` function.
+COMMANDS = ("pullout", "sweep", "inspect", "diagnose", "diagnose-shear")
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``fmusa`` parser. ``command``: the subcommand about to run, when known; a subcommand whose
+    options need a heavy import (diagnose) defines them only when it is that one or ``command`` is None."""
     parser = argparse.ArgumentParser(
         prog="fmusa", description="Run the ScrewVertebra FMU (or another FMI 2.0 FMU, co-simulation or "
                                   "model exchange) for parameter studies.")
@@ -528,22 +571,29 @@ def build_parser() -> argparse.ArgumentParser:
     _add_pullout(sub)
     _add_sweep(sub)
     _add_inspect(sub)
-    _add_diagnose(sub)
+    _add_diagnose(sub, full=command in (None, "diagnose"))
     _add_diagnose_shear(sub)
     return parser
 
 
+def _command_word(argv: list[str]) -> str:
+    """The subcommand named in ``argv`` ("" when none: ``fmusa --help``); the top-level parser has no
+    option that takes a value, so it is the first word that is not an option."""
+    return next((a for a in argv if not a.startswith("-")), "")
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    """Run one subcommand. A :class:`~fmusa.errors.FmusaError` is the user's to fix: one line on stderr
+    and its ``exit_code`` (2, or 1 when an FMU could not be found, built or run); any other exception
+    propagates with its traceback, as the bug it is."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_command_word(argv))
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except ValueError as exc:
+    except FmusaError as exc:
         print(f"fmusa {args.command}: {exc}", file=sys.stderr)
-        return 2
-    except (FileNotFoundError, RuntimeError) as exc:
-        print(f"fmusa {args.command}: {exc}", file=sys.stderr)
-        return 1
+        return exc.exit_code
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ header is line 1), the column and the fix, e.g.::
 
 Example::
 
-    from fmusa.measured import ColumnSpec, load_experiment, downsample
+    from fmusa.diagnose.measured import ColumnSpec, load_experiment, downsample
     spec = ColumnSpec(displacement="disp_x_mm", displacement_unit="mm", force="Fx_N", rate="1 mm/s")
     exp = downsample(load_experiment("H1_C67_Ant_1_mm_s.csv", "displacement", spec), 2000)
     exp.t, exp.drive_signal, exp.response_signal     # s, m, N
@@ -33,6 +33,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 import pandas as pd
+
+from fmusa.errors import FmusaError
 
 __all__ = [
     "MeasuredDataError", "ColumnSpec", "Experiment", "load_experiment", "load_experiments",
@@ -69,7 +71,7 @@ OPTIONS = {
 }
 
 
-class MeasuredDataError(ValueError):
+class MeasuredDataError(FmusaError, ValueError):
     """A measured-data file or column specification that cannot be used. The message is
     ``file:line: column 'name' (role): what is wrong; how to fix it``."""
 

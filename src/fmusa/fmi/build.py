@@ -1,12 +1,12 @@
-"""An FMU without a binary for this machine, built from its C sources; the built FMU's default path."""
+"""An FMU without a binary for this machine, built from its C sources (once per FMU content)."""
 from __future__ import annotations
 
 import os
 import shutil
 from pathlib import Path
 
-
-from fmusa.fmi.info import FMUCompileError, FMUError, FMUInfo, binary_problem, host_platform, read_fmu_info, select_interface
+from fmusa.fmi.info import (FMUCompileError, FMUError, FMUInfo, binary_problem, host_platform, read_fmu_info,
+                            select_interface)
 
 
 def _tail(text: str, n: int = 4000) -> str:

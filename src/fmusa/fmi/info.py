@@ -7,8 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
-
-
+from fmusa.errors import FmusaError
 
 FMU_NAME = "ScrewVertebra.fmu"
 ENV_FMU = "FMUSA_FMU"
@@ -16,20 +15,32 @@ Value = float | int | bool
 
 
 def default_fmu_path() -> Path:
-    """The ScrewVertebra FMU: ``$FMUSA_FMU`` if set, else ``dist/ScrewVertebra.fmu`` in the first
-    directory above this file that has one (the repository root for an editable install)."""
+    """The ScrewVertebra FMU a study or a runner uses when none is named.
+
+    In this order: ``$FMUSA_FMU`` when set; ``dist/ScrewVertebra.fmu`` under the current directory (a
+    checkout, or any directory an installed fmusa is run from); ``dist/ScrewVertebra.fmu`` in a directory
+    above this file (the repository of an editable install, run from elsewhere). Raises
+    :class:`FMUNotFoundError` naming each place and how to build the FMU (``make fmu``).
+    """
     env = os.environ.get(ENV_FMU)
     if env:
-        return Path(env).expanduser().resolve()
+        path = Path(env).expanduser().resolve()
+        if not path.exists():
+            raise FMUNotFoundError(f"${ENV_FMU} is set to {env}, which does not exist; point it at an FMU, "
+                                   f"or unset it to use dist/{FMU_NAME} (built with `make fmu`)")
+        return path
+    local = Path.cwd() / "dist" / FMU_NAME
+    if local.is_file():
+        return local
     here = Path(__file__).resolve()
     for parent in here.parents:
         candidate = parent / "dist" / FMU_NAME
         if candidate.is_file():
             return candidate
-    raise FileNotFoundError(
-        f"cannot find dist/{FMU_NAME} in any directory above {here.parent}; "
-        f"build it with `make fmu` or set {ENV_FMU} to the FMU's path")
-
+    raise FMUNotFoundError(
+        f"no FMU given and the default one is missing: ${ENV_FMU} is not set and {local} does not exist; "
+        f"build it with `make fmu` in the fmusa repository, run from the directory that holds "
+        f"dist/{FMU_NAME}, or set {ENV_FMU} to the FMU's path")
 
 
 # ---------------------------------------------------------------------- what an FMU holds, checks, compiling
@@ -43,14 +54,30 @@ _FMPY_TYPE = {"co-simulation": "CoSimulation", "model-exchange": "ModelExchange"
 _SHORT = {"co-simulation": "CS", "model-exchange": "ME"}
 
 
-class FMUError(ValueError):
+class FMUError(FmusaError, ValueError):
     """An FMU fmusa cannot run as asked: not FMI 2.0, the requested interface missing, no binary for
-    this platform and no sources to build one, or an unreadable model description."""
+    this platform and no sources to build one, an unreadable model description, an unknown variable
+    name or a value of the wrong type for a variable."""
 
 
-class FMUCompileError(RuntimeError):
+class FMUNotFoundError(FmusaError, FileNotFoundError):
+    """The FMU file is missing (a ``FileNotFoundError`` too, as it was before fmusa had its own errors)."""
+
+    exit_code = 1
+
+
+class FMUCompileError(FmusaError, RuntimeError):
     """Building an FMU's binary from its C sources failed; the message names the FMU and holds the
     compiler's output."""
+
+    exit_code = 1
+
+
+class FMURunError(FmusaError, RuntimeError):
+    """A run the FMU rejected (an FMI call returned Error or Fatal, or its outputs were not finite); the
+    message names the phase of the run, the parameters set and the FMU's log."""
+
+    exit_code = 1
 
 
 def host_platform() -> str:
@@ -155,7 +182,7 @@ def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo
 
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"FMU not found: {path}")
+        raise FMUNotFoundError(f"FMU not found: {path}")
     names = _archive_names(path)
     attrs = _root_attributes(path)
     version = attrs.get("fmiVersion", "?")

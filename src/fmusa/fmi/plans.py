@@ -1,4 +1,9 @@
-"""Repeated runs of one FMU instance with prepared ctypes calls: RunPlan (fixed scenario) and DrivenPlan (a sampled drive)."""
+"""Repeated runs of one FMU instance with prepared ctypes calls: RunPlan (fixed scenario) and DrivenPlan (a sampled drive).
+
+The plans drive an :class:`~fmusa.fmi.runner.FMURunner` through its public methods only (``ready``,
+``lookup``, ``coerce``, ``instance``, ``phase``, ``fail``, ``reject``, ``mark_done``), so the runner can
+change how it keeps its instance without breaking them.
+"""
 from __future__ import annotations
 
 import math
@@ -6,8 +11,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from fmusa.fmi.info import Value
-from fmusa.fmi.runner import FMURunner
+from fmusa.fmi.info import FMUError, Value
+from fmusa.fmi.runner import READABLE, FMURunner, communication_points
+
+#: Causalities a plan reads through ``fmi2GetReal`` (inputs are set, not read, by a co-simulation plan).
+_PLAN_READABLE = ("output", "parameter", "calculatedParameter", "local")
 
 
 # ---------------------------------------------------------------------- many runs, fast
@@ -15,8 +23,8 @@ def _initialise(r: FMURunner, fixed_calls: list, vr_varied, val_varied, values: 
                 input_calls: list, start: float, stop: float) -> None:
     """Set the prepared parameters and inputs of one run on a ready instance and initialise it (the part
     RunPlan and DrivenPlan share; the phases name where a failure happened)."""
-    s = r._slave
-    r._phase = "while setting parameters"
+    s = r.instance
+    r.phase = "while setting parameters"
     for fn, vr, val in fixed_calls:
         getattr(s, fn)(s.component, vr, len(vr), val)
     for i, x in enumerate(values):
@@ -25,7 +33,7 @@ def _initialise(r: FMURunner, fixed_calls: list, vr_varied, val_varied, values: 
         s.fmi2SetReal(s.component, vr_varied, len(val_varied), val_varied)
     for fn, vr, val in input_calls:
         getattr(s, fn)(s.component, vr, len(vr), val)
-    r._phase = "during initialisation"
+    r.phase = "during initialisation"
     if r.relative_tolerance is None:
         s.fmi2SetupExperiment(s.component, 0, 0.0, start, 1, stop)
     else:
@@ -47,45 +55,39 @@ class RunPlan:
                  inputs: Mapping[str, float] | None = None) -> None:
         from fmpy.fmi2 import fmi2Real, fmi2ValueReference
 
-        runner._check_time(stop_time, step)
-        runner._validate(fixed, list(outputs), inputs)
+        runner.check_time(stop_time, step)
+        runner.validate(fixed, list(outputs), inputs)
         self.runner = runner
         self.varied = list(varied)
         self.fixed = dict(fixed)
         self.inputs = dict(inputs or {})
         self.outputs = list(outputs)
         self.stop_time = float(stop_time)
-        if step is None:
-            self.times = np.array([0.0, self.stop_time])
-        else:
-            n = max(1, math.ceil(stop_time / step - 1e-9))
-            self.times = np.arange(n + 1, dtype=float) * step
-            self.times[-1] = stop_time
-        vs = [runner._lookup(n, ("parameter",), "parameter") for n in self.varied]
+        self.times = communication_points(self.stop_time, step)
+        vs = [runner.lookup(n, ("parameter",), "parameter") for n in self.varied]
         for v in vs:
             if v.type != "Real":
-                raise ValueError(f"study parameter {v.name!r} is a {v.type}; only Real parameters can be varied")
+                raise FMUError(f"study parameter {v.name!r} is a {v.type}; only Real parameters can be varied")
             if v.variability not in ("fixed", "tunable"):
-                raise ValueError(f"parameter {v.name!r} has variability {v.variability!r} and cannot be set")
+                raise FMUError(f"parameter {v.name!r} has variability {v.variability!r} and cannot be set")
         self._fixed_calls = self._prepared_sets(runner, self.fixed, ("parameter",), "parameter")
         self._input_calls = self._prepared_sets(runner, self.inputs, ("input",), "input")
         if runner.is_model_exchange:
             # fmpy's solver runs the FMU: start values by name, the same for every run but the varied ones
-            self._base_values = {n: runner._coerce(runner.variables[n], x)
+            self._base_values = {n: runner.coerce(runner.variables[n], x)
                                  for n, x in {**self.fixed, **self.inputs}.items()}
             for n in self.outputs:
-                runner._lookup(n, ("output", "parameter", "calculatedParameter", "local", "input"), "output")
+                runner.lookup(n, READABLE, "output")
             return
         self._vr_varied = (fmi2ValueReference * len(vs))(*[v.valueReference for v in vs])
         self._val_varied = (fmi2Real * len(vs))()
-        outs = [runner._lookup(n, ("output", "parameter", "calculatedParameter", "local"), "output")
-                for n in self.outputs]
+        outs = [runner.lookup(n, _PLAN_READABLE, "output") for n in self.outputs]
         if all(o.type == "Real" for o in outs):
             self._vr_out = (fmi2ValueReference * len(outs))(*[o.valueReference for o in outs])
             self._val_out = (fmi2Real * len(outs))()
             self._read = self._read_real
         else:
-            self._read = runner._reader(self.outputs)
+            self._read = runner.reader(self.outputs)
 
     @staticmethod
     def _prepared_sets(runner: FMURunner, values: Mapping[str, Value], allowed, role) -> list:
@@ -94,10 +96,10 @@ class RunPlan:
 
         groups: dict[str, tuple[list[int], list]] = {}
         for name, value in values.items():
-            v = runner._lookup(name, allowed, role)
-            val = runner._coerce(v, value)
+            v = runner.lookup(name, allowed, role)
+            val = runner.coerce(v, value)
             if v.type == "Real" and not math.isfinite(val):
-                raise ValueError(f"{name} must be finite, got {val!r}")
+                raise FMUError(f"{name} must be finite, got {val!r}")
             vrs, vals = groups.setdefault(v.type, ([], []))
             vrs.append(v.valueReference)
             vals.append(val)
@@ -109,8 +111,22 @@ class RunPlan:
             calls.append((fn, (fmi2ValueReference * len(vrs))(*vrs), (ct * len(vals))(*vals)))
         return calls
 
+    def start(self, values: Sequence[float]) -> None:
+        """Reset the instance and take a co-simulation run up to the end of its initialisation, the varied
+        parameters at ``values``: the first part of :meth:`__call__`, for timing the parts of a run (the
+        caller steps ``instance.fmi2DoStep`` and calls :meth:`read`). Errors are the FMU's, unwrapped."""
+        if self.runner.is_model_exchange:
+            raise FMUError("start() prepares a co-simulation run; fmpy's solver runs a model exchange FMU whole")
+        self.runner.ready()
+        _initialise(self.runner, self._fixed_calls, self._vr_varied, self._val_varied, values,
+                    self._input_calls, 0.0, self.stop_time)
+
+    def read(self) -> list[float]:
+        """The outputs at the instance's current time (co-simulation)."""
+        return self._read()
+
     def _read_real(self) -> list[float]:
-        s = self.runner._slave
+        s = self.runner.instance
         s.fmi2GetReal(s.component, self._vr_out, len(self._val_out), self._val_out)
         return list(self._val_out)
 
@@ -118,8 +134,8 @@ class RunPlan:
         r = self.runner
         if r.is_model_exchange:
             return self._call_me(values)
-        r._ready()
-        s = r._slave
+        r.ready()
+        s = r.instance
         params = dict(zip(self.varied, values))
         data = np.empty((len(self.times), len(self.outputs)))
         t = 0.0
@@ -129,31 +145,27 @@ class RunPlan:
             data[0] = self._read()
             for k in range(1, len(self.times)):
                 t_next = self.times[k]
-                r._phase = f"in the communication step from t = {t:.10g} s to {t_next:.10g} s"
+                r.phase = f"in the communication step from t = {t:.10g} s to {t_next:.10g} s"
                 s.fmi2DoStep(s.component, t, t_next - t, 1)
                 t = t_next
                 data[k] = self._read()
         except Exception as exc:
-            raise r._fail(exc, r._phase, {**self.fixed, **params}) from exc
-        r._state = "done"
+            raise r.fail(exc, {**self.fixed, **params}) from exc
+        r.mark_done()
         if not np.all(np.isfinite(data[-1])):
             bad = [n for n, x in zip(self.outputs, data[-1]) if not math.isfinite(x)]
-            r._state = "failed"
-            raise RuntimeError(f"{r.model_description.modelName}: non-finite output {', '.join(bad)} at "
-                               f"t = {t:.10g} s; parameters {params}")
+            raise r.reject(f"non-finite output {', '.join(bad)} at t = {t:.10g} s; parameters {params}")
         return data
-
 
     def _call_me(self, values: Sequence[float]) -> np.ndarray:
         """A model exchange run: fmpy's solver on the runner's reused instance."""
         r = self.runner
         params = dict(zip(self.varied, (float(x) for x in values)))
-        data = r._run_me({**self._base_values, **params}, self.times, self.outputs, {**self.fixed, **params})
+        data = r.run_me({**self._base_values, **params}, self.times, self.outputs, {**self.fixed, **params})
         if not np.all(np.isfinite(data[-1])):
             bad = [n for n, x in zip(self.outputs, data[-1]) if not math.isfinite(x)]
-            r._state = "failed"
-            raise RuntimeError(f"{r.model_description.modelName}: non-finite output {', '.join(bad)} at "
-                               f"t = {self.times[-1]:.10g} s; parameters {params}")
+            raise r.reject(f"non-finite output {', '.join(bad)} at t = {self.times[-1]:.10g} s; "
+                           f"parameters {params}")
         return data
 
 
@@ -171,21 +183,21 @@ class DrivenPlan:
         from fmpy.fmi2 import fmi2Integer, fmi2Real, fmi2ValueReference
 
         if runner.is_model_exchange:
-            raise ValueError(f"{runner.fmu_path}: a drive from measured data needs a co-simulation FMU "
-                             f"(this one offers model exchange only)")
-        runner._validate(fixed, list(outputs), {input_name: 0.0})
+            raise FMUError(f"{runner.fmu_path}: a drive from measured data needs a co-simulation FMU "
+                           f"(this one offers model exchange only)")
+        runner.validate(fixed, list(outputs), {input_name: 0.0})
         self.runner = runner
         self.varied = list(varied)
         self.fixed = dict(fixed)
         self.outputs = list(outputs)
         self.input_name = input_name
-        vs = [runner._lookup(n, ("parameter",), "parameter") for n in self.varied]
+        vs = [runner.lookup(n, ("parameter",), "parameter") for n in self.varied]
         for v in vs:
             if v.type != "Real":
-                raise ValueError(f"parameter {v.name!r} is a {v.type}; only Real parameters can be fitted")
-        inp = runner._lookup(input_name, ("input",), "input")
+                raise FMUError(f"parameter {v.name!r} is a {v.type}; only Real parameters can be fitted")
+        inp = runner.lookup(input_name, ("input",), "input")
         if inp.type != "Real":
-            raise ValueError(f"input {input_name!r} is a {inp.type}; the drive must be a Real input")
+            raise FMUError(f"input {input_name!r} is a {inp.type}; the drive must be a Real input")
         cs = runner.model_description.coSimulation
         self.interpolates = bool(getattr(cs, "canInterpolateInputs", False))
         self._fixed_calls = RunPlan._prepared_sets(runner, self.fixed, ("parameter",), "parameter")
@@ -194,10 +206,9 @@ class DrivenPlan:
         self._vr_in = (fmi2ValueReference * 1)(inp.valueReference)
         self._val_in = (fmi2Real * 1)()
         self._order = (fmi2Integer * 1)(1)
-        outs = [runner._lookup(n, ("output", "parameter", "calculatedParameter", "local"), "output")
-                for n in self.outputs]
+        outs = [runner.lookup(n, _PLAN_READABLE, "output") for n in self.outputs]
         if any(o.type != "Real" for o in outs):
-            raise ValueError("driven runs read Real outputs only")
+            raise FMUError("driven runs read Real outputs only")
         self._vr_out = (fmi2ValueReference * len(outs))(*[o.valueReference for o in outs])
         self._val_out = (fmi2Real * len(outs))()
 
@@ -207,8 +218,8 @@ class DrivenPlan:
         u = np.asarray(u, dtype=float)
         if t.ndim != 1 or t.shape != u.shape or len(t) < 2 or not np.all(np.diff(t) > 0):
             raise ValueError("the drive needs matching 1-D arrays t, u of at least 2 samples with t increasing")
-        r._ready()
-        s = r._slave
+        r.ready()
+        s = r.instance
         params = dict(zip(self.varied, (float(x) for x in values)))
         slopes = np.diff(u) / np.diff(t)
         n_out = len(self.outputs)
@@ -231,17 +242,16 @@ class DrivenPlan:
                     val_in[0] = slopes[k - 1]
                     set_der(comp, vr_in, 1, order, val_in)
                 t_next = float(t[k])
-                r._phase = f"in the communication step from t = {ti:.10g} s to {t_next:.10g} s"
+                r.phase = f"in the communication step from t = {ti:.10g} s to {t_next:.10g} s"
                 do_step(comp, ti, t_next - ti, 1)
                 ti = t_next
                 get_real(comp, vr_out, n_out, val_out)
                 data[k] = val_out
         except Exception as exc:
-            raise r._fail(exc, r._phase, {**self.fixed, **params}) from exc
-        r._state = "done"
+            raise r.fail(exc, {**self.fixed, **params}) from exc
+        r.mark_done()
         if not np.all(np.isfinite(data)):
-            r._state = "failed"
-            raise RuntimeError(f"{r.model_description.modelName}: non-finite output with parameters {params}")
+            raise r.reject(f"non-finite output with parameters {params}")
         return data
 
 

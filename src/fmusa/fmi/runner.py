@@ -6,14 +6,19 @@ needed: every run is ``reset`` → set parameters → ``setupExperiment`` → in
 ``fmpy.simulate_fmu`` pays on every call, which matters for studies of thousands of runs.
 
 Co-simulation FMUs integrate themselves. Model exchange FMUs are integrated by fmpy's solver (CVode or
-Euler, ``fmpy.simulate_fmu`` on the reused instance). :func:`read_fmu_info` reads what an FMU declares
-(FMI version, interfaces, binaries, sources, variables) without loading it; :func:`variable_problem`
-and :func:`select_interface` are the load-time checks; an FMU without a binary for this platform but
-with C sources is built by :func:`compile_sources` / :func:`prepare_fmu`.
+Euler, ``fmpy.simulate_fmu`` on the reused instance). What an FMU declares and the load-time checks are
+in :mod:`fmusa.fmi.info`; building a binary from an FMU's sources in :mod:`fmusa.fmi.build`; prepared
+repeated runs (:class:`~fmusa.fmi.plans.RunPlan`, :class:`~fmusa.fmi.plans.DrivenPlan`) in
+:mod:`fmusa.fmi.plans`, which drive the runner only through its public methods (:meth:`FMURunner.ready`,
+:meth:`FMURunner.lookup`, :attr:`FMURunner.instance`, :meth:`FMURunner.fail` …).
+
+Errors: an unknown variable, a value of the wrong type or an FMU that cannot run as asked raise
+:class:`~fmusa.fmi.info.FMUError` (a ``ValueError``); a run the FMU rejects raises
+:class:`~fmusa.fmi.info.FMURunError` (a ``RuntimeError``) with the FMU's log.
 
 Example::
 
-    from fmusa.evaluate import FMURunner
+    from fmusa import FMURunner
     with FMURunner() as fmu:
         df = fmu.run({"c_y": 8e5, "d_y": 500}, stop_time=12, step=0.01, outputs=["y", "v_y"])
         final = fmu.run_final({"c_y": 8e5}, stop_time=12, outputs=["y_max", "t_eq"])
@@ -31,10 +36,14 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
+from fmusa.errors import UsageError
 from fmusa.fmi.build import compile_sources
-from fmusa.fmi.info import SOLVERS, FMUError, Value, binary_problem, default_fmu_path, read_fmu_info, select_interface
+from fmusa.fmi.info import (SOLVERS, FMUError, FMUNotFoundError, FMURunError, Value, binary_problem,
+                            default_fmu_path, read_fmu_info, select_interface)
 
-
+#: The causalities a variable may have to be read as an output (time, the independent variable, is
+#: always returned and cannot be asked for).
+READABLE = ("output", "parameter", "calculatedParameter", "local", "input")
 
 _STATUS = ["OK", "Warning", "Discard", "Error", "Fatal", "Pending"]
 
@@ -42,6 +51,16 @@ _STATUS = ["OK", "Warning", "Discard", "Error", "Fatal", "Pending"]
 def _label(status: int) -> str:
     return _STATUS[status] if 0 <= status < len(_STATUS) else f"status {status}"
 
+
+def communication_points(stop_time: float, step: float | None) -> np.ndarray:
+    """The communication points of a run from 0 to ``stop_time``: every ``step`` s, the last step shortened
+    to end at ``stop_time``; ``[0, stop_time]`` for ``step`` None (one single ``doStep``)."""
+    if step is None:
+        return np.array([0.0, float(stop_time)])
+    n = max(1, math.ceil(stop_time / step - 1e-9))
+    times = np.arange(n + 1, dtype=float) * step
+    times[-1] = stop_time
+    return times
 
 
 class FMURunner:
@@ -78,21 +97,21 @@ class FMURunner:
 
         self.fmu_path = Path(fmu_path) if fmu_path is not None else default_fmu_path()
         if not self.fmu_path.exists():
-            raise FileNotFoundError(f"FMU not found: {self.fmu_path}")
+            raise FMUNotFoundError(f"FMU not found: {self.fmu_path}")
         self.instance_name = instance_name
         self._owns_unzipdir = False
         self.unzipdir = None
-        self._slave = None
+        self._instance = None
         info = read_fmu_info(self.fmu_path)              # FMI 2.0? (FMUError otherwise)
         self.interface = select_interface(info, interface)
         if solver is not None and solver not in SOLVERS:
-            raise ValueError(f"unknown solver {solver!r}; use one of {', '.join(SOLVERS)}")
+            raise UsageError(f"unknown solver {solver!r}; use one of {', '.join(SOLVERS)}")
         if self.interface == "co-simulation" and (solver is not None or step_size is not None):
-            raise ValueError(f"{info.model_name} runs as a co-simulation FMU, which integrates with its own "
+            raise UsageError(f"{info.model_name} runs as a co-simulation FMU, which integrates with its own "
                              f"solver: solver and step_size apply to model exchange only")
         for name, x in (("relative_tolerance", relative_tolerance), ("step_size", step_size)):
             if x is not None and not (math.isfinite(x) and x > 0):
-                raise ValueError(f"{name} must be a positive finite number, got {x!r}")
+                raise UsageError(f"{name} must be a positive finite number, got {x!r}")
         self.solver = solver or "CVode"
         self.relative_tolerance = None if relative_tolerance is None else float(relative_tolerance)
         self.step_size = None if step_size is None else float(step_size)
@@ -127,7 +146,8 @@ class FMURunner:
             debug_logging = [c for c in cats if c in ("logStatusError", "logStatusWarning")]
         self._debug_logging = list(debug_logging)
         self._state = "closed"
-        self._phase = ""
+        #: Where the current run is (e.g. "during initialisation"): named by :meth:`fail`'s message.
+        self.phase = ""
         try:
             self._instantiate()
         except BaseException:
@@ -137,6 +157,13 @@ class FMURunner:
     @property
     def is_model_exchange(self) -> bool:
         return self.interface == "model-exchange"
+
+    @property
+    def instance(self):
+        """The fmpy instance (``FMU2Slave`` for co-simulation, ``FMU2Model`` for model exchange) that
+        :class:`~fmusa.fmi.plans.RunPlan` calls through ctypes; None after :meth:`close` or a fatal error
+        (:meth:`ready` instantiates afresh)."""
+        return self._instance
 
     # ------------------------------------------------------------------ instance management
     def _instantiate(self) -> None:
@@ -162,18 +189,18 @@ class FMURunner:
             pass
         self._callbacks = callbacks
         slave.instantiate(callbacks=callbacks, loggingOn=bool(self._debug_logging))
-        self._slave = slave
+        self._instance = slave
         if self._debug_logging:
             slave.setDebugLogging(True, self._debug_logging)
         self._state = "instantiated"
 
     def _free(self) -> None:
-        if self._slave is not None:
+        if self._instance is not None:
             try:
-                self._slave.freeInstance()
+                self._instance.freeInstance()
             except Exception:
                 pass
-        self._slave = None
+        self._instance = None
         self._state = "closed"
 
     def _log_message(self, env, instance_name, status, category, message) -> None:
@@ -214,10 +241,12 @@ class FMURunner:
         for name in self.names(causality):
             v = self.variables[name]
             if v.start is not None:
-                out[name] = self._coerce(v, v.start)
+                out[name] = self.coerce(v, v.start)
         return out
 
-    def _lookup(self, name: str, allowed: tuple[str, ...], role: str):
+    def lookup(self, name: str, allowed: tuple[str, ...], role: str):
+        """The fmpy ModelVariable ``name``, which must have one of the causalities ``allowed`` to play
+        ``role`` (parameter, input, output); an :class:`FMUError` naming the closest names otherwise."""
         v = self.variables.get(name)
         if v is None:
             pool = [n for n, x in self.variables.items() if x.causality in allowed] or list(self.variables)
@@ -226,60 +255,59 @@ class FMURunner:
                 close = difflib.get_close_matches(name, list(self.variables), n=5, cutoff=0.5)
             hint = (f"; closest names: {', '.join(close)}" if close
                     else f"; known {role}s: {', '.join(pool)}")
-            raise ValueError(f"unknown {role} {name!r} in {self.model_description.modelName}{hint}")
+            raise FMUError(f"unknown {role} {name!r} in {self.model_description.modelName}{hint}")
         if v.causality not in allowed:
-            raise ValueError(f"{name!r} is a{'n' if v.causality[0] in 'aeiou' else ''} "
-                             f"{v.causality} variable, not a{'n' if role[0] in 'aeiou' else ''} {role} "
-                             f"(allowed causality: {', '.join(allowed)})")
+            raise FMUError(f"{name!r} is a{'n' if v.causality[0] in 'aeiou' else ''} "
+                           f"{v.causality} variable, not a{'n' if role[0] in 'aeiou' else ''} {role} "
+                           f"(allowed causality: {', '.join(allowed)})")
         return v
 
     @staticmethod
-    def _coerce(v, value) -> Value:
-        if v.type == "Real":
-            return float(value)
-        if v.type in ("Integer", "Enumeration"):
-            if isinstance(value, str):
-                value = float(value)
-            if isinstance(value, float):
-                if not value.is_integer():
-                    raise ValueError(f"{v.name} is an Integer; got {value!r}")
-                value = int(value)
-            return int(value)
-        if v.type == "Boolean":
-            if isinstance(value, str):
-                s = value.strip().lower()
-                if s in ("true", "1", "yes", "on"):
-                    return True
-                if s in ("false", "0", "no", "off"):
-                    return False
-                raise ValueError(f"{v.name} is a Boolean; got {value!r}")
-            return bool(value)
-        raise ValueError(f"{v.name}: variables of type {v.type} are not supported")
+    def coerce(v, value) -> Value:
+        """``value`` (a number or a string) as the type of variable ``v``; :class:`FMUError` when it does
+        not fit (1.5 for an Integer, "maybe" for a Boolean, "abc" for a Real)."""
+        try:
+            if v.type == "Real":
+                return float(value)
+            if v.type in ("Integer", "Enumeration"):
+                if isinstance(value, str):
+                    value = float(value)
+                if isinstance(value, float):
+                    if not value.is_integer():
+                        raise FMUError(f"{v.name} is an Integer; got {value!r}")
+                    value = int(value)
+                return int(value)
+            if v.type == "Boolean":
+                if isinstance(value, str):
+                    s = value.strip().lower()
+                    if s in ("true", "1", "yes", "on"):
+                        return True
+                    if s in ("false", "0", "no", "off"):
+                        return False
+                    raise FMUError(f"{v.name} is a Boolean; got {value!r}")
+                return bool(value)
+        except (TypeError, ValueError) as exc:
+            if isinstance(exc, FMUError):
+                raise
+            how = "cannot parse" if isinstance(value, str) else "got"
+            raise FMUError(f"{v.name} is a {v.type}; {how} {value!r}") from None
+        raise FMUError(f"{v.name}: variables of type {v.type} are not supported")
 
     def parse_value(self, name: str, text: str) -> Value:
         """Convert a command-line string to the type of parameter or input ``name``."""
-        v = self._lookup(name, ("parameter", "input"), "parameter")
-        try:
-            return self._coerce(v, text)
-        except ValueError as exc:
-            if str(exc).startswith(v.name):
-                raise
-            raise ValueError(f"{name} is a {v.type}; cannot parse {text!r}") from None
+        return self.coerce(self.lookup(name, ("parameter", "input"), "parameter"), text)
 
     def _set(self, values: Mapping[str, Value], allowed: tuple[str, ...], role: str) -> None:
         groups: dict[str, tuple[list[int], list]] = {}
         for name, value in values.items():
-            v = self._lookup(name, allowed, role)
-            try:
-                val = self._coerce(v, value)
-            except TypeError:
-                raise ValueError(f"{name} is a {v.type}; got {value!r}") from None
+            v = self.lookup(name, allowed, role)
+            val = self.coerce(v, value)
             if v.type == "Real" and not math.isfinite(val):
-                raise ValueError(f"{name} must be finite, got {val!r}")
+                raise FMUError(f"{name} must be finite, got {val!r}")
             vrs, vals = groups.setdefault(v.type, ([], []))
             vrs.append(v.valueReference)
             vals.append(val)
-        s = self._slave
+        s = self._instance
         for typ, (vrs, vals) in groups.items():
             if typ == "Real":
                 s.setReal(vrs, vals)
@@ -288,24 +316,24 @@ class FMURunner:
             else:
                 s.setInteger(vrs, vals)
 
-    def _reader(self, outputs: list[str]):
-        """A function returning the current values of ``outputs`` as a list of floats."""
+    def reader(self, outputs: list[str]):
+        """A function returning the current values of ``outputs`` as a list of floats (built once, called
+        at every communication point)."""
         by_type: dict[str, tuple[list[int], list[int]]] = {}
         for i, name in enumerate(outputs):
-            v = self._lookup(name, ("output", "parameter", "calculatedParameter", "local",
-                                    "input", "independent"), "output")
+            v = self.lookup(name, READABLE + ("independent",), "output")
             if v.causality == "independent":
-                raise ValueError(f"{name!r} is the independent variable; `time` is always returned")
+                raise FMUError(f"{name!r} is the independent variable; `time` is always returned")
             idx, vrs = by_type.setdefault(v.type, ([], []))
             idx.append(i)
             vrs.append(v.valueReference)
-        s = self._slave
+        s = self._instance
         getters = {"Real": s.getReal, "Integer": s.getInteger, "Enumeration": s.getInteger,
                    "Boolean": s.getBoolean}
         plan = []
         for typ, (idx, vrs) in by_type.items():
             if typ not in getters:
-                raise ValueError(f"outputs of type {typ} are not supported")
+                raise FMUError(f"outputs of type {typ} are not supported")
             plan.append((getters[typ], idx, vrs))
         n = len(outputs)
 
@@ -318,9 +346,13 @@ class FMURunner:
         return read
 
     # ------------------------------------------------------------------ running
-    def _fail(self, exc: Exception, what: str, params: Mapping[str, Value]) -> RuntimeError:
+    def fail(self, exc: Exception, params: Mapping[str, Value], what: str | None = None) -> FMURunError:
+        """The error to raise for ``exc``, which ended a run with ``params`` set, ``what`` (default: the
+        current :attr:`phase`): names the FMI call and its status, the parameters and the FMU's log. The
+        instance is marked failed (reset before the next run), or freed after fmi2Fatal."""
         from fmpy.fmi1 import FMICallException
 
+        what = self.phase if what is None else what
         if isinstance(exc, FMICallException):
             head = f"{exc.function} returned {_label(exc.status)} {what}"
             if exc.status >= 4:  # fmi2Fatal: the instance must not be used again
@@ -332,17 +364,28 @@ class FMURunner:
             self._state = "failed"
         log = "\n".join(f"  [{st}] {cat}: {msg}" for st, cat, msg in self.messages)
         changed = ", ".join(f"{k}={v!r}" for k, v in params.items()) or "none (FMU defaults)"
-        return RuntimeError(f"{self.model_description.modelName}: {head}\n"
-                            f"parameters set: {changed}\n"
-                            f"FMU log:\n{log if log else '  (no messages)'}")
+        return FMURunError(f"{self.model_description.modelName}: {head}\n"
+                           f"parameters set: {changed}\n"
+                           f"FMU log:\n{log if log else '  (no messages)'}")
 
-    def _ready(self) -> None:
-        """An instance in the instantiated state: reset the last run's, or instantiate afresh."""
-        if self._slave is None:
+    def reject(self, message: str) -> FMURunError:
+        """The error to raise for a run whose result is unusable (e.g. non-finite outputs); the instance
+        is reset before the next run."""
+        self._state = "failed"
+        return FMURunError(f"{self.model_description.modelName}: {message}")
+
+    def mark_done(self) -> None:
+        """Record that the current run ended normally (the next :meth:`ready` resets the instance)."""
+        self._state = "done"
+
+    def ready(self) -> None:
+        """An instance in the instantiated state, for a new run: reset the last run's, or instantiate
+        afresh (after a fatal error)."""
+        if self._instance is None:
             self._instantiate()
         elif self._state != "instantiated":
             try:
-                self._slave.reset()
+                self._instance.reset()
             except Exception:  # a failed instance that cannot be reset: start afresh
                 self._free()
                 self._instantiate()
@@ -351,16 +394,17 @@ class FMURunner:
 
     def _start(self, params: Mapping[str, Value], stop_time: float,
                inputs: Mapping[str, float] | None) -> None:
-        self._ready()
-        self._phase = "while setting parameters"
+        self.ready()
+        self.phase = "while setting parameters"
         self._set(params, ("parameter",), "parameter")
         if inputs:
             self._set(inputs, ("input",), "input")
-        self._phase = "during initialisation"
-        self._slave.setupExperiment(tolerance=self.relative_tolerance, startTime=0.0, stopTime=float(stop_time))
-        self._slave.enterInitializationMode()
-        self._slave.exitInitializationMode()
-        self._phase = "after initialisation"
+        self.phase = "during initialisation"
+        inst = self._instance
+        inst.setupExperiment(tolerance=self.relative_tolerance, startTime=0.0, stopTime=float(stop_time))
+        inst.enterInitializationMode()
+        inst.exitInitializationMode()
+        self.phase = "after initialisation"
 
     def _me_intervals(self, times: np.ndarray) -> tuple[float, float | None]:
         """(fmpy output_interval, fmpy step_size) for a model exchange run sampled at ``times``.
@@ -378,16 +422,17 @@ class FMURunner:
             h = sample
         return h, (h if self.solver == "Euler" else None)
 
-    def _run_me(self, values: Mapping[str, Value], times: np.ndarray, outputs: list[str],
-                params: Mapping[str, Value]) -> np.ndarray:
+    def run_me(self, values: Mapping[str, Value], times: np.ndarray, outputs: list[str],
+               params: Mapping[str, Value]) -> np.ndarray:
         """One model exchange run with fmpy's solver on the reused instance; the outputs at ``times``.
 
-        ``values`` are the start values (parameters and constant inputs) set after ``fmi2Reset``."""
+        ``values`` are the start values (parameters and constant inputs) set after ``fmi2Reset``;
+        ``params`` are the parameters the error message names if the run fails."""
         from fmpy import simulate_fmu
 
-        self._ready()
+        self.ready()
         interval, step_size = self._me_intervals(times)
-        self._phase = (f"in fmpy's {self.solver} integration of the model exchange FMU "
+        self.phase = (f"in fmpy's {self.solver} integration of the model exchange FMU "
                        f"from t = 0 to {times[-1]:.10g} s")
         try:
             res = simulate_fmu(str(self.unzipdir), validate=True, start_time=0.0, stop_time=float(times[-1]),
@@ -395,24 +440,28 @@ class FMURunner:
                                relative_tolerance=self.relative_tolerance, output_interval=interval,
                                record_events=True, fmi_type="ModelExchange", start_values=dict(values),
                                output=list(outputs), model_description=self.model_description,
-                               fmu_instance=self._slave)
+                               fmu_instance=self._instance)
         except Exception as exc:
-            raise self._fail(exc, self._phase, params) from exc
+            raise self.fail(exc, params) from exc
         self._state = "done"
         return _sample_at(res, times, outputs)
 
     @staticmethod
-    def _check_time(stop_time: float, step: float | None) -> None:
+    def check_time(stop_time: float, step: float | None) -> None:
+        """A :class:`~fmusa.errors.UsageError` unless ``stop_time`` and ``step`` (or None) are positive
+        and finite."""
         if not (math.isfinite(stop_time) and stop_time > 0):
-            raise ValueError(f"stop_time must be a positive finite number, got {stop_time!r}")
+            raise UsageError(f"stop_time must be a positive finite number, got {stop_time!r}")
         if step is not None and not (math.isfinite(step) and step > 0):
-            raise ValueError(f"step must be a positive finite number or None, got {step!r}")
+            raise UsageError(f"step must be a positive finite number or None, got {step!r}")
 
-    def _validate(self, params, outputs, inputs) -> None:
+    def validate(self, params: Mapping[str, Value], outputs: Sequence[str],
+                 inputs: Mapping[str, float] | None) -> None:
+        """Check the names of a run's parameters and inputs before it starts (:class:`FMUError`)."""
         for name in params:
-            self._lookup(name, ("parameter",), "parameter")
+            self.lookup(name, ("parameter",), "parameter")
         for name in inputs or {}:
-            self._lookup(name, ("input",), "input")
+            self.lookup(name, ("input",), "input")
         if isinstance(outputs, str):
             raise TypeError("outputs must be a list of names, not a string")
 
@@ -425,20 +474,15 @@ class FMURunner:
         ``stop_time``); ``None`` makes one single ``doStep`` and returns the start and end rows.
         The result has a ``time`` column followed by ``outputs``.
         """
-        self._check_time(stop_time, step)
-        self._validate(params, outputs, inputs)
+        self.check_time(stop_time, step)
+        self.validate(params, outputs, inputs)
         outputs = list(outputs)
-        if step is None:
-            times = np.array([0.0, float(stop_time)])
-        else:
-            n = max(1, math.ceil(stop_time / step - 1e-9))
-            times = np.arange(n + 1, dtype=float) * step
-            times[-1] = stop_time
+        times = communication_points(stop_time, step)
         if self.is_model_exchange:
             for name in outputs:
-                self._lookup(name, ("output", "parameter", "calculatedParameter", "local", "input"), "output")
-            values = {n: self._coerce(self.variables[n], x) for n, x in {**params, **(inputs or {})}.items()}
-            data = self._run_me(values, times, outputs, params)
+                self.lookup(name, READABLE, "output")
+            values = {n: self.coerce(self.variables[n], x) for n, x in {**params, **(inputs or {})}.items()}
+            data = self.run_me(values, times, outputs, params)
             df = pd.DataFrame(data, columns=outputs)
             df.insert(0, "time", times)
             return df
@@ -446,19 +490,19 @@ class FMURunner:
         t = 0.0
         try:
             self._start(params, stop_time, inputs)
-            read = self._reader(outputs)
+            read = self.reader(outputs)
             data[0] = read()
-            do_step = self._slave.doStep
+            do_step = self._instance.doStep
             for k in range(1, len(times)):
                 t_next = times[k]
-                self._phase = f"in the communication step from t = {t:.10g} s to {t_next:.10g} s"
+                self.phase = f"in the communication step from t = {t:.10g} s to {t_next:.10g} s"
                 do_step(t, t_next - t)
                 t = t_next
                 data[k] = read()
-        except ValueError:
+        except FMUError:
             raise
         except Exception as exc:
-            raise self._fail(exc, self._phase, params) from exc
+            raise self.fail(exc, params) from exc
         self._state = "done"
         df = pd.DataFrame(data, columns=outputs)
         df.insert(0, "time", times)
@@ -467,22 +511,22 @@ class FMURunner:
     def run_final(self, params: Mapping[str, Value], stop_time: float, outputs: list[str],
                   inputs: Mapping[str, float] | None = None) -> dict[str, float]:
         """One ``doStep`` from 0 to ``stop_time``; the final values of ``outputs``."""
-        self._check_time(stop_time, None)
-        self._validate(params, outputs, inputs)
+        self.check_time(stop_time, None)
+        self.validate(params, outputs, inputs)
         outputs = list(outputs)
         if self.is_model_exchange:
             df = self.run(params, stop_time, None, outputs, inputs)
             return {name: float(df[name].iloc[-1]) for name in outputs}
         try:
             self._start(params, stop_time, inputs)
-            read = self._reader(outputs)
-            self._phase = f"in the communication step from t = 0 s to {stop_time:.10g} s"
-            self._slave.doStep(0.0, float(stop_time))
+            read = self.reader(outputs)
+            self.phase = f"in the communication step from t = 0 s to {stop_time:.10g} s"
+            self._instance.doStep(0.0, float(stop_time))
             row = read()
-        except ValueError:
+        except FMUError:
             raise
         except Exception as exc:
-            raise self._fail(exc, self._phase, params) from exc
+            raise self.fail(exc, params) from exc
         self._state = "done"
         return dict(zip(outputs, row))
 

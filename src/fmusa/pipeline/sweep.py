@@ -25,8 +25,9 @@ from fmusa.analysis.regression import fit_by_level
 from fmusa.analysis.roi import Region, automatic_region, manual_region
 from fmusa.runs.store import RunStore
 from fmusa.analysis.search import SearchResult, nested_binary_search
-from fmusa.study.schema import Study
+from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
+from fmusa.pipeline.sampling_check import sampling_summary
 from fmusa.study.plan import check_fmu, grid_points, study_plan_spec
 
 
@@ -61,7 +62,7 @@ class StudyRunner:
         errors = check_fmu(study, fmu_path)
         if errors:
             n = len(errors)
-            raise ValueError(f"{study.path}: the study does not fit the FMU {fmu_path} ({n} problem"
+            raise StudyError(f"{study.path}: the study does not fit the FMU {fmu_path} ({n} problem"
                              f"{'s' if n > 1 else ''}):\n  " + "\n  ".join(errors))
         opts = study.fmu_options
         try:   # an FMU without a binary for this machine is built from its sources, once, before any run
@@ -78,6 +79,8 @@ class StudyRunner:
                                    isolate=study.fmu is not None, timeout_s=study.execution.timeout_s)
         self.progress = progress
         self.simulated = 0
+        #: points asked for (a repeated point counts again; the store simulates it once)
+        self.asked = 0
         #: values of the study parameters a stage does not vary (the first grid point)
         self.defaults: dict[str, float] = {}
 
@@ -88,6 +91,7 @@ class StudyRunner:
     def evaluate(self, points: list[dict[str, float]], stage: str) -> list[dict]:
         """Rows for ``points`` (study parameter name → value), simulating only the new ones."""
         keys = [tuple(float(p[name]) for name in self.params) for p in points]
+        self.asked += len(keys)
         todo: dict[tuple, int] = {}
         for k in keys:
             if self.store.get(k) is None and k not in todo:
@@ -128,10 +132,12 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     result = SweepResult(study, out, pd.DataFrame(), summary)
     try:
         stage_times: dict[str, float] = {}
+        stage_runs: dict[str, dict[str, int]] = {}     # FMU runs each stage asked for / simulated
         grid_df = None
         runner.defaults = {}
         for name, stage in study.stages.items():
             ts = time.perf_counter()
+            asked0, simulated0 = runner.asked, runner.simulated
             if name == "grid":
                 pts = grid_points(study)
                 runner.defaults = dict(pts[0])
@@ -142,48 +148,63 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
             elif name == "roi":
                 search_stage = study.stages.get("search")
                 if search_stage is None:
-                    raise ValueError(f"{study.path}: stages.roi needs stages.search (its inner and outer parameters)")
-                inner, outer = search_stage.inner, search_stage.outer
+                    raise StudyError(f"{study.path}: stages.roi needs stages.search (the region spans its inner and outer parameters)")
+                inner, outer = search_stage.inner, search_stage.outer      # outer None: an inner range
                 if stage.manual:
                     result.region = manual_region(stage.manual, inner, outer)
                 else:
                     if grid_df is None:
-                        raise ValueError(f"{study.path}: an automatic region of interest needs stages.grid "
+                        raise StudyError(f"{study.path}: an automatic region of interest needs stages.grid "
                                          f"before stages.roi (or give roi.manual)")
-                    result.region = automatic_region(grid_df, inner, outer)
+                    # the grid runs where the search will run: the other parameters at their defaults
+                    at = {k: v for k, v in runner.defaults.items() if k not in (inner, outer)}
+                    result.region = automatic_region(grid_df, inner, outer, at)
                 summary["roi"] = result.region.as_dict()
             elif name == "search":
                 if result.region is None:
-                    raise ValueError(f"{study.path}: stages.search needs stages.roi before it")
+                    raise StudyError(f"{study.path}: stages.search needs stages.roi before it")
                 response = list(stage.response)      # default: the constrained metrics (study.py)
 
                 def ev(point: dict[str, float], tag: str = "search") -> dict:
                     return runner.evaluate_one(point, tag)
 
                 result.search = nested_binary_search(ev, result.region, response, stage.inner_rtol,
-                                                     stage.response_rtol, stage.max_outer, stage.response_atol)
-                summary["optimum"] = result.search.optimum
+                                                     stage.response_rtol, stage.max_outer, stage.response_atol,
+                                                     warm_start=stage.warm_start)
+                summary["optimum"] = result.search.optimum      # {inner: x} when the search has no outer
                 summary["binding_constraint"] = result.search.binding
                 summary["search"] = search_summary(result.search)
             elif name == "regression":
+                # the search's runs, or the grid's in a study without search (the loader decides: source)
                 runs = runner.store.frame()
-                pts = runs[runs["stage"].isin(["search"])]
+                pts = runs[runs["stage"] == stage.source]
+                if not len(pts):
+                    raise StudyError(f"{study.path}: stages.regression fits the {stage.source} runs, but there "
+                                     f"are none; run the {stage.source} stage before the regression")
                 summary["regression"] = fit_by_level(pts, stage.x, list(stage.y), stage.by, stage.degree)
+                summary["regression_source"] = stage.source
             elif name == "sensitivity":
                 from fmusa.pipeline.sensitivity import run_sensitivity
                 result.sensitivity = run_sensitivity(study, stage, out, runner, progress=progress)
                 summary["sensitivity"] = result.sensitivity["summary"]
             stage_times[name] = time.perf_counter() - ts
+            stage_runs[name] = {"asked": runner.asked - asked0, "simulated": runner.simulated - simulated0}
         for ext in extensions:
             ts = time.perf_counter()
+            asked0, simulated0 = runner.asked, runner.simulated
             ext.after_stages(result, runner)
             stage_times[ext.name] = time.perf_counter() - ts
+            stage_runs[ext.name] = {"asked": runner.asked - asked0, "simulated": runner.simulated - simulated0}
+        sampling = sampling_summary(study, runner.store.frame(), summary.get("optimum"), runner.spec)
+        if sampling is not None:     # how the output sampling moves peaks and settling times
+            summary["sampling"] = sampling
         runs = runner.store.frame()
         result.runs = runs
         summary["runs"] = int(len(runs))
         summary["simulated_this_session"] = int(runner.simulated)
         summary["failed"] = int((runs["status"] != "ok").sum()) if len(runs) else 0
         summary["stage_wall_s"] = stage_times
+        summary["stage_runs"] = stage_runs
         summary["wall_s"] = time.perf_counter() - t0
     finally:
         runner.close()
@@ -199,11 +220,16 @@ def write_summary(result: SweepResult) -> Path:
 
 
 def search_summary(s: SearchResult) -> dict:
+    """The search in summary.json; ``outer`` None (and levels with ``outer`` null) for one parameter."""
     return {
+        "inner": s.inner,
+        "outer": s.outer,
         "optimum": s.optimum,
         "binding_constraint": s.binding,
         "stop_reason": s.stop_reason,
         "warnings": s.warnings,
+        "warm_start": s.warm_start,
+        "evaluations": s.evaluations,
         "levels": [{"outer": lv.outer, "inner": lv.inner, "evaluations": lv.evaluations,
                     "changed": lv.changed, "note": lv.note,
                     "response": ({k: lv.row[k] for k in lv.row if not k.startswith("ok_")} if lv.row else None)}

@@ -1,17 +1,16 @@
-"""The figures of a study: equivalents of the paper's Figures 5-13 and a few more.
+"""The figures of any study, drawn from data already computed (runs, regions, search levels, fits).
 
-Every function takes the pieces of a :class:`fmusa.sweep.SweepResult` it needs (the runs table, the
-regions, the search levels, ...) plus a target path, writes one PNG with matplotlib's Agg backend and
-returns the path. No function runs the FMU except :func:`time_series`'s caller, which hands in the
-sampled trajectory.
+Every function takes plain data plus a target path, writes one PNG with matplotlib's Agg backend and returns
+the path; none runs an FMU. Labels, titles and units are arguments (the report builds them from the study's
+own descriptions and units), so nothing here knows which model is studied.
 
-Conventions: the study's units on every axis, log axes where values span decades, thresholds as
-horizontal lines, the automatic region of interest framed solid and the paper's hand-picked region
-dashed.
+Conventions: log axes only where the positive values span decades (:func:`spans_decades`), thresholds as
+lines, regions of interest as frames (solid: the region the search used; other frames as the caller asks).
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
@@ -20,45 +19,65 @@ import matplotlib
 matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt  # noqa: E402
-import matplotlib.ticker  # noqa: E402,F401
+import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib import colors as mcolors  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
+
 from fmusa.format import fmt
 
 __all__ = [
-    "fmt", "grid_heatmap", "search_metric", "search_t_eq", "search_path", "time_series",
-    "ramp_time", "sensitivity_figures", "level_colors",
+    "fmt", "RegionFrame", "Threshold", "grid_heatmap", "line_plot", "scatter_panels", "search_metric",
+    "search_path", "regression_plot", "sensitivity_figures", "index_tables", "level_colors", "spans_decades",
+    "log_ticks", "save", "unit_suffix", "lower_first", "search_points", "MARKERS", "AUTO_COLOR", "OTHER_COLOR", "OPT_COLOR", "THRESH_COLOR",
 ]
 
 DPI = 130
-AUTO_COLOR = "#d62728"      # automatic region of interest: solid red
-PAPER_COLOR = "#1f1fff"     # the paper's region (the paper frames its region in blue): dashed
+AUTO_COLOR = "#d62728"      # the region the search used: solid red
+OTHER_COLOR = "#1f1fff"     # a second region (e.g. one chosen by hand): dashed blue
 OPT_COLOR = "#d62728"
-PAPER_OPT_COLOR = "black"
-THRESH_COLOR = "#7b2cbf"    # the paper draws its thresholds in purple
+MARK_COLOR = "black"
+THRESH_COLOR = "#7b2cbf"
+#: positive values spanning at least this many decades get a log axis
+LOG_DECADES = 1.5
+MARKERS = ["o", "s", "^", "D", "v", "P", "X", "<", ">", "h", "p", "*"]
 
 plt.rcParams.update({
-    "font.size": 10,
-    "axes.titlesize": 11,
-    "axes.labelsize": 10,
-    "legend.fontsize": 8.5,
-    "xtick.labelsize": 9,
-    "ytick.labelsize": 9,
-    "axes.grid": False,
+    "font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "legend.fontsize": 8.5,
+    "xtick.labelsize": 9, "ytick.labelsize": 9, "axes.grid": False,
 })
 
 
-# ============================================================================ formatting
+@dataclass(frozen=True)
+class RegionFrame:
+    """A region drawn as a frame: ``region`` has inner/outer ranges; ``label`` names it in the legend."""
+    region: object
+    label: str
+    color: str = AUTO_COLOR
+    style: str = "-"
+    inset: float = 0.0
 
 
-def _unit(u: str) -> str:
+@dataclass(frozen=True)
+class Threshold:
+    """A bound of a constraint, drawn as a line (on the colour bar of a heat map)."""
+    value: float
+    label: str
+
+
+# ============================================================================ helpers
+def lower_first(text: str) -> str:
+    """"Spring stiffness (c)" -> "spring stiffness (c)" to follow other words (not "FMU ...")."""
+    return text[:1].lower() + text[1:] if text[1:2].islower() else text
+
+
+def unit_suffix(u: str) -> str:
     return f" [{u}]" if u else ""
 
 
-def _save(fig, path: Path) -> Path:
+def save(fig, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=DPI, bbox_inches="tight")
@@ -66,22 +85,28 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+def spans_decades(values, decades: float = LOG_DECADES) -> bool:
+    """Whether the positive finite ``values`` are all positive and span at least ``decades`` decades:
+    only then does a log axis show them better than a linear one."""
+    a = np.asarray(pd.to_numeric(pd.Series(np.ravel(values)), errors="coerce"), float)
+    a = a[np.isfinite(a)]
+    if a.size < 2 or (a <= 0).any():
+        return False
+    return bool(a.max() / a.min() >= 10 ** decades)
+
+
 def level_colors(levels: Sequence[float], cmap: str = "viridis") -> dict[float, tuple]:
-    """One colour per outer-parameter level, ordered on a log scale (small d dark, large d bright)."""
+    """One colour per outer-parameter level, ordered (small values dark, large values bright)."""
     lv = sorted({float(x) for x in levels})
     cm = plt.get_cmap(cmap)
     if len(lv) == 1:
         return {lv[0]: cm(0.3)}
-    pos = np.linspace(0.0, 0.9, len(lv))
-    return {x: cm(p) for x, p in zip(lv, pos)}
+    return {x: cm(p) for x, p in zip(lv, np.linspace(0.0, 0.9, len(lv)))}
 
 
-_MARKERS = ["o", "s", "^", "D", "v", "P", "X", "<", ">", "h", "p", "*"]
-
-
-def _log_ticks(ax, axis: str = "x") -> None:
-    """Labelled ticks at 1, 2, 4, 6, 8 × 10^k within the current limits of a log axis that spans little
-    more than a decade (matplotlib would label only the powers of ten)."""
+def log_ticks(ax, axis: str = "x") -> None:
+    """Labelled ticks at 1, 2, 4, 6, 8 × 10^k on a log axis that spans little more than a decade
+    (matplotlib would label only the powers of ten)."""
     lo, hi = (ax.get_xlim() if axis == "x" else ax.get_ylim())
     if lo <= 0 or hi / lo > 300:
         return
@@ -93,44 +118,46 @@ def _log_ticks(ax, axis: str = "x") -> None:
     a.set_minor_formatter(matplotlib.ticker.NullFormatter())
 
 
-# ============================================================================ Figures 5-9: grid heat maps
-def _index_position(axis: np.ndarray, value: float) -> float:
-    """Fractional cell index of ``value`` on a sorted, log-spaced categorical axis (0 or below the axis:
-    the lower edge)."""
-    if value <= 0 or value < axis[0] * (1 - 1e-9):
+def _range_text(frame: RegionFrame, inner: str, outer: str, inner_unit: str, outer_unit: str) -> str:
+    r = frame.region
+    return (f"{frame.label}: {inner} ∈ [{fmt(r.inner_range[0])}, {fmt(r.inner_range[1])}] {inner_unit}, "
+            f"{outer} ∈ [{fmt(r.outer_range[0])}, {fmt(r.outer_range[1])}] {outer_unit}")
+
+
+# ============================================================================ 2-D grid: heat map
+def _index_position(axis: np.ndarray, value: float, log: bool) -> float:
+    """Fractional cell index of ``value`` on a sorted categorical axis (below the axis: its lower edge)."""
+    if value < axis[0] * (1 - 1e-9) or (log and value <= 0):
         return -0.5
     if value > axis[-1] * (1 + 1e-9):
         return len(axis) - 0.5
-    return float(np.interp(math.log10(value), np.log10(axis), np.arange(len(axis))))
+    if len(axis) == 1:
+        return 0.0
+    scale = np.log10 if log else (lambda v: np.asarray(v, float))
+    return float(np.interp(scale(value), scale(axis), np.arange(len(axis))))
 
 
-def _frame(ax, xs, zs, x_range, z_range, color, style, inset, label):
-    x0 = _index_position(xs, x_range[0]) - (0.5 if x_range[0] > 0 and x_range[0] >= xs[0] * (1 - 1e-9) else 0)
-    x1 = _index_position(xs, x_range[1]) + 0.5
-    z0 = _index_position(zs, z_range[0]) - (0.5 if z_range[0] > 0 and z_range[0] >= zs[0] * (1 - 1e-9) else 0)
-    z1 = _index_position(zs, z_range[1]) + 0.5
+def _frame(ax, xs, zs, frame: RegionFrame, logx: bool, logz: bool) -> None:
+    r = frame.region
+    x_lo, z_lo = r.inner_range[0], r.outer_range[0]
+    x0 = _index_position(xs, x_lo, logx) - (0.5 if x_lo >= xs[0] * (1 - 1e-9) and (x_lo > 0 or not logx) else 0)
+    x1 = _index_position(xs, r.inner_range[1], logx) + 0.5
+    z0 = _index_position(zs, z_lo, logz) - (0.5 if z_lo >= zs[0] * (1 - 1e-9) and (z_lo > 0 or not logz) else 0)
+    z1 = _index_position(zs, r.outer_range[1], logz) + 0.5
     x0, x1 = max(x0, -0.5), min(x1, len(xs) - 0.5)
     z0, z1 = max(z0, -0.5), min(z1, len(zs) - 0.5)
+    inset = frame.inset
     xy, w, h = (x0 + inset, z0 + inset), x1 - x0 - 2 * inset, z1 - z0 - 2 * inset
     ax.add_patch(Rectangle(xy, w, h, fill=False, edgecolor="white", linewidth=5.5, zorder=5))
-    rect = Rectangle(xy, w, h, fill=False, edgecolor=color, linewidth=3.0, linestyle=style, zorder=5.5,
-                     label=label)
-    ax.add_patch(rect)
-    return rect
+    ax.add_patch(Rectangle(xy, w, h, fill=False, edgecolor=frame.color, linewidth=3.0, linestyle=frame.style,
+                           zorder=5.5))
 
 
-def grid_heatmap(runs: pd.DataFrame, metric: str, path: str | Path, *, inner: str = "c", outer: str = "d",
-                 inner_unit: str = "N/m", outer_unit: str = "N·s/m", metric_unit: str = "",
-                 title: str = "", region=None, paper_region=None, threshold: float | None = None,
-                 ok_column: str | None = None, shift: float = 0.0, shift_label: str = "",
-                 missing_label: str = "no rest") -> Path:
-    """Heat map of ``metric`` over the grid (stage "grid"): categorical log-spaced axes, log colour
-    scale, every cell annotated; NaN cells marked ``missing_label``; the automatic region framed
-    solid, the paper's dashed; cells failing ``ok_column`` hatched and ``threshold`` marked on the
-    colour bar. With ``shift`` the cells show ``metric − shift`` (e.g. t_eq − t_ramp)."""
+def _grid_matrix(runs: pd.DataFrame, metric: str, inner: str, outer: str, ok_column: str | None,
+                 shift: float):
+    """Axes, values, violated-constraint and failed-run masks of the grid runs, [outer index, inner index]."""
     grid = runs[runs["stage"] == "grid"]
-    xs = np.sort(grid[inner].unique())
-    zs = np.sort(grid[outer].unique())
+    xs, zs = np.sort(grid[inner].unique()), np.sort(grid[outer].unique())
     val = np.full((len(zs), len(xs)), np.nan)
     bad = np.zeros_like(val, dtype=bool)
     failed = np.zeros_like(val, dtype=bool)
@@ -142,30 +169,45 @@ def grid_heatmap(runs: pd.DataFrame, metric: str, path: str | Path, *, inner: st
         val[i, j] = float(r[metric]) - shift
         if ok_column and ok_column in r and not bool(r[ok_column]):
             bad[i, j] = True
-    signed = bool((val[np.isfinite(val)] < 0).any())
-    shown = np.abs(val) if signed else val.copy()     # a signed metric is coloured by its magnitude
-    positive = shown[np.isfinite(shown) & (shown > 0)]
-    fig, ax = plt.subplots(figsize=(8.6, 6.4))
-    cmap = plt.get_cmap("viridis").with_extremes(bad="#d9d9d9")
-    if positive.size:
-        vmin, vmax = float(positive.min()), float(positive.max())
-        if vmax <= vmin:
-            vmin, vmax = vmin / 2, vmax * 2
-        norm = mcolors.LogNorm(vmin=vmin, vmax=vmax)
-    else:
-        norm = mcolors.Normalize(0, 1)
-    masked = np.ma.masked_where(~(np.isfinite(shown) & (shown > 0)), shown)
-    im = ax.imshow(masked, origin="lower", cmap=cmap, norm=norm, aspect="auto")
-    for i in range(len(zs)):
-        for j in range(len(xs)):
+    return xs, zs, val, bad, failed
+
+
+def _colour_norm(val: np.ndarray):
+    """(shown values, norm, log?, signed?): a log colour scale over |value| where the values span decades."""
+    finite = val[np.isfinite(val)]
+    signed = bool((finite < 0).any())
+    shown = np.abs(val) if signed else val.copy()
+    if spans_decades(shown[np.isfinite(shown) & (shown > 0)]) and not (finite == 0).any():
+        pos = shown[np.isfinite(shown) & (shown > 0)]
+        return shown, mcolors.LogNorm(vmin=float(pos.min()), vmax=float(pos.max())), True, signed
+    shown = val.copy()
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    if hi <= lo:
+        lo, hi = lo - (abs(lo) or 1.0) * 0.5, hi + (abs(hi) or 1.0) * 0.5
+    return shown, mcolors.Normalize(lo, hi), False, False
+
+
+def cell_digits(val: np.ndarray, log: bool) -> int:
+    """Significant digits that tell the cells apart: 3, more when the values differ little relative to
+    their size (10.0078 next to 10.65 on a linear scale), at most 6."""
+    finite = val[np.isfinite(val)]
+    if log or finite.size < 2 or finite.max() == finite.min():
+        return 3
+    ratio = float(np.abs(finite).max() / (finite.max() - finite.min()))
+    return int(min(6, 3 + max(0, math.ceil(math.log10(ratio)))))
+
+
+def _annotate_cells(ax, val, shown, failed, bad, cmap, norm, missing_label: str, sig: int = 3) -> None:
+    for i in range(val.shape[0]):
+        for j in range(val.shape[1]):
             v = val[i, j]
             if failed[i, j]:
                 txt, color = "run\nfailed", "black"
             elif not np.isfinite(v):
                 txt, color = missing_label, "#444444"
             else:
-                txt = fmt(v, 3, strip=False, plain_min=1.0)
-                rgba = cmap(norm(abs(v))) if abs(v) > 0 else (0.85, 0.85, 0.85, 1)
+                txt = fmt(v, sig, strip=False, plain_min=1.0)
+                rgba = cmap(norm(shown[i, j]))
                 lum = 0.299 * rgba[0] + 0.587 * rgba[1] + 0.114 * rgba[2]
                 color = "black" if lum > 0.5 else "white"
             ax.text(j, i, txt, ha="center", va="center", fontsize=9, color=color, zorder=6,
@@ -173,36 +215,47 @@ def grid_heatmap(runs: pd.DataFrame, metric: str, path: str | Path, *, inner: st
             if bad[i, j]:
                 ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="///", linewidth=0,
                                        edgecolor=(1, 1, 1, 0.55), zorder=4))
+
+
+def grid_heatmap(runs: pd.DataFrame, metric: str, path: str | Path, *, inner: str, outer: str,
+                 inner_label: str, outer_label: str, inner_unit: str = "", outer_unit: str = "",
+                 metric_unit: str = "", title: str = "", regions: Sequence[RegionFrame] = (),
+                 thresholds: Sequence[Threshold] = (), ok_column: str | None = None, shift: float = 0.0,
+                 shift_label: str = "", missing_label: str = "no value") -> Path:
+    """Heat map of ``metric`` over the 2-D grid (stage "grid"): one cell per grid value, every cell
+    annotated, a log colour scale only where the values span decades; missing values marked
+    ``missing_label``; cells failing ``ok_column`` hatched; ``thresholds`` marked on the colour bar;
+    ``regions`` framed. With ``shift`` the cells show ``metric − shift``."""
+    xs, zs, val, bad, failed = _grid_matrix(runs, metric, inner, outer, ok_column, shift)
+    shown, norm, log, signed = _colour_norm(val)
+    fig, ax = plt.subplots(figsize=(8.6, 6.4))
+    cmap = plt.get_cmap("viridis").with_extremes(bad="#d9d9d9")
+    ok = np.isfinite(shown) & ((shown > 0) if log else True)
+    im = ax.imshow(np.ma.masked_where(~ok, shown), origin="lower", cmap=cmap, norm=norm, aspect="auto")
+    _annotate_cells(ax, val, shown, failed, bad, cmap, norm, missing_label, cell_digits(val, log))
     ax.set_xticks(range(len(xs)), [fmt(x, strip=False) for x in xs])
     ax.set_yticks(range(len(zs)), [fmt(z, strip=False) for z in zs])
-    ax.set_xlabel(f"stiffness {inner}{_unit(inner_unit)} (grid values, log-spaced)")
-    ax.set_ylabel(f"damping {outer}{_unit(outer_unit)} (grid values, log-spaced)")
+    ax.set_xlabel(f"{inner_label} (grid values)")
+    ax.set_ylabel(f"{outer_label} (grid values)")
     ax.set_title(title or metric)
     cb = fig.colorbar(im, ax=ax, pad=0.02)
     name = shift_label or metric
-    cb.set_label(f"{'|' + name + '|' if signed else name}{_unit(metric_unit)} (log scale)")
+    cb.set_label(f"{'|' + name + '|' if signed else name}{unit_suffix(metric_unit)}"
+                 + (" (log scale)" if log else ""))
     handles = []
-    if threshold is not None and positive.size:
-        if norm.vmin <= threshold <= norm.vmax:
-            cb.ax.axhline(threshold, color=THRESH_COLOR, linewidth=2.5)
+    for th in thresholds:
+        if norm.vmin <= th.value <= norm.vmax:
+            cb.ax.axhline(th.value, color=THRESH_COLOR, linewidth=2.5)
         handles.append(Line2D([], [], color=THRESH_COLOR, linewidth=2.5,
-                              label=f"threshold {fmt(threshold)} {metric_unit} (purple line on the colour bar)"))
+                              label=f"{th.label} (purple line on the colour bar)"))
     if ok_column is not None and bad.any():
         handles.append(Patch(facecolor="#777777", edgecolor="white", hatch="///",
                              label="hatched: this metric's constraint is violated"))
-    if region is not None:
-        _frame(ax, xs, zs, region.inner_range, region.outer_range, AUTO_COLOR, "-", 0.0, None)
-        handles.append(Line2D([], [], color=AUTO_COLOR, linewidth=3,
-                              label=f"automatic region: {inner} ∈ [{fmt(region.inner_range[0])}, "
-                                    f"{fmt(region.inner_range[1])}] {inner_unit}, {outer} ∈ "
-                                    f"[{fmt(region.outer_range[0])}, {fmt(region.outer_range[1])}] {outer_unit}"))
-    if paper_region is not None:
-        _frame(ax, xs, zs, paper_region.inner_range, paper_region.outer_range, PAPER_COLOR, "--", 0.07, None)
-        handles.append(Line2D([], [], color=PAPER_COLOR, linewidth=3, linestyle="--",
-                              label=f"paper's region (by hand): {inner} ∈ [{fmt(paper_region.inner_range[0])}, "
-                                    f"{fmt(paper_region.inner_range[1])}] {inner_unit}, {outer} ∈ "
-                                    f"[{fmt(paper_region.outer_range[0])}, {fmt(paper_region.outer_range[1])}] "
-                                    f"{outer_unit}"))
+    logx, logz = spans_decades(xs), spans_decades(zs)
+    for fr in regions:
+        _frame(ax, xs, zs, fr, logx, logz)
+        handles.append(Line2D([], [], color=fr.color, linewidth=3, linestyle=fr.style,
+                              label=_range_text(fr, inner, outer, inner_unit, outer_unit)))
     if signed:
         handles.append(Patch(facecolor="white", edgecolor="#999999",
                              label=f"colour: |{metric}| (the cells show the signed value)"))
@@ -210,198 +263,253 @@ def grid_heatmap(runs: pd.DataFrame, metric: str, path: str | Path, *, inner: st
         handles.append(Patch(facecolor="#d9d9d9", edgecolor="#999999", label=f"grey: {missing_label}"))
     if handles:
         ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=1, frameon=False)
-    return _save(fig, path)
+    return save(fig, path)
 
 
-# ============================================================================ Figures 10-11: search points
-def _search_points(runs: pd.DataFrame, levels: Sequence[dict], inner: str, outer: str,
-                   inner_range: tuple[float, float] | None, stages: Sequence[str]) -> pd.DataFrame:
+# ============================================================================ 1-D: a line plot
+def _set_scales(ax, x, y, xlog: bool | None, ylog: bool | None) -> tuple[bool, bool]:
+    xlog = spans_decades(x) if xlog is None else xlog
+    ylog = spans_decades(y) if ylog is None else ylog
+    if xlog:
+        ax.set_xscale("log")
+    if ylog:
+        ax.set_yscale("log")
+    return xlog, ylog
+
+
+def line_plot(runs: pd.DataFrame, param: str, metric: str, path: str | Path, *, param_label: str,
+              metric_label: str, title: str = "", thresholds: Sequence[Threshold] = (),
+              shade: tuple[float, float, str] | None = None, optimum: tuple[float, float, str] | None = None,
+              ok_column: str | None = None, xlog: bool | None = None, ylog: bool | None = None) -> Path:
+    """``metric`` against the one study parameter: the grid runs joined by a line, the other stages' runs
+    as points, runs that violate the metric's constraint hollow, failed runs as crosses on the axis,
+    ``thresholds`` as horizontal lines, ``shade`` (lo, hi, label) as a band, ``optimum`` (x, y, label)
+    starred."""
+    ok = runs[runs["status"] == "ok"].sort_values(param)
+    fig, ax = plt.subplots(figsize=(9.0, 5.4))
+    grid = ok[ok["stage"] == "grid"]
+    ax.plot(grid[param], grid[metric], "-o", color="tab:blue", markersize=6, zorder=3, label="grid runs")
+    other = ok[ok["stage"] != "grid"]
+    if len(other):
+        ax.scatter(other[param], other[metric], s=22, color="tab:orange", zorder=4, label="runs of later stages")
+    if ok_column is not None and ok_column in ok:
+        bad = ok[~ok[ok_column].astype(bool)]
+        if len(bad):
+            ax.scatter(bad[param], bad[metric], s=70, facecolors="none", edgecolors="black", zorder=5,
+                       label="violates the constraint on this metric")
+    xlog, _ = _set_scales(ax, ok[param], ok[metric], xlog, ylog)
+    for th in thresholds:
+        ax.axhline(th.value, color=THRESH_COLOR, linestyle="--", linewidth=1.8, label=th.label, zorder=2)
+    if shade is not None:
+        ax.axvspan(max(shade[0], ok[param].min() if xlog and shade[0] <= 0 else shade[0]), shade[1],
+                   color="tab:red", alpha=0.12, label=shade[2], zorder=1)
+    if optimum is not None:
+        ax.scatter([optimum[0]], [optimum[1]], marker="*", s=300, color=OPT_COLOR, edgecolors="black",
+                   zorder=7, label=optimum[2])
+    failed = runs[runs["status"] != "ok"]
+    if len(failed):
+        ax.scatter(failed[param], np.zeros(len(failed)), marker="x", s=60, color="black", zorder=6,
+                   transform=ax.get_xaxis_transform(), clip_on=False, label=f"failed runs ({len(failed)})")
+    ax.set_xlabel(param_label)
+    ax.set_ylabel(metric_label)
+    ax.set_title(title or metric)
+    ax.grid(True, which="both", alpha=0.25)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
+    return save(fig, path)
+
+
+def scatter_panels(runs: pd.DataFrame, params: Sequence[str], metric: str, path: str | Path, *,
+                   param_labels: Mapping[str, str], metric_label: str, title: str = "",
+                   thresholds: Sequence[Threshold] = ()) -> Path:
+    """``metric`` of the grid runs against each of three or more parameters, one panel each (a heat
+    map would hide the other parameters)."""
+    ok = runs[(runs["status"] == "ok") & (runs["stage"] == "grid")]
+    n = len(params)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.2), sharey=True, squeeze=False)
+    for ax, p in zip(axes[0], params):
+        ax.scatter(ok[p], ok[metric], s=18, alpha=0.7)
+        _set_scales(ax, ok[p], ok[metric], None, None)
+        for th in thresholds:
+            ax.axhline(th.value, color=THRESH_COLOR, linestyle="--", linewidth=1.5,
+                       label=th.label if ax is axes[0][0] else None)
+        ax.set_xlabel(param_labels.get(p, p))
+        ax.grid(True, which="both", alpha=0.25)
+    axes[0][0].set_ylabel(metric_label)
+    if thresholds:
+        axes[0][0].legend(loc="best", frameon=False)
+    fig.suptitle(title or metric)
+    fig.tight_layout()
+    return save(fig, path)
+
+
+# ============================================================================ search points
+def search_points(runs: pd.DataFrame, levels: Sequence[dict], inner: str, outer: str | None,
+                  inner_range: tuple[float, float] | None, stages: Sequence[str]) -> pd.DataFrame:
     """The runs the search made: at its outer levels, inner within the region (grid runs that the
     search reused count too)."""
-    outs = {float(lv["outer"]) for lv in levels}
-    pts = runs[runs[outer].astype(float).isin(outs) & (runs["status"] == "ok")]
-    pts = pts[pts["stage"].isin(list(stages) + ["grid"])]
+    pts = runs[(runs["status"] == "ok") & runs["stage"].isin(list(stages) + ["grid"])]
+    if outer is not None:
+        outs = {float(lv["outer"]) for lv in levels if lv.get("outer") is not None}
+        pts = pts[pts[outer].astype(float).isin(outs)]
+    else:
+        pts = pts[pts["stage"].isin(list(stages))]
     if inner_range is not None:
         lo, hi = inner_range
         pts = pts[(pts[inner] >= lo * (1 - 1e-12)) & (pts[inner] <= hi * (1 + 1e-12))]
     return pts
 
 
-def search_metric(runs: pd.DataFrame, levels: Sequence[dict], fits: Mapping[str, dict] | None, metric: str,
-                  path: str | Path, *, inner: str = "c", outer: str = "d", inner_unit: str = "N/m",
-                  outer_unit: str = "N·s/m", metric_unit: str = "", threshold: float | None = None,
-                  threshold_label: str = "", optimum: Mapping[str, float] | None = None,
-                  paper_optimum: Mapping[str, float] | None = None, inner_range=None,
-                  reference: Callable[[np.ndarray], np.ndarray] | None = None, reference_label: str = "",
-                  title: str = "", stages: Sequence[str] = ("search",), zoom: float = 0.05) -> Path:
-    """``metric`` of the search points against the inner parameter (log x), one colour per outer
-    level, the cubic fits per level (coefficients in increasing order), the threshold, the optimum;
-    right panel: the same within ±``zoom`` of the optimum."""
-    pts = _search_points(runs, levels, inner, outer, inner_range, stages)
-    lv_values = sorted({float(lv["outer"]) for lv in levels}, reverse=True)
+def _level_groups(pts: pd.DataFrame, levels: Sequence[dict], outer: str | None):
+    """(outer value or None, its points, colour, marker) for each outer level, largest first."""
+    if outer is None:
+        return [(None, pts.sort_values(pts.columns[0]), "tab:blue", "o")]
+    lv_values = sorted({float(lv["outer"]) for lv in levels if lv.get("outer") is not None}, reverse=True)
     cols = level_colors(lv_values)
-    fig, (ax, az) = plt.subplots(1, 2, figsize=(13.5, 5.6), gridspec_kw={"width_ratios": [1.35, 1]})
-    opt_row = None
-    if optimum is not None:
-        m = pts[np.isclose(pts[inner], optimum[inner], rtol=1e-12) & np.isclose(pts[outer], optimum[outer],
-                                                                                 rtol=1e-12)]
-        if len(m):
-            opt_row = m.iloc[0]
-    for k, z in enumerate(lv_values):
-        g = pts[np.isclose(pts[outer], z, rtol=1e-12)].sort_values(inner)
-        mk = _MARKERS[k % len(_MARKERS)]
-        for a in (ax, az):
-            a.scatter(g[inner], g[metric], s=34 if a is ax else 46, marker=mk, color=cols[z], alpha=0.55,
-                      edgecolors="none", zorder=3, label=f"{outer} = {fmt(z, 6)}" if a is ax else None)
-        fit = (fits or {}).get(f"{z:.10g}")
-        if fit and fit.get("coefficients"):
-            lo, hi = fit.get("x_range", [g[inner].min(), g[inner].max()])
-            xx = np.geomspace(lo, hi, 400)
-            yy = np.polynomial.polynomial.polyval(xx, fit["coefficients"])
-            for a in (ax, az):
-                a.plot(xx, yy, color=cols[z], linewidth=1.0, alpha=0.7, zorder=2)
-    if reference is not None and len(pts):
-        xx = np.geomspace(pts[inner].min(), pts[inner].max(), 400)
-        for a in (ax, az):
-            a.plot(xx, reference(xx), color="black", linestyle=":", linewidth=1.4, zorder=4,
-                   label=reference_label if a is ax else None)
-    if threshold is not None:
-        for a in (ax, az):
-            a.axhline(threshold, color=THRESH_COLOR, linewidth=2, zorder=1,
-                      label=(threshold_label or f"threshold {fmt(threshold)}{_unit(metric_unit)}") if a is ax
-                      else None)
-    if opt_row is not None:
-        for a in (ax, az):
-            a.scatter([opt_row[inner]], [opt_row[metric]], marker="*", s=320, color=OPT_COLOR, edgecolors="black",
-                      linewidths=0.8, zorder=7,
-                      label=(f"optimum {inner} = {fmt(optimum[inner], 7)} {inner_unit}, {outer} = {fmt(optimum[outer], 5)} {outer_unit}"
-                             if a is ax else None))
-    if paper_optimum is not None and inner in paper_optimum:
-        for a in (ax, az):
-            a.axvline(paper_optimum[inner], color=PAPER_OPT_COLOR, linestyle="--", linewidth=1.2, zorder=1,
-                      label=f"paper's optimum {inner} = {fmt(paper_optimum[inner], 6)} {inner_unit}" if a is ax else None)
-    ax.set_xscale("log")
-    # linear y: the cubic fits of eq. 3 change sign over a decade of c, which a log axis would hide
-    vals = pts[metric].to_numpy(float)
-    vals = vals[np.isfinite(vals)]
-    if vals.size:
-        top = max(float(vals.max()), threshold or 0.0)
-        ax.set_ylim(-0.08 * top, 1.12 * top)
-    ax.axhline(0.0, color="gray", linewidth=0.6)
-    ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
-    _log_ticks(ax, "x")
-    ax.set_xlabel(f"stiffness {inner}{_unit(inner_unit)} (log)")
-    ax.set_ylabel(f"{metric}{_unit(metric_unit)}")
-    ax.set_title(title or f"{metric} of the search points")
-    ax.grid(True, which="both", alpha=0.25)
-    # zoom panel
-    center = optimum[inner] if optimum is not None else (float(np.median(pts[inner])) if len(pts) else 1.0)
+    return [(z, pts[np.isclose(pts[outer], z, rtol=1e-12)], cols[z], MARKERS[k % len(MARKERS)])
+            for k, z in enumerate(lv_values)]
+
+
+def _draw_fits(axes, fits, z, x_lo, x_hi, color, log: bool, label: str | None = None) -> None:
+    """The fitted polynomial of level ``z`` ("all" when None) over its x range; ``label`` on the first axis."""
+    fit = (fits or {}).get("all" if z is None else f"{z:.10g}")
+    if not fit or not fit.get("coefficients"):
+        return
+    lo, hi = fit.get("x_range", [x_lo, x_hi])
+    xx = np.geomspace(lo, hi, 400) if log and lo > 0 else np.linspace(lo, hi, 400)
+    yy = np.polynomial.polynomial.polyval(xx, fit["coefficients"])
+    for k, a in enumerate(axes):
+        a.plot(xx, yy, color=color, linewidth=1.0, alpha=0.7, zorder=2, label=label if k == 0 else None)
+
+
+def _zoom_panel(az, pts, inner, metric, center, zoom, thresholds, reference, inner_label, metric_label):
+    """The right panel of :func:`search_metric`: the runs within ±``zoom`` of ``center``."""
     lo, hi = center * (1 - zoom), center * (1 + zoom)
     near = pts[(pts[inner] >= lo) & (pts[inner] <= hi)]
     az.set_xlim(lo, hi)
-    ys = [float(v) for v in near[metric] if np.isfinite(v)]
-    if threshold is not None:
-        ys.append(threshold)
+    ys = [float(v) for v in near[metric] if np.isfinite(v)] + [th.value for th in thresholds]
     if reference is not None:
         ys.extend(list(reference(np.array([lo, hi]))))
     if ys:
         span = max(ys) - min(ys) or abs(max(ys)) * 0.1 or 1.0
         az.set_ylim(min(ys) - 0.08 * span, max(ys) + 0.08 * span)
-    az.set_xlabel(f"stiffness {inner}{_unit(inner_unit)} (linear, ±{zoom:.0%} of the optimum)")
-    az.set_ylabel(f"{metric}{_unit(metric_unit)}")
+    az.set_xlabel(f"{inner_label} (linear, ±{zoom:.0%} of the optimum)")
+    az.set_ylabel(metric_label)
     az.set_title(f"zoom: {len(near)} search points near the boundary")
     az.grid(True, alpha=0.25)
     az.ticklabel_format(axis="both", style="sci", scilimits=(-3, 4), useMathText=True)
+
+
+def _optimum_row(pts, inner, outer, optimum):
+    if optimum is None:
+        return None
+    sel = np.isclose(pts[inner], optimum[inner], rtol=1e-12)
+    if outer is not None:
+        sel &= np.isclose(pts[outer], optimum[outer], rtol=1e-12)
+    return pts[sel].iloc[0] if sel.any() else None
+
+
+def _main_axes(ax, values, thresholds: Sequence[Threshold], xlog: bool, inner_label: str, metric_label: str,
+               title: str, with_zero: bool) -> None:
+    """Scales, limits and labels of the left panel of :func:`search_metric`; ``with_zero`` keeps y = 0 in
+    view (fitted polynomials may change sign, which a log axis or a tight range would hide)."""
+    if xlog:
+        ax.set_xscale("log")
+    vals = np.asarray(values, float)
+    vals = vals[np.isfinite(vals)]
+    bounds = [th.value for th in thresholds]
+    if vals.size:
+        top = max([float(vals.max())] + bounds + ([0.0] if with_zero else []))
+        bottom = min([float(vals.min())] + bounds + ([0.0] if with_zero else []))
+        pad = (top - bottom) or abs(top) or 1.0
+        ax.set_ylim(bottom - 0.08 * pad, top + 0.12 * pad)
+    if with_zero:
+        ax.axhline(0.0, color="gray", linewidth=0.6)
+    ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
+    if xlog:
+        log_ticks(ax, "x")
+    ax.set_xlabel(f"{inner_label}{' (log)' if xlog else ''}")
+    ax.set_ylabel(metric_label)
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.25)
+
+
+def search_metric(runs: pd.DataFrame, levels: Sequence[dict], fits: Mapping[str, dict] | None, metric: str,
+                  path: str | Path, *, inner: str, outer: str | None, inner_label: str, metric_label: str,
+                  inner_unit: str = "", outer_unit: str = "", thresholds: Sequence[Threshold] = (),
+                  optimum: Mapping[str, float] | None = None, markers: Sequence[tuple[float, str]] = (),
+                  inner_range=None, reference: Callable[[np.ndarray], np.ndarray] | None = None,
+                  reference_label: str = "", title: str = "", stages: Sequence[str] = ("search",),
+                  zoom: float = 0.05, xlog: bool | None = None, fit_label: str = "fitted polynomials",
+                  ) -> Path:
+    """``metric`` of the search points against the inner parameter, one colour per outer level, the
+    regression ``fits`` per level (coefficients in increasing order), ``thresholds``, the optimum and
+    vertical ``markers`` (x, label); right panel: the same within ±``zoom`` of the optimum."""
+    pts = search_points(runs, levels, inner, outer, inner_range, stages)
+    fig, (ax, az) = plt.subplots(1, 2, figsize=(13.5, 5.6), gridspec_kw={"width_ratios": [1.35, 1]})
+    xlog = spans_decades(pts[inner]) if xlog is None else xlog
+    for z, g, color, mk in _level_groups(pts, levels, outer):
+        g = g.sort_values(inner)
+        for a in (ax, az):
+            a.scatter(g[inner], g[metric], s=34 if a is ax else 46, marker=mk, color=color, alpha=0.55,
+                      edgecolors="none", zorder=3,
+                      label=(f"{outer} = {fmt(z, 6)}" if z is not None else "search runs") if a is ax else None)
+        if len(g):
+            _draw_fits((ax, az), fits, z, g[inner].min(), g[inner].max(), color, xlog,
+                       fit_label if z is None else None)
+    if reference is not None and len(pts):
+        xx = np.geomspace(pts[inner].min(), pts[inner].max(), 400)
+        for a in (ax, az):
+            a.plot(xx, reference(xx), color="black", linestyle=":", linewidth=1.4, zorder=4,
+                   label=reference_label if a is ax else None)
+    for th in thresholds:
+        for a in (ax, az):
+            a.axhline(th.value, color=THRESH_COLOR, linewidth=2, zorder=1, label=th.label if a is ax else None)
+    opt_row = _optimum_row(pts, inner, outer, optimum)
+    if opt_row is not None:
+        where = f"{inner} = {fmt(optimum[inner], 7)} {inner_unit}" + (
+            f", {outer} = {fmt(optimum[outer], 5)} {outer_unit}" if outer is not None else "")
+        for a in (ax, az):
+            a.scatter([opt_row[inner]], [opt_row[metric]], marker="*", s=320, color=OPT_COLOR, edgecolors="black",
+                      linewidths=0.8, zorder=7, label=f"optimum {where}" if a is ax else None)
+    for x, label in markers:
+        for a in (ax, az):
+            a.axvline(x, color=MARK_COLOR, linestyle="--", linewidth=1.2, zorder=1, label=label if a is ax else None)
+    with_zero = bool(fits) or not len(pts) or bool((pts[metric] <= 0).any())
+    _main_axes(ax, pts[metric], thresholds, xlog, inner_label, metric_label,
+               title or f"{metric} of the search points", with_zero)
+    center = optimum[inner] if optimum is not None else (float(np.median(pts[inner])) if len(pts) else 1.0)
+    _zoom_panel(az, pts, inner, metric, center, zoom, thresholds, reference, f"{inner}{unit_suffix(inner_unit)}",
+                metric_label)
     handles, labels = ax.get_legend_handles_labels()
+    fitted = f"; thin lines: {fit_label} per level" if fits else ""
+    legend_title = (f"search levels of {outer}{unit_suffix(outer_unit)} (one colour and marker each{fitted})"
+                    if outer is not None else None)
     fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=4, frameon=False,
-               title=f"search levels of {outer} [{outer_unit}] (one colour and marker each; "
-                     f"thin lines: cubic fits of eq. 3 per level)", title_fontsize=9)
+               title=legend_title, title_fontsize=9)
     fig.tight_layout()
-    return _save(fig, path)
-
-
-# ============================================================================ Figures 12-13: t_eq
-def search_t_eq(runs: pd.DataFrame, levels: Sequence[dict], path: str | Path, *, inner: str = "c",
-                outer: str = "d", inner_unit: str = "N/m", outer_unit: str = "N·s/m", metric: str = "t_eq",
-                shift: float = 0.0, optimum: Mapping[str, float] | None = None,
-                paper_optimum: Mapping[str, float] | None = None, paper_t_eq: float | None = None,
-                inner_range=None, stages: Sequence[str] = ("search",)) -> Path:
-    """The time to equilibrium of the search points against the inner (left) and the outer (right)
-    parameter, log axes. With ``shift`` (the ramp time) the y axis is ``t_eq − shift``, the time the
-    screw needs to come to rest after the load stops rising."""
-    pts = _search_points(runs, levels, inner, outer, inner_range, stages)
-    lv_values = sorted({float(lv["outer"]) for lv in levels}, reverse=True)
-    cols = level_colors(lv_values)
-    y = pts[metric].astype(float) - shift
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 5.4), sharey=True)
-    finite = y[np.isfinite(y) & (y > 0)]
-    top = float(finite.max()) * 2.5 if len(finite) else 1.0
-    for k, z in enumerate(lv_values):
-        sel = np.isclose(pts[outer], z, rtol=1e-12)
-        g, gy = pts[sel], y[sel]
-        ok = np.isfinite(gy) & (gy > 0)
-        mk = _MARKERS[k % len(_MARKERS)]
-        a1.scatter(g.loc[ok, inner], gy[ok], marker=mk, s=34, color=cols[z], alpha=0.6, edgecolors="none",
-                   label=f"{outer} = {fmt(z, 6)}")
-        a2.scatter(g.loc[ok, outer], gy[ok], marker=mk, s=34, color=cols[z], alpha=0.6, edgecolors="none")
-        if (~ok).any():
-            a1.scatter(g.loc[~ok, inner], np.full((~ok).sum(), top), marker="^", s=40, facecolors="none",
-                       edgecolors=cols[z], alpha=0.8)
-            a2.scatter(g.loc[~ok, outer], np.full((~ok).sum(), top), marker="^", s=40, facecolors="none",
-                       edgecolors=cols[z], alpha=0.8)
-    n_missing = int((~(np.isfinite(y) & (y > 0))).sum())
-    if n_missing:
-        a1.scatter([], [], marker="^", facecolors="none", edgecolors="gray",
-                   label=f"never at rest before the end ({n_missing} runs, drawn at the top)")
-    if optimum is not None:
-        m = pts[np.isclose(pts[inner], optimum[inner], rtol=1e-12) & np.isclose(pts[outer], optimum[outer],
-                                                                                 rtol=1e-12)]
-        if len(m):
-            yo = float(m.iloc[0][metric]) - shift
-            for a, xv in ((a1, optimum[inner]), (a2, optimum[outer])):
-                a.scatter([xv], [yo], marker="*", s=320, color=OPT_COLOR, edgecolors="black", linewidths=0.8,
-                          zorder=7, label=(f"our optimum: {metric} = {fmt(yo + shift, 7)} s" if a is a1 else None))
-    if paper_optimum is not None and paper_t_eq is not None:
-        # the paper's t_eq is plotted as reported (it is not measured after a ramp of length `shift`)
-        for a, key in ((a1, inner), (a2, outer)):
-            if key in paper_optimum:
-                a.scatter([paper_optimum[key]], [paper_t_eq], marker="X", s=110, color="black", zorder=7,
-                          label=(f"paper: {metric} = {paper_t_eq:g} s at {inner} = {fmt(paper_optimum[inner], 6)},"
-                                 f" {outer} = {fmt(paper_optimum[outer], 4)} (its reported value; "
-                                 f"not after a ramp)" if a is a1 else None))
-    ylabel = (f"{metric} − {fmt(shift, 4)} s  [s]  (time after the ramp end)" if shift else f"{metric} [s]")
-    for a, name, unit in ((a1, inner, inner_unit), (a2, outer, outer_unit)):
-        a.set_xscale("log")
-        a.set_yscale("log")
-        a.grid(True, which="both", alpha=0.25)
-        a.set_xlabel(f"{'stiffness' if a is a1 else 'damping'} {name}{_unit(unit)}")
-    _log_ticks(a1, "x")
-    a1.set_ylabel(ylabel)
-    a1.set_title(f"time to equilibrium against {inner}")
-    a2.set_title(f"time to equilibrium against {outer}")
-    handles, labels = a1.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=4, frameon=False)
-    fig.tight_layout()
-    return _save(fig, path)
+    return save(fig, path)
 
 
 # ============================================================================ search path
+def _path_limits(searches) -> tuple[float, float]:
+    all_c = [float(lv["inner"]) for _, levels, _, _ in searches for lv in levels if lv.get("inner") is not None]
+    return (min(all_c), max(all_c)) if all_c else (1.0, 1.0)
+
+
 def search_path(searches: Sequence[tuple[str, Sequence[dict], Mapping[str, float] | None, str]], path: str | Path,
-                *, inner: str = "c", outer: str = "d", inner_unit: str = "N/m", outer_unit: str = "N·s/m",
-                paper_optimum: Mapping[str, float] | None = None,
+                *, inner: str, outer: str, inner_label: str, outer_label: str, inner_unit: str = "",
+                outer_unit: str = "", markers: Sequence[tuple[float, float, str]] = (),
                 reference: tuple[float, str] | None = None,
-                annotations: Sequence[tuple[float, float, str]] = ()) -> Path:
+                annotations: Sequence[tuple[float, float, str]] = (), xlog: bool | None = None) -> Path:
     """The outer levels of each search (``(label, levels, optimum, color)``) against the smallest
-    feasible inner value found there; the stop point starred, levels without a feasible value marked
-    at the bottom; the paper's optimum as a cross; ``annotations`` (outer, inner, text) label points."""
+    feasible inner value found there; the stop point starred, levels without a feasible value marked at
+    the bottom; ``markers`` (outer, inner, label) as crosses; ``annotations`` (outer, inner, text)."""
     fig, ax = plt.subplots(figsize=(9.5, 5.8))
-    all_c = []
-    for label, levels, opt, color in searches:
-        all_c += [float(lv["inner"]) for lv in levels if lv.get("inner") is not None]
-    lo_c = min(all_c) if all_c else 1.0
-    hi_c = max(all_c) if all_c else 1.0
+    lo_c, hi_c = _path_limits(searches)
+    all_z = []
     for n, (label, levels, opt, color) in enumerate(searches):
         zs = np.array([float(lv["outer"]) for lv in levels])
+        all_z += list(zs)
         cs = np.array([float(lv["inner"]) if lv.get("inner") is not None else np.nan for lv in levels])
         ok = np.isfinite(cs)
         ax.plot(zs[ok], cs[ok], "-o", color=color, alpha=0.8, markersize=7 - 2 * n, linewidth=1.8 - 0.6 * n,
@@ -416,191 +524,143 @@ def search_path(searches: Sequence[tuple[str, Sequence[dict], Mapping[str, float
             ax.scatter([opt[outer]], [opt[inner]], marker="*", s=380 - 120 * n, color=color, edgecolors="black",
                        zorder=6, label=f"{label}: stop point {inner} = {fmt(opt[inner], 7)} {inner_unit}, "
                                        f"{outer} = {fmt(opt[outer], 5)} {outer_unit}")
-    if paper_optimum is not None:
-        ax.scatter([paper_optimum[outer]], [paper_optimum[inner]], marker="x", s=90, linewidths=2.2, color="black",
-                   zorder=7, label=f"paper's optimum {inner} = {fmt(paper_optimum[inner], 6)} {inner_unit}, "
-                                   f"{outer} = {fmt(paper_optimum[outer], 4)} {outer_unit}")
+    for z, c, label in markers:
+        ax.scatter([z], [c], marker="x", s=90, linewidths=2.2, color=MARK_COLOR, zorder=7, label=label)
     if reference is not None:
         ax.axhline(reference[0], color=THRESH_COLOR, linestyle=":", linewidth=1.5, label=reference[1], zorder=1)
     for z, c, text in annotations:
         ax.annotate(text, (z, c), textcoords="offset points", xytext=(-10, 0), ha="right", va="center",
                     fontsize=8.5, arrowprops={"arrowstyle": "-", "color": "gray", "lw": 0.6})
-    ax.set_xscale("log")
+    xlog = spans_decades(all_z) if xlog is None else xlog
+    if xlog:
+        ax.set_xscale("log")
     ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
-    ax.set_ylim(lo_c - 0.12 * (hi_c - lo_c) - 0.02 * lo_c, hi_c + 0.12 * (hi_c - lo_c) + 0.02 * hi_c)
+    ax.set_ylim(lo_c - 0.12 * (hi_c - lo_c) - 0.02 * abs(lo_c), hi_c + 0.12 * (hi_c - lo_c) + 0.02 * abs(hi_c))
     ax.grid(True, which="both", alpha=0.25)
-    ax.set_xlabel(f"damping {outer}{_unit(outer_unit)} (log; the search halves it from the region's top, "
+    ax.set_xlabel(f"{outer_label} ({'log; ' if xlog else ''}the search halves it from the region's top, "
                   f"right to left)")
-    ax.set_ylabel(f"smallest feasible stiffness {inner}{_unit(inner_unit)}")
+    ax.set_ylabel(f"smallest feasible {lower_first(inner_label)}")
     ax.set_title(f"Nested binary search: the {outer} levels and the smallest feasible {inner} at each")
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=1, frameon=False)
-    return _save(fig, path)
+    return save(fig, path)
 
 
-# ============================================================================ time series at the optimum
-def time_series(df: pd.DataFrame, path: str | Path, *, eps_y: float | None = None, eps_v: float | None = None,
-                t_eq: float | None = None, t_ramp: float | None = None, title: str = "",
-                zoom: pd.DataFrame | None = None, eps_v_eq: float | None = None,
-                eps_a_eq: float | None = None) -> Path:
-    """Force, displacement (mm), velocity (mm/s) of one run, thresholds and t_eq marked; with ``zoom``
-    (a finer sampled run) a fourth panel shows |v_y| on a log axis around the ramp end and t_eq."""
-    n = 4 if zoom is not None else 3
-    fig, axes = plt.subplots(n, 1, figsize=(12, 2.5 * n + 0.6))
-    t = df["time"].to_numpy()
-    a0, a1, a2 = axes[0], axes[1], axes[2]
-    a0.plot(t, df["F_pull"], color="black")
-    a0.set_ylabel("pullout force\nF_pull [N]")
-    a1.plot(t, df["y"] * 1e3, color="tab:blue", label="y")
-    if eps_y is not None:
-        a1.axhline(eps_y * 1e3, color=THRESH_COLOR, linestyle="--", label=f"ε_y = {fmt(eps_y * 1e3)} mm")
-    a1.set_ylabel("displacement\ny [mm]")
-    a2.plot(t, df["v_y"] * 1e3, color="tab:orange", label="ẏ")
-    if eps_v is not None:
-        a2.axhline(eps_v * 1e3, color=THRESH_COLOR, linestyle="--", label=f"ε_ẏ = {fmt(eps_v * 1e3)} mm/s")
-    a2.set_ylabel("velocity\nẏ [mm/s]")
-    for a in (a0, a1, a2):
-        a.set_xlim(t[0], t[-1])
-        a.grid(True, alpha=0.3)
-        a.set_xlabel("time t [s]")
-        if t_ramp is not None:
-            a.axvline(t_ramp, color="gray", linestyle=":", linewidth=1.2,
-                      label=f"ramp end t_ramp = {t_ramp:g} s" if a is a0 else None)
-        if t_eq is not None and math.isfinite(t_eq):
-            a.axvline(t_eq, color="tab:green", linewidth=1.5,
-                      label=f"at rest from t_eq = {t_eq:.6g} s" if a is a0 else None)
-    for a in (a0, a1, a2):
-        a.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
-    a2.set_ylim(bottom=min(-0.05 * (eps_v or 0) * 1e3, float(np.nanmin(df["v_y"])) * 1.1e3))
-    if zoom is not None:
-        a3 = axes[3]
-        v = np.abs(zoom["v_y"].to_numpy())
-        a3.semilogy(zoom["time"], np.where(v > 0, v, np.nan) * 1e3, color="tab:orange", label="|ẏ| [mm/s]")
-        if eps_v is not None:
-            a3.axhline(eps_v * 1e3, color=THRESH_COLOR, linestyle="--", label=f"ε_ẏ = {fmt(eps_v * 1e3)} mm/s")
-        if eps_v_eq is not None:
-            a3.axhline(eps_v_eq * 1e3, color="tab:orange", linestyle=":", linewidth=1.5,
-                       label=f"ε_ẏeq = {fmt(eps_v_eq * 1e3)} mm/s (rest threshold on |ẏ|)")
-        lows = [x for x in (eps_v_eq, eps_a_eq) if x]
-        if "a_y" in zoom:
-            acc = np.abs(zoom["a_y"].to_numpy())
-            a3.semilogy(zoom["time"], np.where(acc > 0, acc, np.nan) * 1e3, color="tab:brown",
-                        label="|ÿ| [mm/s²]")
-            if eps_a_eq is not None:
-                a3.axhline(eps_a_eq * 1e3, color="tab:brown", linestyle=":", linewidth=1.5,
-                           label=f"ε_ÿeq = {fmt(eps_a_eq * 1e3)} mm/s² (rest threshold on |ÿ|)")
-        if t_ramp is not None:
-            a3.axvline(t_ramp, color="gray", linestyle=":", linewidth=1.2)
-        if t_eq is not None and math.isfinite(t_eq):
-            a3.axvline(t_eq, color="tab:green", linewidth=1.5, label=f"t_eq = {t_eq:.6g} s")
-        a3.set_xlim(zoom["time"].iloc[0], zoom["time"].iloc[-1])
-        lo = (min(lows) if lows else np.nanmin(v[v > 0])) * 1e3 / 30
-        hi = max([(eps_v or 0) * 1e3 * 5] + ([float(np.nanmax(np.abs(zoom["a_y"]))) * 1e3 * 2]
-                                            if "a_y" in zoom else []))
-        a3.set_ylim(lo, hi)
-        a3.set_xlabel("time t [s] (zoom on the ramp end, sampled every 0.5 ms)")
-        a3.set_ylabel("|ẏ| [mm/s], |ÿ| [mm/s²]\n(log)")
-        a3.grid(True, which="both", alpha=0.3)
-        a3.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
-    fig.suptitle(title)
-    fig.tight_layout()
-    return _save(fig, path)
-
-
-# ============================================================================ ramp-time dependence
-def ramp_time(table: pd.DataFrame, path: str | Path, *, F: float, eps_y: float, eps_v: float,
-              ours: float | None = None, paper: float | None = None, inner: str = "c",
-              inner_unit: str = "N/m", outer_label: str = "", at: float = 10.0) -> Path:
-    """The smallest feasible stiffness against the ramp time (columns t_ramp, c_min), next to the two
-    quasi-static bounds F/ε_y and F/(ε_ẏ·t_ramp)."""
-    fig, ax = plt.subplots(figsize=(9.5, 5.6))
-    T = table["t_ramp"].to_numpy(float)
-    tt = np.geomspace(T.min(), T.max(), 300)
-    ax.plot(T, table["c_min"], "o", color="black", markersize=7, zorder=3,
-            label=f"smallest feasible {inner} (FMU, bisection{outer_label})")
-    ax.plot(tt, np.full_like(tt, F / eps_y), color="tab:blue", linestyle="--", linewidth=2, zorder=4,
-            label=f"translation bound F/ε_y = {fmt(F / eps_y, 6)} {inner_unit}")
-    ax.plot(tt, F / (eps_v * tt), color="tab:orange", linestyle="--", linewidth=2, zorder=4,
-            label="velocity bound F/(ε_ẏ·t_ramp)")
-    ax.axvline(eps_y / eps_v, color="gray", linestyle=":", linewidth=1.2,
-               label=f"t_ramp = ε_y/ε_ẏ = {fmt(eps_y / eps_v)} s: both bind")
-    if ours is not None:
-        ax.scatter([at], [ours], marker="*", s=220, color=OPT_COLOR, edgecolors="black", zorder=6,
-                   label=f"our optimum {inner} = {fmt(ours, 7)} {inner_unit} (t_ramp = {fmt(at)} s)")
-    if paper is not None:
-        ax.scatter([at], [paper], marker="x", s=90, linewidths=2.2, color="black", zorder=7,
-                   label=f"paper's {inner} = {fmt(paper, 6)} {inner_unit} (drawn at t_ramp = {fmt(at)} s)")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
+# ============================================================================ regression
+def regression_plot(points: pd.DataFrame, fits: Mapping[str, dict], x: str, metric: str, by: str | None,
+                    path: str | Path, *, x_label: str, metric_label: str, by_unit: str = "", title: str = "",
+                    degree: int = 3) -> Path:
+    """The points a regression was fitted to (one colour per ``by`` level) and its fitted polynomials."""
+    fig, ax = plt.subplots(figsize=(9.0, 5.4))
+    ok = points[points["status"] == "ok"]
+    xlog = spans_decades(ok[x])
+    groups = [(None, ok)] if by is None else sorted(ok.groupby(by), key=lambda g: -float(g[0]))
+    cols = level_colors([float(z) for z, _ in groups]) if by is not None else {}
+    for k, (z, g) in enumerate(groups):
+        color = cols.get(float(z), "tab:blue") if z is not None else "tab:blue"
+        ax.scatter(g[x], g[metric], s=26, marker=MARKERS[k % len(MARKERS)], color=color, alpha=0.6,
+                   label=f"{by} = {fmt(z, 6)} {by_unit}".rstrip() if by is not None else "fitted runs")
+        _draw_fits([ax], fits, None if z is None else float(z), g[x].min(), g[x].max(), color, xlog)
+    if xlog:
+        ax.set_xscale("log")
+    ax.set_xlabel(x_label)
+    ax.set_ylabel(metric_label)
+    ax.set_title(title or f"{metric}: degree-{degree} fit over {x}")
     ax.grid(True, which="both", alpha=0.25)
-    ax.set_xlabel("ramp time t_ramp [s] (F rises linearly from 0 to F_max; end = t_ramp + 2 s)")
-    ax.set_ylabel(f"smallest feasible stiffness {inner}{_unit(inner_unit)}")
-    ax.set_title("Which constraint binds depends on the ramp time")
-    ax.legend(loc="upper right", frameon=True)
-    return _save(fig, path)
+    ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=3, frameon=False,
+              title=f"points and degree-{degree} fits", title_fontsize=9)
+    return save(fig, path)
 
 
-# ============================================================================ sensitivity (optional)
+# ============================================================================ sensitivity
 _INDEX_KEYS = ("mu_star", "sigma", "mu", "S1", "ST")
 
 
-def _tables(obj, trail=()) -> list[tuple[tuple, pd.DataFrame]]:
+def _frame_table(obj: pd.DataFrame) -> pd.DataFrame | None:
+    cols = [c for c in obj.columns if c in _INDEX_KEYS or str(c).endswith("_conf")]
+    if not any(c in _INDEX_KEYS for c in cols):
+        return None
+    df = obj.copy()
+    for key in ("parameter", "name", "names"):
+        if key in df.columns:
+            df = df.set_index(key)
+            break
+    return df[cols].apply(pd.to_numeric, errors="coerce")
+
+
+def _salib_table(obj: Mapping) -> pd.DataFrame | None:
+    names = obj.get("names") or obj.get("parameters")
+    if not (isinstance(names, (list, tuple)) and any(k in obj for k in _INDEX_KEYS)):
+        return None
+    data = {k: pd.to_numeric(pd.Series(list(v)), errors="coerce").to_numpy() for k, v in obj.items()
+            if (k in _INDEX_KEYS or str(k).endswith("_conf")) and hasattr(v, "__len__")
+            and len(v) == len(names) and np.ndim(v) == 1}
+    return pd.DataFrame(data, index=list(names)) if data else None
+
+
+def index_tables(obj, trail=()) -> list[tuple[tuple, pd.DataFrame]]:
     """(path, parameter × index table) for every sensitivity index table found in ``obj``: a
     DataFrame with index columns, a SALib-like dict {names, S1, ST, ...}, or {parameter: {S1: ..}}."""
-    found = []
     if isinstance(obj, pd.DataFrame):
-        cols = [c for c in obj.columns if c in _INDEX_KEYS or c.endswith("_conf")]
-        if any(c in _INDEX_KEYS for c in cols):
-            df = obj.copy()
-            for key in ("parameter", "name", "names"):
-                if key in df.columns:
-                    df = df.set_index(key)
-                    break
-            found.append((trail, df[cols].apply(pd.to_numeric, errors="coerce")))
-        return found
+        df = _frame_table(obj)
+        return [(trail, df)] if df is not None else []
     if not isinstance(obj, Mapping):
-        return found
-    names = obj.get("names") or obj.get("parameters")
-    if isinstance(names, (list, tuple)) and any(k in obj for k in _INDEX_KEYS):
-        data = {}
-        for k, v in obj.items():
-            if (k in _INDEX_KEYS or str(k).endswith("_conf")) and hasattr(v, "__len__") and len(v) == len(names) \
-                    and np.ndim(v) == 1:
-                data[k] = pd.to_numeric(pd.Series(list(v)), errors="coerce").to_numpy()
-        if data:
-            found.append((trail, pd.DataFrame(data, index=list(names))))
-            return found
+        return []
+    df = _salib_table(obj)
+    if df is not None:
+        return [(trail, df)]
     vals = list(obj.values())
-    if vals and all(isinstance(v, Mapping) for v in vals) and \
-            all(any(k in v for k in _INDEX_KEYS) for v in vals):
+    if vals and all(isinstance(v, Mapping) for v in vals) and all(any(k in v for k in _INDEX_KEYS) for v in vals):
         df = pd.DataFrame({str(p): {k: v.get(k) for k in v if k in _INDEX_KEYS or str(k).endswith("_conf")}
                            for p, v in obj.items()}).T
-        found.append((trail, df.apply(pd.to_numeric, errors="coerce")))
-        return found
+        return [(trail, df.apply(pd.to_numeric, errors="coerce"))]
+    found = []
     for k, v in obj.items():
         if len(trail) < 5:
-            found += _tables(v, trail + (str(k),))
+            found += index_tables(v, trail + (str(k),))
     return found
+
+
+def _bars(a, df: pd.DataFrame, method: str) -> None:
+    if method == "morris":
+        main = "mu_star" if "mu_star" in df.columns else df.columns[0]
+        d = df.sort_values(main)
+        y = np.arange(len(d))
+        a.barh(y - 0.2, d[main], height=0.4, color="tab:blue", label="μ* (mean |elementary effect|)",
+               xerr=d.get("mu_star_conf"), error_kw={"elinewidth": 0.8})
+        if "sigma" in d.columns:
+            a.barh(y + 0.2, d["sigma"], height=0.4, color="tab:orange", label="σ (interaction/non-linearity)")
+    else:
+        d = df.sort_values("ST" if "ST" in df.columns else "S1")
+        y = np.arange(len(d))
+        for col, dy, color, label in (("S1", -0.2, "tab:blue", "S1 (first order)"),
+                                      ("ST", 0.2, "tab:orange", "ST (total)")):
+            if col in d.columns:
+                a.barh(y + dy, d[col], height=0.4, color=color, label=label, xerr=d.get(f"{col}_conf"),
+                       error_kw={"elinewidth": 0.8})
+    a.set_yticks(y, [str(i) for i in d.index])
+    a.grid(True, axis="x", alpha=0.3)
+    a.set_xlabel("index [-]" if method == "sobol" else "elementary effect [output unit per range]")
+
+
+def _by_method(sensitivity) -> dict[str, list[tuple[str, pd.DataFrame]]]:
+    seen, by_method = set(), {}
+    for trail, df in index_tables(sensitivity):
+        key = tuple(t for t in trail if t != "summary")
+        if key in seen or df.empty:
+            continue
+        seen.add(key)
+        method = "sobol" if ("S1" in df.columns or "ST" in df.columns) else "morris"
+        label = " / ".join(k for k in key if k.lower() not in ("morris", "sobol", "indices")) or method
+        by_method.setdefault(method, []).append((label, df))
+    return by_method
 
 
 def sensitivity_figures(sensitivity, outdir: str | Path) -> list[Path]:
     """Bar charts of every sensitivity index table found in ``sensitivity`` (Morris μ*/σ, Sobol
     S1/ST), one PNG per method, one panel per output. Returns [] when nothing is recognised."""
-    tables = _tables(sensitivity)
-    seen = set()
-    unique = []
-    for trail, df in tables:
-        key = tuple(t for t in trail if t != "summary")
-        if key in seen or df.empty:
-            continue
-        seen.add(key)
-        unique.append((key, df))
-    by_method: dict[str, list[tuple[str, pd.DataFrame]]] = {}
-    for key, df in unique:
-        method = "sobol" if ("S1" in df.columns or "ST" in df.columns) else "morris"
-        label = " / ".join(k for k in key if k.lower() not in ("morris", "sobol", "indices")) or method
-        by_method.setdefault(method, []).append((label, df))
     paths = []
-    for method, items in by_method.items():
+    for method, items in _by_method(sensitivity).items():
         items = items[:12]
         ncol = min(3, len(items))
         nrow = math.ceil(len(items) / ncol)
@@ -608,33 +668,13 @@ def sensitivity_figures(sensitivity, outdir: str | Path) -> list[Path]:
         fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol, max(2.6, 0.28 * nparam + 1.2) * nrow),
                                  squeeze=False)
         for a, (label, df) in zip(axes.ravel(), items):
-            if method == "morris":
-                main = "mu_star" if "mu_star" in df.columns else df.columns[0]
-                d = df.sort_values(main)
-                y = np.arange(len(d))
-                a.barh(y - 0.2, d[main], height=0.4, color="tab:blue", label="μ* (mean |elementary effect|)",
-                       xerr=d.get("mu_star_conf"), error_kw={"elinewidth": 0.8})
-                if "sigma" in d.columns:
-                    a.barh(y + 0.2, d["sigma"], height=0.4, color="tab:orange", label="σ (interaction/non-linearity)")
-            else:
-                key = "ST" if "ST" in df.columns else "S1"
-                d = df.sort_values(key)
-                y = np.arange(len(d))
-                if "S1" in d.columns:
-                    a.barh(y - 0.2, d["S1"], height=0.4, color="tab:blue", label="S1 (first order)",
-                           xerr=d.get("S1_conf"), error_kw={"elinewidth": 0.8})
-                if "ST" in d.columns:
-                    a.barh(y + 0.2, d["ST"], height=0.4, color="tab:orange", label="ST (total)",
-                           xerr=d.get("ST_conf"), error_kw={"elinewidth": 0.8})
-            a.set_yticks(y, [str(i) for i in d.index])
+            _bars(a, df, method)
             a.set_title(label)
-            a.grid(True, axis="x", alpha=0.3)
-            a.set_xlabel("index [-]" if method == "sobol" else "elementary effect [output unit per range]")
         for a in axes.ravel()[len(items):]:
             a.set_visible(False)
         h, lab = axes.ravel()[0].get_legend_handles_labels()
         fig.legend(h, lab, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2, frameon=False)
         fig.suptitle(f"Global sensitivity: {'Morris screening' if method == 'morris' else 'Sobol indices'}")
         fig.tight_layout()
-        paths.append(_save(fig, Path(outdir) / f"sensitivity_{method}.png"))
+        paths.append(save(fig, Path(outdir) / f"sensitivity_{method}.png"))
     return paths

@@ -7,11 +7,10 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
-
 from fmusa.fmi.build import compile_sources
 from fmusa.fmi.info import read_fmu_info, select_interface
 from fmusa.runs.pool import WorkerPool, run_chunk_supervised
-from fmusa.runs.spec import PlanSpec, RunResult, _WORKER_PLANS, run_chunk
+from fmusa.runs.spec import PlanSpec, RunResult, release_plan, run_chunk
 
 
 class Evaluator:
@@ -59,9 +58,7 @@ class Evaluator:
             self._pool.close()
             self._pool = None
         if self._unzipdir is not None:
-            plan = _WORKER_PLANS.pop(self._local_spec(), None)
-            if plan is not None:
-                plan.runner.close()
+            release_plan(self._local_spec())
             shutil.rmtree(self._unzipdir, ignore_errors=True)
             self._unzipdir = None
         if self._client is not None:

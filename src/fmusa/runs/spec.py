@@ -6,10 +6,10 @@ from typing import Sequence
 
 import numpy as np
 
-from fmusa.runs.metrics import MetricRule, reduce_series
 from fmusa.fmi.info import Value
 from fmusa.fmi.plans import RunPlan
 from fmusa.fmi.runner import FMURunner
+from fmusa.runs.metrics import MetricRule, reduce_series
 
 
 # ---------------------------------------------------------------------- batches, pools, clusters
@@ -31,7 +31,7 @@ class PlanSpec:
     solver: str | None = None                # model exchange: CVode (None) or Euler
     relative_tolerance: float | None = None
     step_size: float | None = None
-    # scenario.refine_peaks: peaks and settling times re-sampled this many times finer (fmusa.sampling)
+    # scenario.refine_peaks: peaks and settling times re-sampled this many times finer (fmusa.runs.refine)
     refine_factor: int | None = None
 
 
@@ -45,10 +45,11 @@ class RunResult:
     seconds: float
 
 
+#: This process's RunPlans, one per spec (each holds an instantiated FMU).
 _WORKER_PLANS: dict[PlanSpec, RunPlan] = {}
 
 
-def _plan_for(spec: PlanSpec) -> RunPlan:
+def plan_for(spec: PlanSpec) -> RunPlan:
     """The calling process's RunPlan for ``spec``: one FMU instance per process and spec, reused."""
     plan = _WORKER_PLANS.get(spec)
     if plan is None:
@@ -60,11 +61,18 @@ def _plan_for(spec: PlanSpec) -> RunPlan:
     return plan
 
 
+def release_plan(spec: PlanSpec) -> None:
+    """Forget this process's RunPlan for ``spec`` and free its FMU instance (before its files are deleted)."""
+    plan = _WORKER_PLANS.pop(spec, None)
+    if plan is not None:
+        plan.runner.close()
+
+
 def run_chunk(spec: PlanSpec, chunk: Sequence[tuple[int, tuple[float, ...]]]) -> list[RunResult]:
     """Run a chunk of parameter sets; a failing run is recorded with its reason and the rest go on."""
     import time
 
-    plan = _plan_for(spec)
+    plan = plan_for(spec)
     out = []
     for run_id, values in chunk:
         t0 = time.perf_counter()

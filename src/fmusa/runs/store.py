@@ -14,6 +14,7 @@ from typing import Iterable, Sequence
 import numpy as np
 import pandas as pd
 
+from fmusa.errors import UsageError
 from fmusa.runs.metrics import constraint_table
 
 FLOAT = "%.17g"   # round-trips a double exactly, so reloaded keys match new ones
@@ -45,7 +46,7 @@ class RunStore:
         df = pd.read_csv(self.path, keep_default_na=True)
         missing = [c for c in self.columns if c not in df.columns]
         if missing:
-            raise ValueError(f"{self.path}: cannot resume: columns {', '.join(missing)} are missing "
+            raise UsageError(f"{self.path}: cannot resume: columns {', '.join(missing)} are missing "
                              f"(the study changed?); start afresh without --resume or use another --out")
         for rec in df.to_dict("records"):
             if not isinstance(rec.get("message"), str):

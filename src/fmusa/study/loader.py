@@ -14,7 +14,7 @@ from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 
 from fmusa.study.schema import (
-    Constraint, DISTRIBUTIONS, Execution, FMUOptions, FixedValue, GridStage, INTERFACES, METHODS, Metric, Parameter, REDUCTIONS, RegressionStage, RoiStage, SAMPLED_REDUCTIONS, SOLVERS, STAGE_NAMES, Scenario, SearchStage, SensitivityParameter, SensitivityStage, Study, StudyError, _IDENT,
+    Constraint, DISTRIBUTIONS, Execution, FMUOptions, FixedValue, GridStage, INTERFACES, METHODS, Metric, Parameter, REDUCTIONS, RegressionStage, RoiStage, SAMPLED_REDUCTIONS, SOLVERS, STAGE_NAMES, Scenario, SearchStage, SensitivityParameter, SensitivityStage, Study, StudyError, IDENTIFIER,
 )
 
 # ============================================================================ YAML plumbing
@@ -112,6 +112,7 @@ class _Parser:
                     raise self.error(k, f"key '{key}' appears twice {_in(where)} (first at line "
                                         f"{lines[key]}); remove one of them")
                 lines[key] = _line(k)
+                self.mark(f"{where}.{key}" if where else str(key), k)   # for a block validator's messages
                 out[key] = self.plain(v, f"{where}.{key}" if where else str(key))
             return out
         if isinstance(node, SequenceNode):
@@ -157,7 +158,7 @@ class _Parser:
 
     def ident(self, node: Node, key: str, where: str, hint: str, what: str = "name") -> str:
         v = self.string(node, key, where, hint)
-        if not _IDENT.match(v):
+        if not IDENTIFIER.match(v):
             raise self.error(node, f"{_key(key, where)}: {what} {v!r} is not an identifier; use "
                                    f"letters, digits and '_' (not starting with a digit), e.g. {hint}")
         return v
@@ -556,14 +557,23 @@ def _parse_roi(p: _Parser, m: _Map, where: str, parameters: Mapping) -> RoiStage
 
 def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping, metrics: Mapping,
                   constraints: Sequence[Constraint]) -> SearchStage:
-    m.allow(("inner", "outer", "inner_rtol", "response_rtol", "response_atol", "response", "max_outer"))
+    m.allow(("inner", "outer", "inner_rtol", "response_rtol", "response_atol", "response", "max_outer",
+             "warm_start"))
     inner = p.name_in(m.need("inner", "inner: c"), "inner", where, parameters, "study parameter",
                       "inner: c")
-    onode = m.need("outer", "outer: d")
-    outer = p.name_in(onode, "outer", where, parameters, "study parameter", "outer: d")
-    if outer == inner:
-        raise p.error(onode, f"{_key('outer', where)} is the same parameter as 'inner' ({inner!r}); "
-                             f"search two different parameters")
+    onode = m.opt("outer")       # optional: without it, one bisection of 'inner' inside the region
+    outer = None
+    if onode is not None:
+        outer = p.name_in(onode, "outer", where, parameters, "study parameter", "outer: d")
+        if outer == inner:
+            raise p.error(onode, f"{_key('outer', where)} is the same parameter as 'inner' ({inner!r}); "
+                                 f"search two different parameters, or remove 'outer' to search '{inner}' alone")
+    wnode = m.opt("warm_start")
+    warm_start = False if wnode is None else p.boolean(wnode, "warm_start", where, "warm_start: true")
+    if warm_start and outer is None:
+        raise p.error(wnode, f"{_key('warm_start', where)}: a warm start brackets each outer level from the "
+                             f"previous level's answer, but the search has no 'outer' parameter (one "
+                             f"bisection); remove warm_start or add outer")
     rnode = m.opt("response")
     if rnode is not None:
         response = p.names_in(rnode, "response", where, metrics, "metric", "response: [max_y, max_v, t_eq]")
@@ -597,12 +607,23 @@ def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping, metrics:
         inner_rtol=m.num("inner_rtol", 1e-3, "inner_rtol: 1.0e-3", positive=True),
         response_rtol=m.num("response_rtol", 1e-3, "response_rtol: 1.0e-3", positive=True),
         max_outer=m.int_("max_outer", 20, "max_outer: 20", minimum=1),
-        response=response, response_atol=atol)
+        response=response, response_atol=atol, warm_start=warm_start)
 
 
 def _parse_regression(p: _Parser, m: _Map, where: str, parameters: Mapping,
-                      metrics: Mapping) -> RegressionStage:
+                      metrics: Mapping, before: Mapping[str, object] | None = None,
+                      has_search: bool = True) -> RegressionStage:
+    """The regression fits the search's runs when the study has a search stage, else the grid's; that
+    stage must come first (stages run in file order), so that the fit is never silently empty."""
     m.allow(("x", "y", "by", "degree"))
+    before = {} if before is None else before
+    source = "search" if has_search else "grid"
+    if source not in before:
+        what = ("the study has a 'search' stage, whose runs it fits, but it comes after 'regression'; "
+                "move 'regression' below 'search'" if has_search else
+                "without a 'search' stage it fits the grid runs, but no 'grid' stage comes before it; add "
+                "a 'grid' stage above it (or a 'search')")
+        raise p.error(m.owner, f"key 'regression' in 'stages' has no runs to fit: {what}")
     x = p.name_in(m.need("x", "x: c"), "x", where, parameters, "study parameter", "x: c")
     y = p.names_in(m.need("y", "y: [max_y, max_v]"), "y", where, metrics, "metric",
                    "y: [max_y, max_v]")
@@ -613,7 +634,15 @@ def _parse_regression(p: _Parser, m: _Map, where: str, parameters: Mapping,
         if by == x:
             raise p.error(bnode, f"{_key('by', where)} is the same parameter as 'x' ({x!r}); use "
                                  f"another parameter or null")
-    return RegressionStage(x=x, y=y, by=by, degree=m.int_("degree", 3, "degree: 3", minimum=1))
+    degree = m.int_("degree", 3, "degree: 3", minimum=1)
+    if source == "grid":
+        xs = before["grid"].points().get(x)
+        if xs is not None and len(xs) < degree + 1:
+            raise p.error(m.owner, f"key 'regression' in 'stages' fits the grid runs (there is no 'search' "
+                                   f"stage), but the grid has {len(xs)} value(s) of '{x}', too few for a "
+                                   f"degree-{degree} polynomial; give the grid at least {degree + 1} values of "
+                                   f"'{x}' or lower 'degree'")
+    return RegressionStage(x=x, y=y, by=by, degree=degree, source=source)
 
 
 def _parse_sensitivity(p: _Parser, m: _Map, where: str, metrics: Mapping,
@@ -717,13 +746,13 @@ def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
             manual = out["roi"].manual
             if manual is not None:
                 for q in (stage.inner, stage.outer):
-                    if q not in manual:
+                    if q is not None and q not in manual:
                         raise p.error(knode, f"key 'search' in 'stages' varies '{q}', but "
                                              f"'stages.roi.manual' gives no range for it; add "
                                              f"{q}: [lo, hi] there")
             out[name] = stage
         elif name == "regression":
-            out[name] = _parse_regression(p, sm, where, parameters, metrics)
+            out[name] = _parse_regression(p, sm, where, parameters, metrics, out, "search" in m)
         elif name == "sensitivity":
             out[name] = _parse_sensitivity(p, sm, where, metrics, fixed)
     if "grid" in out:
@@ -736,7 +765,7 @@ def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
                           f"{missing[0]}: [...] under 'values'")
     if "roi" in out and "search" not in out:
         raise p.error(m.key_node("roi"), "key 'roi' in 'stages': the region of interest is "
-                                         "spanned by the search's inner and outer parameters, but "
+                                         "spanned by the search's inner (and outer) parameters, but "
                                          "there is no 'search' stage; add one after 'roi' or remove "
                                          "'roi'")
     return out
@@ -849,7 +878,8 @@ def _check_conflicts(p: _Parser, top: _Map, parameters: Mapping[str, Parameter],
                               f"variable is either a parameter or an input, keep it in one place")
 
 
-def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None) -> Study:
+def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None,
+           blocks: Mapping[str, BlockValidator] | None = None) -> Study:
     if root is None:
         raise p.error(None, "the study file is empty; it needs at least the keys name, parameters, "
                             "scenario, metrics and stages")
@@ -879,6 +909,8 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None) -> 
             raise p.error(paper_node, f"key 'paper' at the top level must be a mapping, got "
                                       f"{p.describe(paper_node)}; e.g. paper: {{optimum: {{c: 823224}}}}")
         paper = p.plain(paper_node, "paper")
+        if blocks and "paper" in blocks:    # an application's schema of its block (fmusa.api.load_study)
+            blocks["paper"](paper, lambda key: f"{p.label}:{p.lines.get(key, _line(paper_node))}")
     return Study(name=name, description=description, path=path, fmu=fmu, parameters=parameters,
                  fixed=fixed, scenario=scenario, metrics=metrics, constraints=constraints,
                  stages=stages, execution=execution, paper=paper, fmu_options=fmu_options,
@@ -886,7 +918,13 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None) -> 
 
 
 # ============================================================================ entry points
-def parse_study(text: str, path: str | os.PathLike = "<string>") -> Study:
+#: Validates a free-form top-level block (``paper``) once it is read: called with the block as plain Python
+#: and ``line_of(key)`` -> ``"file:line"`` of a dotted key (``"paper.roi.c"``); raises StudyError.
+BlockValidator = Callable[[dict, Callable[[str], str]], None]
+
+
+def parse_study(text: str, path: str | os.PathLike = "<string>",
+                blocks: Mapping[str, BlockValidator] | None = None) -> Study:
     """Parse and validate a study from YAML ``text``.
 
     ``path`` is used in error messages and, unless it is ``"<string>"``, as the study file: relative
@@ -910,10 +948,10 @@ def parse_study(text: str, path: str | os.PathLike = "<string>") -> Study:
                          f"':' after each key, matching quotes and brackets)") from None
     except yaml.YAMLError as exc:
         raise StudyError(f"{label}:1: invalid YAML: {exc}") from None
-    return _parse(p, root, base_dir, study_path)
+    return _parse(p, root, base_dir, study_path, blocks)
 
 
-def load_study(path: str | os.PathLike) -> Study:
+def load_study(path: str | os.PathLike, blocks: Mapping[str, BlockValidator] | None = None) -> Study:
     """Load and validate the study file ``path``. Raises :class:`StudyError` (a ValueError)."""
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -921,4 +959,4 @@ def load_study(path: str | os.PathLike) -> Study:
         raise StudyError(f"{path}:1: study file not found; check the path") from None
     except OSError as exc:
         raise StudyError(f"{path}:1: cannot read the study file: {exc.strerror}") from None
-    return parse_study(text, path)
+    return parse_study(text, path, blocks)

@@ -7,7 +7,7 @@ import numpy as np
 
 from fmusa.runs.metrics import metric_rules
 from fmusa.runs.spec import PlanSpec
-from fmusa.study.schema import Study
+from fmusa.study.schema import Study, StudyError
 
 
 def check_fmu(study: Study, fmu_path: Path) -> list[str]:
@@ -96,7 +96,7 @@ def grid_points(study: Study) -> list[dict[str, float]]:
     names = list(study.parameters)
     missing = [n for n in names if n not in axes]
     if missing:
-        raise ValueError(f"{study.path}: stages.grid gives no values for {', '.join(missing)}")
+        raise StudyError(f"{study.path}: stages.grid gives no values for {', '.join(missing)}")
     mesh = np.meshgrid(*[axes[n] for n in names], indexing="ij")
     return [dict(zip(names, map(float, vals))) for vals in zip(*[m.ravel() for m in mesh])]
 

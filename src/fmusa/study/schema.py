@@ -11,12 +11,13 @@ file, the line, the key and the fix, e.g.::
     studies/paper.yaml:14: key 'stop_tme' is not allowed in 'scenario'; did you mean 'stop_time'?
     (allowed: stop_time, step, inputs, description)
 
-Whether the FMU variables exist is checked later, against the FMU itself (``fmusa.sweep.check_fmu``);
-``Study.lines`` keeps the line of every FMU reference for those messages.
+Whether the FMU variables exist is checked later, against the FMU itself
+(:func:`fmusa.study.plan.check_fmu`); ``Study.lines`` keeps the line of every FMU reference for those
+messages.
 
 Example::
 
-    from fmusa.study import load_study
+    from fmusa import load_study
     study = load_study("studies/paper.yaml")
     study.stages["grid"].points()        # {'c': array([1.5625e4, ...]), 'd': array([625., ...])}
     study.constraints[0].satisfied(4e-4)
@@ -31,18 +32,21 @@ from typing import Mapping
 
 import numpy as np
 
+from fmusa.errors import FmusaError
+from fmusa.runs.metrics import REDUCTIONS, SAMPLED_REDUCTIONS, MetricRule, reduce_series
+
 __all__ = [
     "StudyError", "Study", "Parameter", "Scenario", "Metric", "Constraint", "GridStage", "RoiStage",
     "SearchStage", "RegressionStage", "SensitivityStage", "SensitivityParameter", "Execution", "FixedValue",
-    "FMUOptions", "INTERFACES", "SOLVERS", "STAGE_NAMES", "REDUCTIONS", "METHODS", "DISTRIBUTIONS",
+    "FMUOptions", "INTERFACES", "SOLVERS", "STAGE_NAMES", "REDUCTIONS", "SAMPLED_REDUCTIONS", "METHODS",
+    "DISTRIBUTIONS",
 ]
 
 #: Stage names, in the order they are normally run.
 STAGE_NAMES = ("grid", "roi", "search", "regression", "sensitivity")
-#: How a metric reduces the sampled values of its output.
-REDUCTIONS = ("final", "max", "min", "max_abs", "mean", "mean_abs", "settle")
-#: Reductions whose value sits at one sample (peaks, settling times): what ``scenario.refine_peaks`` refines.
-SAMPLED_REDUCTIONS = ("max", "min", "max_abs", "settle")
+# REDUCTIONS (how a metric reduces the sampled values of its output) and SAMPLED_REDUCTIONS (those whose
+# value sits at one sample: what ``scenario.refine_peaks`` refines) come from fmusa.runs.metrics, which
+# applies them.
 #: Global sensitivity methods.
 METHODS = ("morris", "sobol")
 #: Distributions of sensitivity parameters.
@@ -52,10 +56,11 @@ INTERFACES = ("auto", "co-simulation", "model-exchange")
 #: fmpy's solvers for model exchange FMUs (``fmu_options.solver``).
 SOLVERS = ("CVode", "Euler")
 
-_IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+#: What a study, parameter or metric name may look like (a Python identifier).
+IDENTIFIER = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
-class StudyError(ValueError):
+class StudyError(FmusaError, ValueError):
     """An invalid study file. The message is ``file:line: what is wrong; how to fix it``."""
 
 
@@ -107,7 +112,7 @@ class Scenario:
     are updated on every internal step, so their final values are exact without sampling. With a
     ``step`` the outputs are sampled every ``step`` s, and a peak or a settling time taken from the
     samples is off by up to ~step²/8·|y''| or one step; ``refine_peaks`` then re-runs each run with
-    ``refine_factor`` times finer steps around those samples (see :mod:`fmusa.sampling`).
+    ``refine_factor`` times finer steps around those samples (see :mod:`fmusa.runs.refine`).
     """
     stop_time: float
     step: float | None = None
@@ -136,39 +141,27 @@ class Metric:
     settle_tol: float | None = None
 
     def compute(self, samples, times=None) -> float:
-        """The metric from the output's samples (a scalar counts as one sample); ``settle`` needs their
-        ``times``.
+        """The metric from the output's samples (a scalar counts as one sample) at ``times`` (default:
+        equally spaced; ``settle`` needs them).
 
-        The reduction is applied first, then ``missing_below`` (on the raw FMU value), then
-        ``scale``/``offset``.
+        The same reduction the runs use (:func:`fmusa.runs.metrics.reduce_series`): ``mean`` and
+        ``mean_abs`` are time means (trapezoid rule over ``times``), then ``missing_below`` (on the raw
+        FMU value), then ``scale``/``offset``.
         """
         a = np.atleast_1d(np.asarray(samples, dtype=float))
         if a.size == 0:
             return math.nan
-        if self.reduce == "settle":
-            if times is None:
+        if times is None:
+            if self.reduce == "settle":
                 raise ValueError(f"metric {self.name!r} (reduce: settle) needs the sample times")
-            from fmusa.runs.metrics import settle_index
-            k = settle_index(a, self.settle_tol)
-            return math.nan if k is None else self.scale * float(np.atleast_1d(times)[k]) + self.offset
-        if self.reduce == "final":
-            raw = a[-1]
-        elif self.reduce == "max":
-            raw = a.max()
-        elif self.reduce == "min":
-            raw = a.min()
-        elif self.reduce == "max_abs":
-            raw = np.abs(a).max()
-        elif self.reduce == "mean":
-            raw = a.mean()
-        elif self.reduce == "mean_abs":
-            raw = np.abs(a).mean()
-        else:  # pragma: no cover - rejected at load
-            raise ValueError(f"unknown reduction {self.reduce!r}")
-        raw = float(raw)
-        if math.isnan(raw) or (self.missing_below is not None and raw < self.missing_below):
-            return math.nan
-        return self.scale * raw + self.offset
+            t = np.arange(a.size, dtype=float)
+        else:
+            t = np.atleast_1d(np.asarray(times, dtype=float))
+            if t.shape != a.shape:
+                raise ValueError(f"metric {self.name!r}: {a.size} samples but {t.size} times")
+        rule = MetricRule(self.name, 0, self.reduce, self.scale, self.offset, self.missing_below,
+                          self.settle_tol)
+        return float(reduce_series(t, a[:, None], [rule])[0])
 
 
 @dataclass(frozen=True)
@@ -219,7 +212,8 @@ class GridStage:
 @dataclass(frozen=True)
 class RoiStage:
     """The region of interest. ``manual`` (parameter -> (lo, hi)) overrides the region computed
-    from the grid; the paper chose its region by hand."""
+    from the grid; the paper chose its region by hand. Spanned by the search's ``inner`` and ``outer``
+    parameters, or by ``inner`` alone (an inner range) when the search has no ``outer``."""
     manual: dict[str, tuple[float, float]] | None = None
 
 
@@ -227,29 +221,36 @@ class RoiStage:
 class SearchStage:
     """The nested binary search (paper, Section 3): for each ``outer`` value, halved from the
     region's upper bound, bisect ``inner`` for its smallest feasible value; stop when the response
-    no longer changes.
+    no longer changes. Without ``outer`` (None): one bisection of ``inner`` inside the region.
 
     ``response`` are the metrics compared between outer levels (default: the constrained ones). A
     metric counts as changed when it moved by more than ``response_rtol`` (relative) and more than its
     ``response_atol`` (absolute, in the metric's unit; 0 when not given): without the floor a metric
-    that is 0 up to round-off (a final velocity at rest) would always count as changed."""
+    that is 0 up to round-off (a final velocity at rest) would always count as changed.
+
+    ``warm_start`` brackets each outer level from the previous level's answer instead of the whole
+    region (fewer FMU runs; the answer stays within ``inner_rtol``; see :mod:`fmusa.analysis.search`);
+    off by default, the paper's search."""
     inner: str
-    outer: str
+    outer: str | None = None
     inner_rtol: float = 1e-3
     response_rtol: float = 1e-3
     max_outer: int = 20
     response: list[str] = field(default_factory=list)
     response_atol: dict[str, float] = field(default_factory=dict)
+    warm_start: bool = False
 
 
 @dataclass(frozen=True)
 class RegressionStage:
     """Polynomial fits of metrics over one parameter (the paper's eq. 3, a cubic in c), one fit
-    per value of ``by`` if given."""
+    per value of ``by`` if given. ``source`` names the runs fitted, set by the loader: ``"search"``
+    when the study has a search stage (the paper's fits), else ``"grid"``."""
     x: str
     y: list[str]
     by: str | None = None
     degree: int = 3
+    source: str = "search"
 
 
 @dataclass(frozen=True)
@@ -302,7 +303,7 @@ class Study:
     """A whole study, as loaded from its YAML file.
 
     ``path`` is the YAML file (absolute; None when parsed from a string without a file name);
-    ``fmu`` None means the built ScrewVertebra FMU (:func:`fmusa.evaluate.default_fmu_path`).
+    ``fmu`` None means the built ScrewVertebra FMU (:func:`fmusa.fmi.info.default_fmu_path`).
     ``stages`` keeps the file order.
     """
     name: str

@@ -1,23 +1,26 @@
-"""The C6/C7 shear tests in ``data/shear-c67`` (specimens H1–H3): find, load, and the authors' fits.
+"""The C6/C7 shear tests of ``luidias/ShearND_C67`` (e.g. ``data/shear-c67``): find, load, the authors' fits.
 
-Measured data, not simulated (see ``data/shear-c67/PROVENANCE.md``): functional spinal units sheared
-anteriorly (``Ant``) and posteriorly (``Pos``) at 1, 10 and 100 mm/s under displacement control. The
+Measured data, not simulated (see ``PROVENANCE.md`` in the data folder): functional spinal units sheared
+anteriorly (``Ant``) and posteriorly (``Pos``) at constant rates under displacement control. The
 files have no time column; the rate is in the file name (``H1_C67_Ant_10_mm_s.csv``), so time is
-derived from it (:class:`fmusa.measured.ColumnSpec`, ``rate``). Shear acts along x: the drive is
-``disp_x_mm`` and the response ``Fx_N``. The ``Pos`` tests have negative displacement and force
+derived from it (:class:`fmusa.diagnose.measured.ColumnSpec`, ``rate``). Shear acts along x: the drive
+is ``disp_x_mm`` and the response ``Fx_N``. The ``Pos`` tests have negative displacement and force
 (anterior is positive); they are kept signed unless ``flip_pos`` is asked for.
 
-This module only reads data; it knows nothing of FMUs.
+This module knows the data set's file names, columns and the authors' table; it knows nothing of FMUs.
+The data folder is always an argument (any copy, any subset of specimens): nothing is found relative to
+the installed package.
 
 Example::
 
-    from fmusa import shear_c67
-    tests = shear_c67.list_tests()                  # 18 rows: specimen, direction, rate_mm_s, path
-    exp = shear_c67.load_test(tests.iloc[0])        # an Experiment in SI, time from the rate
-    fits = shear_c67.authors_bilinear()             # the authors' two-phase linear fits [N/mm]
+    from fmusa.applications.shear_c67 import data as shear_c67
+    tests = shear_c67.list_tests("data/shear-c67")   # one row per file: specimen, direction, rate_mm_s, path
+    exp = shear_c67.load_test(tests.iloc[0])          # an Experiment in SI, time from the rate
+    fits = shear_c67.authors_bilinear("data/shear-c67")   # the authors' two-phase linear fits [N/mm]
 """
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -27,22 +30,28 @@ import pandas as pd
 
 from fmusa.diagnose.measured import ColumnSpec, Experiment, MeasuredDataError, downsample, load_experiment
 
-__all__ = ["DEFAULT_ROOT", "DRIVE", "list_tests", "parse_name", "column_spec", "load_test",
-           "authors_bilinear"]
+__all__ = ["DEFAULT_DATA", "DRIVE", "data_root", "list_tests", "parse_name", "column_spec", "load_test",
+           "authors_bilinear", "DIRECTION_NAMES"]
 
-#: The copy of the data in this repository.
-DEFAULT_ROOT = Path(__file__).resolve().parents[2] / "data" / "shear-c67"
+#: Where `fmusa diagnose-shear` looks by default: relative to the current directory (the repository root).
+DEFAULT_DATA = Path("data") / "shear-c67"
 #: The tests ran under displacement control.
 DRIVE = "displacement"
+
+#: The file names' direction codes in words.
+DIRECTION_NAMES = {"Ant": "anterior", "Pos": "posterior"}
 
 _NAME = re.compile(r"^(H\d+)_C67_(Ant|Pos)_(\d+(?:\.\d+)?)_mm_s$")
 
 
-def _root(root) -> Path:
-    root = Path(DEFAULT_ROOT if root is None else root)
+def data_root(root: str | os.PathLike) -> Path:
+    """The data folder, checked: a missing one is named with where it was looked for and the fix."""
+    root = Path(root)
     if not root.is_dir():
-        raise MeasuredDataError(f"{root}: shear-c67 data folder not found; pass root= the folder "
-                                f"holding H01/…, test_info.csv (in the repository: data/shear-c67)")
+        where = "" if root.is_absolute() else f" (relative to the current directory {Path.cwd()})"
+        raise MeasuredDataError(f"{root}: shear-c67 data folder not found{where}; pass the folder holding "
+                                f"H01/…, test_info.csv with --data FOLDER (root= in Python), or run from the "
+                                f"repository root, where it is {DEFAULT_DATA}")
     return root
 
 
@@ -55,10 +64,10 @@ def parse_name(path) -> tuple[str, str, float]:
     return m.group(1), m.group(2), float(m.group(3))
 
 
-def list_tests(root=None) -> pd.DataFrame:
+def list_tests(root: str | os.PathLike) -> pd.DataFrame:
     """One row per test file: specimen, direction (Ant/Pos), rate_mm_s, name (file stem), path;
     sorted by specimen, direction, rate."""
-    root = _root(root)
+    root = data_root(root)
     rows = []
     for p in sorted(root.glob("H*/H*_C67_*_mm_s.csv")):
         specimen, direction, rate = parse_name(p)
@@ -106,7 +115,7 @@ _BILINEAR = {
 }
 
 
-def authors_bilinear(root=None) -> pd.DataFrame:
+def authors_bilinear(root: str | os.PathLike) -> pd.DataFrame:
     """The authors' two-phase linear fit of Fx against disp_x per test, from test_info.csv.
 
     Columns: specimen, direction, rate_mm_s, stiffness_1, stiffness_2 [N/mm] (below / above the
@@ -114,7 +123,7 @@ def authors_bilinear(root=None) -> pd.DataFrame:
     calculated_R2_1..3, as given), peak_load_N, peak_disp_mm. The fits are on the raw signed data
     (not zeroed): Pos tests have positive stiffness, negative breakpoint; peaks are magnitudes.
     """
-    path = _root(root) / "test_info.csv"
+    path = data_root(root) / "test_info.csv"
     if not path.is_file():
         raise MeasuredDataError(f"{path}: file not found; it comes with the shear-c67 data")
     df = pd.read_csv(path)

@@ -1,11 +1,12 @@
-"""`make diagnose`: the diagnosis of the real C6/C7 shear tests and its comparison with the authors.
+"""`make diagnose`: the diagnosis of the C6/C7 shear tests of a data folder and its comparison with the authors.
 
 The spinal unit is seen as one bushing along the shear axis: the FMU's axial degree of freedom (y) is
 the anteroposterior shear displacement, driven by the measured disp_x, and the model predicts Fx. Per
-specimen and direction the three rates (1, 10, 100 mm/s) are diagnosed jointly, so the held-out score
-is the prediction of a whole rate from the other two. Per test, the two-phase elastic model
+specimen and direction (a *unit*) all rates are diagnosed jointly, so the held-out score is the
+prediction of a whole rate from the others. Per test, the two-phase elastic model
 (``nonlinear_stiffness``: stiffness c_y up to the breakpoint, nl_ratio*c_y past it) is fitted alone and
-compared with the authors' own breakpoint analysis in test_info.csv.
+compared with the authors' own breakpoint analysis in test_info.csv. :func:`summarize` gathers every
+number and fact the report states, so that the report says only what these data show.
 """
 from __future__ import annotations
 
@@ -13,34 +14,42 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import pandas as pd
 
-from fmusa.diagnose import run as dg
 from fmusa.applications.shear_c67 import data as shear_c67
+from fmusa.diagnose.calibrate import ModelRunner, calibrate, fit_candidate
+from fmusa.diagnose.effects import CANDIDATES, data_scales
+from fmusa.diagnose.measured import MeasuredDataError
+from fmusa.diagnose.run import run_diagnosis
+
+__all__ = ["fit_bilinear_per_test", "rate_dependence", "run_shear_diagnosis", "describe_data", "summarize"]
 
 
-def fit_bilinear_per_test(tests: pd.DataFrame, fmu: str, max_points: int) -> pd.DataFrame:
+def fit_bilinear_per_test(tests: pd.DataFrame, fmu: str, max_points: int, max_starts: int = 6) -> pd.DataFrame:
     """Our two-phase elastic fit of every test, in the authors' units and frame (raw displacement)."""
     rows = []
     # the fitted names do not depend on the data: one extracted FMU per model for all tests
-    model = dg.ModelRunner(fmu, "displacement", ["c_y", "d_y", "nl_ratio", "nl_y_b"])
-    base = dg.ModelRunner(fmu, "displacement", ["c_y", "d_y"])
+    model = ModelRunner(fmu, "displacement", ["c_y", "d_y", "nl_ratio", "nl_y_b"])
+    base = ModelRunner(fmu, "displacement", ["c_y", "d_y"])
     try:
         for _, row in tests.iterrows():
-            rows.append(_bilinear_row(row, model, base, max_points))
+            rows.append(_bilinear_row(row, model, base, max_points, max_starts))
     finally:
         model.close()
         base.close()
     return pd.DataFrame(rows)
 
 
-def _bilinear_row(row, model: dg.ModelRunner, base: dg.ModelRunner, max_points: int) -> dict:
+def _bilinear_row(row: pd.Series, model: ModelRunner, base: ModelRunner, max_points: int,
+                  max_starts: int) -> dict:
+    """One test: the two-phase and the straight-line fit, stiffnesses in N/mm, breakpoint in the raw frame."""
     exp = shear_c67.load_test(row, max_points=max_points)
-    sc = dg.data_scales([exp])
-    fit = dg.calibrate(model, "nonlinear_stiffness", "displacement", [exp], sc, max_starts=6)
-    lin = dg.calibrate(base, "none", "displacement", [exp], sc)
+    sc = data_scales([exp])
+    fit = calibrate(model, "nonlinear_stiffness", "displacement", [exp], sc, max_starts=max_starts)
+    lin = calibrate(base, "none", "displacement", [exp], sc)
     sign = 1.0 if row["direction"] == "Ant" else -1.0
     x0 = float(exp.meta.get("zero_shift", 0.0))
     c1 = fit.params["c_y"] / 1000.0
@@ -52,15 +61,15 @@ def _bilinear_row(row, model: dg.ModelRunner, base: dg.ModelRunner, max_points: 
             "peak_N": float(np.max(np.abs(exp.force))), "points": len(exp.t)}
 
 
-def rate_dependence(exps, fmu: str, diag: dict) -> dict:
+def rate_dependence(exps: Sequence, fmu: str, diag: dict, max_starts: int = 6) -> dict:
     """Does a Maxwell branch on top of the two-phase curve predict a held-out rate better?
 
     The single-effect ranking tests the Maxwell branch on a straight line, where the bend of the curve
     dominates the residuals; here it is added to the two-phase elastic model, and each rate is
     predicted by the fit to the other two (leave one rate out)."""
-    two = diag["_fits"].get("nonlinear_stiffness") or dg.fit_candidate(fmu, "nonlinear_stiffness",
-                                                                        "displacement", exps)
-    both = dg.fit_candidate(fmu, "nonlinear_stiffness+viscoelastic_relaxation", "displacement", exps)
+    two = diag["_fits"].get("nonlinear_stiffness") or fit_candidate(fmu, "nonlinear_stiffness", "displacement",
+                                                                    exps, max_starts)
+    both = fit_candidate(fmu, "nonlinear_stiffness+viscoelastic_relaxation", "displacement", exps, max_starts)
     return {"two_phase": {"rmse": two.rmse, "heldout_rmse": two.heldout_rmse, "bic": two.bic},
             "two_phase_maxwell": {"rmse": both.rmse, "heldout_rmse": both.heldout_rmse, "bic": both.bic,
                                   "ve_k_N_mm": both.params["ve_k"] / 1000.0, "ve_tau_s": both.params["ve_tau"],
@@ -68,38 +77,61 @@ def rate_dependence(exps, fmu: str, diag: dict) -> dict:
             "heldout_ratio": both.heldout_rmse / two.heldout_rmse, "delta_bic": both.bic - two.bic}
 
 
-def run_shear_diagnosis(out_dir: str | os.PathLike, root=None, fmu_path=None, max_points: int = 300,
-                        workers: int | None = None, max_starts: int = 6) -> dict:
-    """Diagnose every specimen and direction (three rates jointly), fit the per-test bilinear model,
-    compare with the authors, and write out_dir/summary.json, out_dir/report.md and figures."""
+def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu_path: str | None = None,
+                        max_points: int = 300, workers: int | None = None, max_starts: int = 6,
+                        candidates: Sequence[str] = CANDIDATES, specimens: Sequence[str] | None = None) -> dict:
+    """Diagnose every unit (specimen and direction, all rates jointly) of the data folder ``root``, fit
+    the per-test bilinear model, compare with the authors, and write out_dir/summary.json,
+    out_dir/bilinear_comparison.csv, out_dir/report.md and figures. ``specimens`` (e.g. ["H10"])
+    limits the run to those specimens."""
+    from fmusa.applications.shear_c67 import report as shear_report
     from fmusa.fmi.info import default_fmu_path
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     fmu = str(fmu_path or default_fmu_path())
-    tests = shear_c67.list_tests(root)
+    tests = _select(shear_c67.list_tests(root), specimens, root)
     authors = shear_c67.authors_bilinear(root)
+    out.mkdir(parents=True, exist_ok=True)
     groups, unit_exps = {}, {}
     for (spec, direction), g in tests.groupby(["specimen", "direction"], sort=False):
         key = f"{spec}_{direction}"
         unit_exps[key] = exps = [shear_c67.load_test(r, max_points=max_points) for _, r in g.iterrows()]
         print(f"{spec} {direction}: {len(exps)} tests", flush=True)
-        groups[key] = dg.run_diagnosis(exps, "displacement", out / key, fmu_path=fmu, workers=workers,
-                                       max_starts=max_starts)
+        groups[key] = run_diagnosis(exps, "displacement", out / key, fmu_path=fmu, workers=workers,
+                                    max_starts=max_starts, candidates=candidates)
     rate_models = {}
     for key, diag in groups.items():
         print(f"{key}: rate dependence on top of the two-phase curve", flush=True)
-        rate_models[key] = rate_dependence(unit_exps[key], fmu, diag)
-    ours = fit_bilinear_per_test(tests, fmu, max_points)
+        rate_models[key] = rate_dependence(unit_exps[key], fmu, diag, max_starts)
+    ours = fit_bilinear_per_test(tests, fmu, max_points, max_starts)
     cmp_ = ours.merge(authors, on=["specimen", "direction", "rate_mm_s"], how="left")
-    summary = summarize(groups, cmp_)
+    summary = summarize(groups, cmp_, describe_data(root, tests, max_points))
     summary["rate_models"] = rate_models
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     cmp_.drop(columns=["k1_ci"]).to_csv(out / "bilinear_comparison.csv", index=False)
-    from fmusa.applications.shear_c67 import report as shear_report
     figs = shear_report.write_figures(summary, cmp_, out)
-    shear_report.write_report(summary, cmp_, groups, out, figs)
+    shear_report.write_report(summary, cmp_, out, figs)
     return summary
+
+
+def _select(tests: pd.DataFrame, specimens: Sequence[str] | None, root: str | os.PathLike) -> pd.DataFrame:
+    """The tests of the asked specimens (all when None); an unknown specimen is named with those there are."""
+    if not specimens:
+        return tests
+    missing = [s for s in specimens if s not in set(tests.specimen)]
+    if missing:
+        raise MeasuredDataError(f"{root}: no test files of specimen {', '.join(missing)}; the folder holds "
+                                f"{', '.join(dict.fromkeys(tests.specimen))}")
+    return tests[tests.specimen.isin(list(specimens))].reset_index(drop=True)
+
+
+def describe_data(root: str | os.PathLike, tests: pd.DataFrame, max_points: int) -> dict:
+    """What was diagnosed, as the report states it: folder, specimens, directions, rates, counts."""
+    provenance = Path(root) / "PROVENANCE.md"
+    return {"root": str(root), "provenance": str(provenance) if provenance.is_file() else None,
+            "specimens": list(dict.fromkeys(tests.specimen)), "directions": list(dict.fromkeys(tests.direction)),
+            "rates_mm_s": sorted(float(r) for r in set(tests.rate_mm_s)), "tests": int(len(tests)),
+            "max_points": int(max_points)}
 
 
 def _json_default(x):
@@ -114,35 +146,50 @@ def _json_default(x):
     raise TypeError(type(x))
 
 
-def summarize(groups: dict, cmp_: pd.DataFrame) -> dict:
-    """The numbers the report states: effects per group, our vs the authors' bilinear, rate trends."""
-    eff = {k: {"effect": d["effect"], "indistinguishable": [t["effect"] for t in d["indistinguishable"]],
-               "gain": d["gain"], "effect_params": d["effect_params"],
-               "baseline_c_N_mm": d["baseline"]["params"]["c_y"] / 1000.0,
-               "ranking": [{k2: r[k2] for k2 in ("effect", "significant", "heldout_rmse_ratio", "delta_bic",
-                                                  "rmse_ratio")} for r in d["ranking"]],
-               "leftover": d["leftover"]}
-           for k, d in groups.items()}
+def _group_summary(d: dict) -> dict:
+    """One unit's diagnosis as the report states it."""
+    return {"effect": d["effect"], "indistinguishable": [t["effect"] for t in d["indistinguishable"]],
+            "gain": d["gain"], "effect_params": d["effect_params"],
+            "baseline_c_N_mm": d["baseline"]["params"]["c_y"] / 1000.0,
+            "ranking": [{k2: r[k2] for k2 in ("effect", "significant", "heldout_rmse_ratio", "delta_bic",
+                                               "rmse_ratio")} for r in d["ranking"]],
+            "leftover": d["leftover"], "tests": len(d["data"]["experiments"]), "heldout": d["data"]["heldout"],
+            "protocol": d["protocol"]}
+
+
+def _rate_trend(spec: str, direction: str, g: pd.DataFrame) -> dict:
+    """Slowest against fastest test of one unit: stiffness past the breakpoint, peak load, line stiffness."""
+    g = g.sort_values("rate_mm_s")
+    lo, hi = g.iloc[0], g.iloc[-1]
+    return {"specimen": spec, "direction": direction, "rate_low_mm_s": float(lo["rate_mm_s"]),
+            "rate_high_mm_s": float(hi["rate_mm_s"]),
+            "k2_ratio_ours": hi["k2_N_mm"] / lo["k2_N_mm"],
+            "k2_ratio_authors": hi["stiffness_2"] / lo["stiffness_2"],
+            "peak_ratio": hi["peak_load_N"] / lo["peak_load_N"],
+            "linear_k_ratio": hi["linear_k_N_mm"] / lo["linear_k_N_mm"],
+            "peak_disp_spread": float(g["peak_disp_mm"].abs().max() / g["peak_disp_mm"].abs().min())}
+
+
+def _by_rate(g: pd.DataFrame) -> dict:
+    """Median differences to the authors at one rate, and the median and range of the samples per test."""
+    return {"k1_rel_diff_median": float(np.nanmedian(np.abs((g["k1_N_mm"] - g["stiffness_1"]) / g["stiffness_1"]))),
+            "k2_rel_diff_median": float(np.nanmedian(np.abs((g["k2_N_mm"] - g["stiffness_2"]) / g["stiffness_2"]))),
+            "k1_diff_median_sign": float(np.sign(np.nanmedian(g["k1_N_mm"] - g["stiffness_1"]))),
+            "breakpoint_abs_diff_median_mm": float(np.nanmedian(np.abs(g["bp_mm"] - g["breakpoint_mm"]))),
+            "points_median": float(np.median(g["points"])), "points_min": int(g["points"].min()),
+            "points_max": int(g["points"].max())}
+
+
+def summarize(groups: dict, cmp_: pd.DataFrame, data: dict | None = None) -> dict:
+    """The numbers and facts the report states: what was diagnosed, effects per unit, our vs the
+    authors' bilinear, rate trends (units with more than one rate)."""
     dk1 = (cmp_["k1_N_mm"] - cmp_["stiffness_1"]) / cmp_["stiffness_1"]
     dk2 = (cmp_["k2_N_mm"] - cmp_["stiffness_2"]) / cmp_["stiffness_2"]
     dbp = cmp_["bp_mm"] - cmp_["breakpoint_mm"]
-    rate = []
-    for (spec, direction), g in cmp_.groupby(["specimen", "direction"]):
-        g = g.sort_values("rate_mm_s")
-        lo, hi = g.iloc[0], g.iloc[-1]
-        rate.append({"specimen": spec, "direction": direction,
-                     "k2_ratio_100_1_ours": hi["k2_N_mm"] / lo["k2_N_mm"],
-                     "k2_ratio_100_1_authors": hi["stiffness_2"] / lo["stiffness_2"],
-                     "peak_ratio_100_1": hi["peak_load_N"] / lo["peak_load_N"],
-                     "linear_k_ratio_100_1": hi["linear_k_N_mm"] / lo["linear_k_N_mm"]})
-    by_rate = {}
-    for r_mm_s, g in cmp_.groupby("rate_mm_s"):
-        by_rate[f"{r_mm_s:g}"] = {
-            "k1_rel_diff_median": float(np.nanmedian(np.abs((g["k1_N_mm"] - g["stiffness_1"]) / g["stiffness_1"]))),
-            "k2_rel_diff_median": float(np.nanmedian(np.abs((g["k2_N_mm"] - g["stiffness_2"]) / g["stiffness_2"]))),
-            "breakpoint_abs_diff_median_mm": float(np.nanmedian(np.abs(g["bp_mm"] - g["breakpoint_mm"]))),
-            "points_median": float(np.median(g["points"]))}
-    return {"groups": eff, "bilinear_by_rate": by_rate,
+    rate = [_rate_trend(spec, direction, g) for (spec, direction), g in cmp_.groupby(["specimen", "direction"])
+            if g["rate_mm_s"].nunique() > 1]
+    return {"data": data or {}, "groups": {k: _group_summary(d) for k, d in groups.items()},
+            "bilinear_by_rate": {f"{r:g}": _by_rate(g) for r, g in cmp_.groupby("rate_mm_s")},
             "bilinear": {"k1_rel_diff_median": float(np.nanmedian(np.abs(dk1))),
                          "k2_rel_diff_median": float(np.nanmedian(np.abs(dk2))),
                          "breakpoint_abs_diff_median_mm": float(np.nanmedian(np.abs(dbp)))},

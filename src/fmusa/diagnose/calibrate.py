@@ -1,0 +1,214 @@
+"""Calibration: fit one model (the baseline, or the baseline plus effects) to measured tests through the FMU.
+
+The FMU is run only through :class:`fmusa.fmi.plans.DrivenPlan`, driven by the experiments' measured drive
+through the variables a :class:`~fmusa.diagnose.interface.ModelInterface` names. :func:`calibrate` is a
+multi-start bounded least squares of the response channel on all experiments jointly; :func:`heldout_rmse`
+scores a fit on data it did not see; :func:`fit_candidate` does both for one candidate (a worker's job).
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy import optimize, stats
+
+from fmusa.diagnose.effects import Param, Scales, data_scales, model_parameters
+from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
+
+__all__ = ["Fit", "ModelRunner", "calibrate", "heldout_masks", "heldout_rmse", "fit_candidate"]
+
+
+@dataclass
+class Fit:
+    """One calibrated model: parameters with 95 % intervals and its scores."""
+    effect: str
+    params: dict[str, float]
+    ci95: dict[str, tuple[float, float]]
+    rss: float
+    n: int
+    k: int
+    rmse: float
+    heldout_rmse: float = float("nan")
+    predictions: list[np.ndarray] = field(default_factory=list)
+    starts_tried: int = 0
+    nfev: int = 0
+
+    @property
+    def aic(self) -> float:
+        return self.n * math.log(self.rss / self.n) + 2 * self.k
+
+    @property
+    def bic(self) -> float:
+        return self.n * math.log(self.rss / self.n) + self.k * math.log(self.n)
+
+
+# ---------------------------------------------------------------------- simulation
+
+class ModelRunner:
+    """The FMU of one candidate, driven by the experiments' measured drive."""
+
+    def __init__(self, fmu_path: str | os.PathLike, drive: str, names: Sequence[str],
+                 fixed: dict | None = None, rtol: float = 1e-5,
+                 interface: ModelInterface = SCREW_VERTEBRA) -> None:
+        from fmusa.fmi.plans import DrivenPlan
+        from fmusa.fmi.runner import FMURunner
+
+        settings = interface.settings(drive, rtol)
+        self.input_name = interface.input_name(drive)
+        self.output = interface.output_name(drive)
+        self.runner = FMURunner(fmu_path, instance_name="diagnose")
+        try:
+            self.plan = DrivenPlan(self.runner, [interface.variable(n) for n in names],
+                                   {**settings, **(fixed or {})}, self.input_name, [self.output])
+        except Exception:
+            self.runner.close()
+            raise
+
+    def predict(self, values: Sequence[float], experiments: Sequence) -> list[np.ndarray]:
+        """The response channel of every experiment under the given parameter values."""
+        return [self.plan(values, e.t, e.drive_signal)[:, 0] for e in experiments]
+
+    def close(self) -> None:
+        self.runner.close()
+
+
+# ---------------------------------------------------------------------- calibration
+
+def _response_scale(drive: str, sc: Scales) -> float:
+    """Residuals are divided by the peak of the response channel, so the optimiser sees numbers near 1."""
+    return sc.F_pk if drive == "displacement" else sc.y_pk
+
+
+def _residual_fn(model: ModelRunner, params: list[Param], experiments: Sequence, masks,
+                 scale: float) -> Callable[[np.ndarray], np.ndarray]:
+    """The scaled residuals of the masked points as a function of the optimiser's coordinates; a failed
+    simulation gives large residuals, so the optimiser backs off instead of stopping."""
+    def fn(x: np.ndarray) -> np.ndarray:
+        values = [p.from_x(xi) for p, xi in zip(params, x)]
+        try:
+            preds = model.predict(values, experiments)
+        except RuntimeError:
+            return np.full(sum(int(m.sum()) for m in masks), 1e3)
+        return np.concatenate([(pr - e.response_signal)[m] / scale
+                               for pr, e, m in zip(preds, experiments, masks)])
+    return fn
+
+
+def _starts(params: list[Param], max_starts: int) -> list[np.ndarray]:
+    """Combinations of the per-parameter starts (the effect's own, the baseline's single one)."""
+    grids = [[p.to_x(s) for s in p.starts] for p in params]
+    combos: list[list[float]] = [[]]
+    for g in grids:
+        combos = [c + [x] for c in combos for x in g]
+    return [np.array(c) for c in combos[:max_starts]]
+
+
+def _bounds(params: list[Param]) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds on the optimiser's scale."""
+    return (np.array([p.to_x(p.lower) for p in params]), np.array([p.to_x(p.upper) for p in params]))
+
+
+def _least_squares(fn, x0, lo, hi, max_nfev: int) -> optimize.OptimizeResult:
+    """One bounded trust-region fit from x0 (nudged inside the bounds, which trf requires)."""
+    x0 = np.clip(x0, lo + 1e-12 * (hi - lo), hi - 1e-12 * (hi - lo))
+    return optimize.least_squares(fn, x0, bounds=(lo, hi), method="trf", x_scale="jac",
+                                  diff_step=1e-4, max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
+
+
+def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, float]]:
+    """95 % intervals from the Gauss-Newton covariance, on the optimiser's scale (so log-scaled ones are
+    asymmetric), clipped to the bounds. Residual autocorrelation makes them too narrow: see the report."""
+    k = len(params)
+    dof = max(n - k, 1)
+    s2 = 2.0 * res.cost / dof
+    J = res.jac
+    try:
+        cov = np.linalg.pinv(J.T @ J) * s2
+        se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    except np.linalg.LinAlgError:
+        se = np.full(k, np.inf)
+    q = stats.t.ppf(0.975, dof)
+    out = {}
+    for p, x, e in zip(params, res.x, se):
+        lo_x, hi_x = max(x - q * e, p.to_x(p.lower)), min(x + q * e, p.to_x(p.upper))
+        lo_v = p.from_x(lo_x) if math.isfinite(lo_x) else p.lower
+        hi_v = p.from_x(hi_x) if math.isfinite(hi_x) else p.upper
+        out[p.name] = (max(lo_v, p.lower), min(hi_v, p.upper))
+    return out
+
+
+def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence, sc: Scales,
+              max_starts: int = 6, max_nfev: int = 60) -> Fit:
+    """Multi-start bounded least squares of the response channel on all experiments jointly."""
+    params = model_parameters(effect, drive, sc)
+    scale = _response_scale(drive, sc)
+    masks = [np.ones(len(e.t), bool) for e in experiments]
+    fn = _residual_fn(model, params, experiments, masks, scale)
+    lo, hi = _bounds(params)
+    best, nfev, starts = None, 0, _starts(params, max_starts)
+    for x0 in starts:
+        res = _least_squares(fn, x0, lo, hi, max_nfev)
+        nfev += res.nfev
+        if best is None or res.cost < best.cost:
+            best = res
+    n = sum(len(e.t) for e in experiments)
+    values = [p.from_x(x) for p, x in zip(params, best.x)]
+    preds = model.predict(values, experiments)
+    rss = float(sum(np.sum((pr - e.response_signal) ** 2) for pr, e in zip(preds, experiments)))
+    return Fit(effect=effect, params={p.name: v for p, v in zip(params, values)},
+               ci95=_confidence(best, params, n), rss=rss, n=n, k=len(params), rmse=math.sqrt(rss / n),
+               predictions=preds, starts_tried=len(starts), nfev=nfev)
+
+
+def heldout_masks(experiments: Sequence, blocks: int = 4) -> list[list[np.ndarray]]:
+    """Folds of held-out points: whole experiments when there are several, else contiguous blocks."""
+    if len(experiments) > 1:
+        return [[np.full(len(e.t), i == j) for j, e in enumerate(experiments)] for i in range(len(experiments))]
+    n = len(experiments[0].t)
+    edges = np.linspace(0, n, blocks + 1).astype(int)
+    folds = []
+    for b in range(blocks):
+        m = np.zeros(n, bool)
+        m[edges[b]:edges[b + 1]] = True
+        folds.append([m])
+    return folds
+
+
+def heldout_rmse(model: ModelRunner, fit: Fit, drive: str, experiments: Sequence, sc: Scales,
+                 max_nfev: int = 40) -> float:
+    """Prediction error on data the fit did not see: refit without each fold, predict the fold.
+
+    Each refit starts from the all-data optimum (one start, to keep the cost at a few fits); the
+    score is the prediction error of the training-only optimum on the held-out points."""
+    params = model_parameters(fit.effect, drive, sc)
+    scale = _response_scale(drive, sc)
+    lo, hi = _bounds(params)
+    x_full = np.array([p.to_x(min(max(fit.params[p.name], p.lower), p.upper)) for p in params])
+    sq, count = 0.0, 0
+    for held in heldout_masks(experiments):
+        train = [~m for m in held]
+        fn = _residual_fn(model, params, experiments, train, scale)
+        res = _least_squares(fn, x_full, lo, hi, max_nfev)
+        values = [p.from_x(x) for p, x in zip(params, res.x)]
+        preds = model.predict(values, experiments)
+        for pr, e, m in zip(preds, experiments, held):
+            sq += float(np.sum((pr - e.response_signal)[m] ** 2))
+            count += int(m.sum())
+    return math.sqrt(sq / count)
+
+
+def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
+                  max_starts: int = 6, interface: ModelInterface = SCREW_VERTEBRA) -> Fit:
+    """Calibrate one model and score it on held-out data (runs in a worker process)."""
+    sc = data_scales(experiments)
+    names = [p.name for p in model_parameters(effect, drive, sc)]
+    model = ModelRunner(fmu_path, drive, names, interface=interface)
+    try:
+        fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts)
+        fit.heldout_rmse = heldout_rmse(model, fit, drive, experiments, sc)
+    finally:
+        model.close()
+    return fit

@@ -1,0 +1,164 @@
+"""The candidate effects: their parameters, bounds scaled to the data, and what tells them apart.
+
+Everything here is knowledge about the effects of fmu/MODEL.md ("Effects beyond eq. 1"), independent of
+how a model is run or fitted: the names of the fitted parameters (the baseline spring-damper ``c_y``,
+``d_y`` plus those of one effect), their units, bounds and starts taken from the size of the data
+(:func:`data_scales`), and the test that separates two effects the data could not.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from fmusa.errors import FmusaError
+
+__all__ = ["CANDIDATES", "SEPARATING_TESTS", "UNITS", "MAIN_PARAMETER", "DiagnoseError", "Param", "Scales",
+           "data_scales", "model_parameters", "main_parameter", "separating_test"]
+
+CANDIDATES = ("nonlinear_stiffness", "viscoelastic_relaxation", "coulomb_friction", "yield_softening",
+              "backlash_gap", "sensor_offset")
+
+# Which measurement tells two candidates apart when the data could not.
+SEPARATING_TESTS = {
+    frozenset({"nonlinear_stiffness", "yield_softening"}):
+        "unload after the peak: an elastic curve retraces loading, yielding leaves a permanent set",
+    frozenset({"nonlinear_stiffness", "backlash_gap"}):
+        "load through zero in both directions: slack gives a zero-force band, a toe region does not",
+    frozenset({"nonlinear_stiffness", "viscoelastic_relaxation"}):
+        "test at several rates or hold the displacement: only the Maxwell branch depends on rate and relaxes",
+    frozenset({"viscoelastic_relaxation", "coulomb_friction"}):
+        "hold the displacement: a Maxwell branch relaxes, friction holds its force; or change the rate",
+    frozenset({"viscoelastic_relaxation", "yield_softening"}):
+        "hold the displacement and test at several rates: relaxation is rate dependent, yield is not",
+    frozenset({"coulomb_friction", "yield_softening"}):
+        "unload and reload: friction opens a loop of constant width from the first motion, yield only past "
+        "the yield force",
+    frozenset({"coulomb_friction", "sensor_offset"}):
+        "reverse the motion: friction changes sign with the velocity, a sensor offset does not",
+    frozenset({"backlash_gap", "sensor_offset"}):
+        "read the channels at rest before loading and load through zero",
+    frozenset({"backlash_gap", "yield_softening"}):
+        "unload to zero and reload: slack shows at every reloading, a yield set only after yielding",
+    frozenset({"sensor_offset", "nonlinear_stiffness"}):
+        "read the channels at rest before loading (zero load must read zero)",
+    frozenset({"sensor_offset", "viscoelastic_relaxation"}):
+        "hold the displacement long enough for relaxation to finish, then unload to zero",
+    frozenset({"sensor_offset", "yield_softening"}):
+        "unload to zero: a yield set remains in displacement, an offset stays constant in the channel",
+    frozenset({"backlash_gap", "viscoelastic_relaxation"}):
+        "hold the displacement: relaxation shows, slack does not",
+    frozenset({"backlash_gap", "coulomb_friction"}):
+        "reverse the motion at a load well above zero: friction drops by twice its force, slack does not",
+}
+
+UNITS = {"c_y": "N/m", "d_y": "N.s/m", "gap": "m", "nl_ratio": "1", "nl_y_b": "m", "yield_ratio": "1",
+         "yield_F": "N", "fric_F": "N", "ve_k": "N/m", "ve_tau": "s", "F_offset": "N", "y_offset": "m"}
+
+MAIN_PARAMETER = {"nonlinear_stiffness": "nl_ratio", "viscoelastic_relaxation": "ve_tau",
+                  "coulomb_friction": "fric_F", "yield_softening": "yield_F", "backlash_gap": "gap",
+                  "sensor_offset": None}   # F_offset or y_offset, by drive
+
+
+class DiagnoseError(FmusaError, ValueError):
+    """Bad input to the diagnosis: names what is wrong and the fix."""
+
+
+@dataclass(frozen=True)
+class Param:
+    """One fitted parameter: bounds and starts in natural units, optimised on a log or linear scale."""
+    name: str
+    lower: float
+    upper: float
+    starts: tuple[float, ...]
+    log: bool = False
+
+    def to_x(self, value: float) -> float:
+        """Natural value -> optimiser coordinate."""
+        return math.log(value) if self.log else value
+
+    def from_x(self, x: float) -> float:
+        """Optimiser coordinate -> natural value."""
+        return math.exp(x) if self.log else x
+
+
+@dataclass(frozen=True)
+class Scales:
+    """Sizes of the data that set bounds and starts: peak displacement and force, secant stiffness, times."""
+    y_pk: float
+    F_pk: float
+    v_pk: float
+    c0: float
+    t_min: float
+    t_max: float
+    dt_min: float
+
+
+def data_scales(experiments: Sequence) -> Scales:
+    """Bounds and starts come from these, so a test in mm and kN fits as well as one in m and N."""
+    y_pk = max(float(np.max(np.abs(e.displacement))) for e in experiments)
+    F_pk = max(float(np.max(np.abs(e.force))) for e in experiments)
+    v_pk = max(float(np.max(np.abs(np.diff(e.displacement) / np.diff(e.t)))) for e in experiments)
+    if not (y_pk > 0 and F_pk > 0):
+        raise DiagnoseError("the data have no displacement or no force: nothing to calibrate")
+    # secant stiffness from a least-squares line through the origin over all experiments
+    ys = np.concatenate([e.displacement for e in experiments])
+    Fs = np.concatenate([e.force for e in experiments])
+    c0 = abs(float(np.dot(ys, Fs) / np.dot(ys, ys)))
+    durations = [float(e.t[-1] - e.t[0]) for e in experiments]
+    dt_min = min(float(np.min(np.diff(e.t))) for e in experiments)
+    return Scales(y_pk=y_pk, F_pk=F_pk, v_pk=v_pk, c0=c0 if c0 > 0 else F_pk / y_pk,
+                  t_min=min(durations), t_max=max(durations), dt_min=dt_min)
+
+
+def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
+    """The fitted parameters of the baseline (c_y, d_y) plus those of one effect, with data-scaled bounds."""
+    if "+" in effect:   # several effects at once, e.g. "nonlinear_stiffness+viscoelastic_relaxation"
+        parts = effect.split("+")
+        out = model_parameters(parts[0], drive, sc)
+        for part in parts[1:]:
+            out += model_parameters(part, drive, sc)[2:]
+        return out
+    c0, y_pk, F_pk = sc.c0, sc.y_pk, sc.F_pk
+    d_max = 2.0 * F_pk / sc.v_pk
+    base = [Param("c_y", c0 / 100, c0 * 100, (c0,), log=True),
+            Param("d_y", 0.0, d_max, (0.001 * d_max,))]
+    if effect == "none":
+        return base
+    if effect == "backlash_gap":
+        return base + [Param("gap", 0.0, 0.9 * y_pk, (0.05 * y_pk, 0.2 * y_pk, 0.4 * y_pk))]
+    if effect == "nonlinear_stiffness":
+        return base + [Param("nl_ratio", 0.05, 20.0, (0.5, 2.0), log=True),
+                       Param("nl_y_b", 0.02 * y_pk, 0.98 * y_pk, (0.25 * y_pk, 0.5 * y_pk, 0.75 * y_pk))]
+    if effect == "yield_softening":
+        return base + [Param("yield_ratio", 0.0, 0.99, (0.3,)),
+                       Param("yield_F", 0.05 * F_pk, 1.5 * F_pk, (0.3 * F_pk, 0.6 * F_pk, 0.9 * F_pk),
+                             log=True)]
+    if effect == "coulomb_friction":
+        return base + [Param("fric_F", 0.0, 0.5 * F_pk, (0.02 * F_pk, 0.1 * F_pk, 0.3 * F_pk))]
+    if effect == "viscoelastic_relaxation":
+        tau_lo, tau_hi = max(sc.dt_min, 1e-4 * sc.t_max), 10.0 * sc.t_max
+        taus = tuple(min(max(f * sc.t_max, tau_lo), tau_hi) for f in (0.03, 0.3))
+        if sc.t_max > 30 * sc.t_min:   # several rates: a start at the short tests' time scale too
+            taus = taus + (min(max(0.3 * sc.t_min, tau_lo), tau_hi),)
+        return base + [Param("ve_k", 0.0, 20.0 * c0, (0.3 * c0, 1.0 * c0)),
+                       Param("ve_tau", tau_lo, tau_hi, taus, log=True)]
+    if effect == "sensor_offset":
+        if drive == "displacement":
+            return base + [Param("F_offset", -0.5 * F_pk, 0.5 * F_pk, (0.0,))]
+        return base + [Param("y_offset", -0.5 * y_pk, 0.5 * y_pk, (0.0,))]
+    raise DiagnoseError(f"unknown effect {effect!r}; use one of none, {', '.join(CANDIDATES)}")
+
+
+def main_parameter(effect: str, drive: str) -> str | None:
+    """The parameter that sizes an effect (the sensor offset's depends on which channel is measured)."""
+    if effect == "sensor_offset":
+        return "F_offset" if drive == "displacement" else "y_offset"
+    return MAIN_PARAMETER.get(effect)
+
+
+def separating_test(a: str, b: str) -> str:
+    """The measurement that would tell ``a`` from ``b`` (a generic rich protocol for pairs not listed)."""
+    return SEPARATING_TESTS.get(frozenset({a, b}), "a test that loads, holds and unloads at several rates")

@@ -1,0 +1,119 @@
+"""Running the candidates' fits: in parallel worker processes, each saved as it completes and reused.
+
+A diagnosis is six or more independent fits of a few minutes each; :func:`run_fits` runs them in a pool
+(one failing candidate does not sink the others), and with a cache folder writes every fit to
+``<cache>/<candidate>.json`` as soon as it is done, so a rerun on the same data (same :func:`data_key`)
+computes only what is missing.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from fmusa.diagnose.calibrate import Fit, fit_candidate
+from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
+
+__all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits"]
+
+#: (fmu path, candidate, drive, experiments, max_starts, interface): the arguments of fit_candidate.
+FitJob = tuple
+
+
+def _fit_job(args: FitJob) -> Fit | str:
+    """A candidate's fit, or the reason it failed (one bad candidate must not sink the others)."""
+    try:
+        return fit_candidate(*args)
+    except Exception as exc:  # noqa: BLE001 - reported per candidate in diagnosis.json
+        return f"{type(exc).__name__}: {exc}"
+
+
+def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
+             interface: ModelInterface = SCREW_VERTEBRA) -> str:
+    """Identity of a diagnosis input: cached fits are reused only for the same data, drive, FMU and
+    interface (the default interface adds nothing, so caches written before it existed stay valid)."""
+    h = hashlib.sha256()
+    h.update(f"{drive}|{max_starts}|v1".encode())
+    if interface != SCREW_VERTEBRA:
+        h.update(repr(interface).encode())
+    h.update(Path(fmu).read_bytes() if Path(fmu).is_file() else str(fmu).encode())
+    for e in experiments:
+        for a in (e.t, e.displacement, e.force):
+            h.update(np.ascontiguousarray(a, dtype=float).tobytes())
+    return h.hexdigest()[:16]
+
+
+def fit_to_json(f: Fit, key: str) -> dict:
+    """A fit as the cache stores it, tagged with the key of its input."""
+    return {"key": key, "effect": f.effect, "params": f.params, "ci95": {k: list(v) for k, v in f.ci95.items()},
+            "rss": f.rss, "n": f.n, "k": f.k, "rmse": f.rmse, "heldout_rmse": f.heldout_rmse,
+            "predictions": [p.tolist() for p in f.predictions], "starts_tried": f.starts_tried, "nfev": f.nfev}
+
+
+def fit_from_json(d: dict) -> Fit:
+    """A cached fit back in memory."""
+    return Fit(effect=d["effect"], params=d["params"], ci95={k: tuple(v) for k, v in d["ci95"].items()},
+               rss=d["rss"], n=d["n"], k=d["k"], rmse=d["rmse"], heldout_rmse=d["heldout_rmse"],
+               predictions=[np.array(p) for p in d["predictions"]], starts_tried=d["starts_tried"],
+               nfev=d["nfev"])
+
+
+def _cached(cache_dir: Path | None, name: str, key: str) -> Fit | None:
+    """The cached fit of a candidate when it was computed from the same input, else None."""
+    path = cache_dir / f"{name}.json" if cache_dir else None
+    if path is None or not path.exists():
+        return None
+    try:
+        d = json.loads(path.read_text())
+        return fit_from_json(d) if d.get("key") == key else None
+    except (ValueError, KeyError):
+        return None
+
+
+def _save(cache_dir: Path, name: str, fit: Fit, key: str) -> None:
+    """Write a fit atomically, so an interrupted run leaves no half-written cache file."""
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    tmp = cache_dir / f"{name}.json.tmp"
+    tmp.write_text(json.dumps(fit_to_json(fit, key)))
+    tmp.replace(cache_dir / f"{name}.json")
+
+
+def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
+             progress: bool) -> dict[str, Fit | str]:
+    """Every job's fit (or the reason it failed), taken from the cache when it is there, and saved as
+    soon as it is done."""
+    results: dict[str, Fit | str] = {}
+    todo = []
+    for job in jobs:
+        hit = _cached(cache_dir, job[1], key)
+        if hit is None:
+            todo.append(job)
+        else:
+            results[job[1]] = hit
+
+    def keep(name: str, r: Fit | str) -> None:
+        results[name] = r
+        if cache_dir is not None and isinstance(r, Fit):
+            _save(cache_dir, name, r, key)
+        if progress:
+            what = f"rmse {r.rmse:.4g}, held-out {r.heldout_rmse:.4g}" if isinstance(r, Fit) else f"failed: {r}"
+            print(f"  fitted {name}: {what}", flush=True)
+
+    if workers > 1 and len(todo) > 1:
+        with ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn")) as ex:
+            futs = {ex.submit(_fit_job, j): j[1] for j in todo}
+            for fut in as_completed(futs):
+                try:
+                    r = fut.result()
+                except Exception as exc:  # a worker that died (e.g. the FMU crashed the process)
+                    r = f"{type(exc).__name__}: {exc}"
+                keep(futs[fut], r)
+    else:
+        for j in todo:
+            keep(j[1], _fit_job(j))
+    return results
