@@ -16,7 +16,8 @@ import pandas as pd
 import pytest
 
 from fmusa.runs import evaluator as evaluate
-from fmusa.pipeline.sensitivity import plot_sensitivity, run_sensitivity
+from fmusa.pipeline.sensitivity import run_sensitivity
+from fmusa.report.sensitivity_figures import plot_sensitivity
 from fmusa.study.schema import SensitivityParameter
 from fmusa.study.loader import load_study
 from fmusa.pipeline.sweep import StudyRunner

@@ -169,7 +169,8 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
     from fmpy.fmi2 import fmi2Integer, fmi2ValueReference
 
     from fmusa.runs.spec import plan_for, run_chunk
-    from fmusa.pipeline.sensitivity import draw_samples, sensitivity_spec, to_physical
+    from fmusa.analysis.sensitivity import draw_samples, to_physical
+    from fmusa.pipeline.sensitivity import sensitivity_spec
 
     study, stage = _six_dof()
     stage = dataclasses.replace(stage, seed=seed)

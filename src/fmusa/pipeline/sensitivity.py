@@ -1,19 +1,19 @@
 """Global sensitivity analysis of a study: Morris screening and Sobol indices (SALib).
 
-The paper's own future work: which of the 12 force-element parameters (and the screw's mass properties)
-drive the response of a combined load case. :func:`run_sensitivity` is the ``sensitivity`` stage of
-:func:`fmusa.sweep.run_study`:
+Which inputs drive which outputs, over whole ranges rather than around one point. :func:`run_sensitivity`
+is the ``sensitivity`` stage of :func:`fmusa.pipeline.sweep.run_study`; the samples and the SALib analyses
+are :mod:`fmusa.analysis.sensitivity`, the figures :mod:`fmusa.report.sensitivity_figures`:
 
 1. The SALib problem comes from ``stage.parameters``: a ``uniform`` parameter is sampled within its
    bounds as is, a ``loguniform`` one uniformly in log10 space and transformed back (so SALib sees
    log10 values, the FMU the physical ones).
 2. Morris trajectories (``num_levels`` 4) and a Sobol sample (``calc_second_order=False``,
    N·(k + 2) runs) are drawn with ``stage.seed``.
-3. Every sample runs through :class:`fmusa.evaluate.Evaluator` (in-process, process pool or Dask, as the
-   study's runner: workers, scheduler, isolation, timeout) on its own :class:`~fmusa.evaluate.PlanSpec`
+3. Every sample runs through :class:`fmusa.runs.evaluator.Evaluator` (in-process, process pool or Dask, as the
+   study's runner: workers, scheduler, isolation, timeout) on its own :class:`~fmusa.runs.spec.PlanSpec`
    (the runner's, with the sensitivity parameters' FMU variables varied instead of the study
    parameters; ``study.fixed``, the scenario's inputs and ``fmu_options`` as in the study) and is written as it
-   completes to ``out/sensitivity_runs.csv`` by a :class:`~fmusa.runstore.RunStore`; a resumed study
+   completes to ``out/sensitivity_runs.csv`` by a :class:`~fmusa.runs.store.RunStore`; a resumed study
    simulates only the samples not in that file.
 4. SALib analyses every metric of ``stage.outputs``. SALib needs a value for every sample: a metric
    with a failed run (or a NaN value) is not analysed, and the summary names the failing parameter sets
@@ -26,16 +26,13 @@ Only metric arrays are kept (no time series): memory is one small row per run.
 
 Example::
 
-    from fmusa.study import load_study
-    from fmusa.sweep import run_study
-    r = run_study(load_study("studies/six_dof.yaml"), "out/six_dof")
+    import fmusa
+    r = fmusa.run_study(fmusa.load_study("studies/six_dof.yaml"), "out/six_dof")
     r.sensitivity["summary"]["sobol"]["x_final"]["c_x"]      # {'S1': ..., 'ST': ...}
 """
 from __future__ import annotations
 
 import dataclasses
-import math
-import textwrap
 import time
 import warnings
 from pathlib import Path
@@ -49,14 +46,13 @@ from fmusa.runs.spec import PlanSpec, RunResult
 from fmusa.fmi.info import default_fmu_path
 from fmusa.runs.store import RunStore
 from fmusa.runs.progress import progress_bar
+from fmusa.analysis.sensitivity import MORRIS_LEVELS, analyse_morris, analyse_sobol, draw_samples, salib_problem, to_physical
 
-__all__ = ["run_sensitivity", "plot_sensitivity", "salib_problem", "draw_samples", "to_physical",
-           "sensitivity_spec", "REFERENCE_RTOL", "MORRIS_LEVELS"]
+__all__ = ["run_sensitivity",
+           "sensitivity_spec", "REFERENCE_RTOL"]
 
 #: Solver tolerance of the accuracy check's reference runs.
 REFERENCE_RTOL = 1e-9
-#: Levels of the Morris grid.
-MORRIS_LEVELS = 4
 RUNS_FILE = "sensitivity_runs.csv"
 ACCURACY_FILE = "sensitivity_accuracy.csv"
 #: Parameter sets named per failing metric in its error message; ``failed_runs`` lists up to
@@ -66,46 +62,6 @@ _MAX_FAILED_LISTED = 50
 
 
 # ---------------------------------------------------------------------------- problem and samples
-def salib_problem(stage) -> dict:
-    """The SALib problem of ``stage``: bounds in the sampled space (log10 for ``loguniform``)."""
-    names, bounds = [], []
-    for p in stage.parameters.values():
-        lo, hi = map(float, p.bounds)
-        if p.distribution == "loguniform":
-            lo, hi = math.log10(lo), math.log10(hi)
-        names.append(p.name)
-        bounds.append([lo, hi])
-    return {"num_vars": len(names), "names": names, "bounds": bounds}
-
-
-def to_physical(stage, X: np.ndarray) -> np.ndarray:
-    """Sampled-space values (rows of SALib's X) → the physical values the FMU gets."""
-    X = np.asarray(X, dtype=float)
-    out = X.copy()
-    for j, p in enumerate(stage.parameters.values()):
-        if p.distribution == "loguniform":
-            out[:, j] = np.power(10.0, X[:, j])
-            lo, hi = map(float, p.bounds)
-            out[:, j] = np.clip(out[:, j], lo, hi)   # 10**log10(hi) may be hi·(1 + 1 ulp)
-    return out
-
-
-def draw_samples(stage, method: str, problem: dict | None = None, n: int | None = None) -> np.ndarray:
-    """SALib's sample (sampled space) for ``method``: Morris trajectories or the Sobol sample
-    (``calc_second_order=False``, N·(k + 2) rows). ``n`` overrides ``stage.n`` /
-    ``stage.morris_trajectories``."""
-    problem = problem or salib_problem(stage)
-    if method == "morris":
-        from SALib.sample import morris as morris_sample
-        return morris_sample.sample(problem, int(n or stage.morris_trajectories), num_levels=MORRIS_LEVELS,
-                                    seed=stage.seed)
-    if method == "sobol":
-        from SALib.sample import sobol as sobol_sample
-        with warnings.catch_warnings():   # N not a power of 2: SALib warns, the sample is still valid
-            warnings.filterwarnings("ignore", message=".*Convergence properties of the Sobol.*")
-            warnings.filterwarnings("ignore", message=".*balance properties of Sobol.*")
-            return sobol_sample.sample(problem, int(n or stage.n), calc_second_order=False, seed=stage.seed)
-    raise ValueError(f"unknown sensitivity method {method!r}; use morris or sobol")
 
 
 def sensitivity_spec(study, stage, base: PlanSpec | None = None, fmu_path: str | Path | None = None,
@@ -220,45 +176,6 @@ def _param_text(names: Sequence[str], key: Sequence[float]) -> str:
 
 
 # ---------------------------------------------------------------------------- analysis
-def _nan_to_none(x):
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-def _analyse_morris(problem, X, Y, metric_names, seed):
-    from SALib.analyze import morris as morris_analyze
-    out, rows = {}, []
-    for j, metric in enumerate(metric_names):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            res = morris_analyze.analyze(problem, X, Y[:, j], num_levels=MORRIS_LEVELS, seed=seed)
-        out[metric] = {}
-        for i, name in enumerate(problem["names"]):
-            d = {"mu_star": _nan_to_none(res["mu_star"][i]), "sigma": _nan_to_none(res["sigma"][i]),
-                 "mu_star_conf": _nan_to_none(res["mu_star_conf"][i]), "mu": _nan_to_none(res["mu"][i])}
-            out[metric][name] = d
-            rows.append({"metric": metric, "parameter": name, **d})
-    return out, rows
-
-
-def _analyse_sobol(problem, Y, metric_names, seed):
-    from SALib.analyze import sobol as sobol_analyze
-    out, rows = {}, []
-    for j, metric in enumerate(metric_names):
-        y = Y[:, j]
-        if not np.ptp(y) > 0:
-            # a constant output: no variance to apportion (SALib would divide by zero)
-            res = {k: np.zeros(problem["num_vars"]) for k in ("S1", "S1_conf", "ST", "ST_conf")}
-        else:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                res = sobol_analyze.analyze(problem, y, calc_second_order=False, seed=seed)
-        out[metric] = {}
-        for i, name in enumerate(problem["names"]):
-            d = {k: _nan_to_none(res[k][i]) for k in ("S1", "S1_conf", "ST", "ST_conf")}
-            out[metric][name] = d
-            rows.append({"metric": metric, "parameter": name, **d})
-    return out, rows
 
 
 # ---------------------------------------------------------------------------- accuracy check
@@ -344,7 +261,7 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
                     accuracy_samples: int = 20) -> dict:
     """Morris screening and/or Sobol indices of ``stage.outputs`` over ``stage.parameters``.
 
-    ``runner`` is the study's :class:`fmusa.sweep.StudyRunner` (its evaluator's ``workers`` and
+    ``runner`` is the study's :class:`fmusa.pipeline.sweep.StudyRunner` (its evaluator's ``workers`` and
     ``scheduler`` are used; its ``simulated`` counter is increased). ``resume`` None follows the runner
     (see :func:`_resume_flag`). Returns ``{"summary": {...}, "morris": DataFrame, "sobol": DataFrame}``;
     the summary has, per method, ``{metric: {parameter: {mu_star, sigma, mu_star_conf, mu}}}`` (Morris)
@@ -410,10 +327,10 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
             ok_names = [outputs[j] for j in good_cols]
             Yg = Y[:, good_cols]
             if method == "morris":
-                summary[method], rows = _analyse_morris(problem, X[method], Yg, ok_names, stage.seed)
+                summary[method], rows = analyse_morris(problem, X[method], Yg, ok_names, stage.seed)
                 cols = ["metric", "parameter", "mu_star", "sigma", "mu_star_conf", "mu"]
             else:
-                summary[method], rows = _analyse_sobol(problem, Yg, ok_names, stage.seed)
+                summary[method], rows = analyse_sobol(problem, Yg, ok_names, stage.seed)
                 cols = ["metric", "parameter", "S1", "S1_conf", "ST", "ST_conf"]
             frames[method] = pd.DataFrame(rows, columns=cols)
             frames[method].to_csv(out / f"sensitivity_{method}.csv", index=False)
@@ -425,6 +342,8 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
         store.close()
     if hasattr(runner, "simulated"):
         runner.simulated += simulated + acc_sim
+    if hasattr(runner, "asked"):    # every sample point (repeated ones count again) and the reference runs
+        runner.asked += sum(len(keys[m]) for m in stage.methods) + acc_sim
 
     failed_list = [{"parameters": {n: float(r[n]) for n in names}, "message": _reason(r["message"], 1000)}
                    for r in list(failed_all.values())[:_MAX_FAILED_LISTED]]
@@ -462,122 +381,5 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
 
 
 # ---------------------------------------------------------------------------- figures
-def _tables(result: Mapping) -> tuple[dict, dict]:
-    """(summary, meta) from run_sensitivity's result or from its summary (e.g. summary.json)."""
-    summary = result.get("summary", result)
-    return summary, summary.get("meta", {})
 
 
-def _unit(meta: Mapping, metric: str) -> str:
-    u = meta.get("metrics", {}).get(metric, {}).get("unit", "")
-    return u or "–"
-
-
-def plot_sensitivity(result: Mapping, figdir: str | Path) -> list[Path]:
-    """``sensitivity_morris.png`` (μ* against σ per metric, points labelled with the parameter) and
-    ``sensitivity_sobol.png`` (S1 and ST per parameter per metric with their 95 % confidence
-    intervals) in ``figdir``. ``result`` is run_sensitivity's result or its summary."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    summary, meta = _tables(result)
-    figdir = Path(figdir)
-    figdir.mkdir(parents=True, exist_ok=True)
-    paths: list[Path] = []
-
-    def grid(n):
-        ncols = 2 if n > 1 else 1
-        return math.ceil(n / ncols), ncols
-
-    morris = summary.get("morris") or {}
-    if morris:
-        metrics = list(morris)
-        nr, nc = grid(len(metrics))
-        fig, axes = plt.subplots(nr, nc, figsize=(6.4 * nc, 4.6 * nr), squeeze=False)
-        for ax, metric in zip(axes.flat, metrics):
-            tab = morris[metric]
-            names = list(tab)
-            mu = np.array([tab[n]["mu_star"] or 0.0 for n in names])
-            sg = np.array([tab[n]["sigma"] or 0.0 for n in names])
-            ci = np.array([tab[n]["mu_star_conf"] or 0.0 for n in names])
-            ax.errorbar(mu, sg, xerr=ci, fmt="o", ms=5, color="C0", ecolor="0.6", elinewidth=1, capsize=2)
-            top = max(float(mu.max()), float(sg.max()), 1e-300)
-            ax.plot([0, top * 1.2], [0, top * 1.2], ls="--", lw=0.8, color="0.5", label="σ = μ*")
-            thresh = 0.03 * top
-            minor = []
-            for n, x, y in zip(names, mu, sg):
-                if x >= thresh or y >= thresh:
-                    ax.annotate(n, (x, y), xytext=(4, 4), textcoords="offset points", fontsize=8.5,
-                                color="C3")
-                else:
-                    minor.append(n)
-            u = _unit(meta, metric)
-            desc = meta.get("metrics", {}).get(metric, {}).get("description", "")
-            title = f"{metric}" + (f": {desc}" if desc else "")
-            if minor:
-                title += "\n" + textwrap.fill("< 3 % of the largest: " + ", ".join(minor), 95)
-            ax.set_title(title, fontsize=9)
-            ax.set_xlabel(f"μ* (mean |elementary effect|) [{u}]")
-            ax.set_ylabel(f"σ (std. of elementary effects) [{u}]")
-            ax.set_xlim(left=0, right=1.25 * top)      # same scale on both axes: σ/μ* is the slope
-            ax.set_ylim(bottom=0, top=1.25 * top)
-            ax.ticklabel_format(style="sci", scilimits=(-3, 3), axis="both")
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=7, loc="upper left")
-        for ax in axes.flat[len(metrics):]:
-            ax.set_visible(False)
-        levels = meta.get("morris_levels", MORRIS_LEVELS)
-        step = f"{levels / (2 * (levels - 1)):.3g}" if isinstance(levels, int) and levels > 1 else "Δ"
-        fig.suptitle(f"Morris screening ({meta.get('morris_trajectories', '?')} trajectories, {levels} levels): "
-                     f"change of the metric per step of {step} × the input's range (log10 range for "
-                     f"log-uniform inputs); bars: 95 % CI of μ*", fontsize=10)
-        fig.tight_layout(rect=(0, 0, 1, 0.97))
-        p = figdir / "sensitivity_morris.png"
-        fig.savefig(p, dpi=130)
-        plt.close(fig)
-        paths.append(p)
-
-    sobol = summary.get("sobol") or {}
-    if sobol:
-        metrics = list(sobol)
-        nr, nc = grid(len(metrics))
-        fig, axes = plt.subplots(nr, nc, figsize=(7.2 * nc, 3.6 * nr), squeeze=False)
-        for ax, metric in zip(axes.flat, metrics):
-            tab = sobol[metric]
-            names = list(tab)
-            xs = np.arange(len(names))
-
-            def col(k):
-                return np.array([tab[n][k] if tab[n][k] is not None else np.nan for n in names])
-            w = 0.38
-            ax.bar(xs - w / 2, col("S1"), w, yerr=col("S1_conf"), capsize=2, color="C0", label="S1 (first order)",
-                   error_kw={"elinewidth": 0.8})
-            ax.bar(xs + w / 2, col("ST"), w, yerr=col("ST_conf"), capsize=2, color="C1", label="ST (total)",
-                   error_kw={"elinewidth": 0.8})
-            ax.axhline(0, color="k", lw=0.6)
-            ax.set_xticks(xs)
-            ax.set_xticklabels(names, rotation=60, ha="right", fontsize=8)
-            n_force = sum(1 for n in names if n[:2] in ("c_", "d_"))
-            if 0 < n_force < len(names):   # force-element parameters | mass properties
-                ax.axvline(n_force - 0.5, color="0.6", lw=0.8, ls=":")
-            ax.set_ylabel("Sobol index [–] (share of variance)")
-            u = _unit(meta, metric)
-            desc = meta.get("metrics", {}).get(metric, {}).get("description", "")
-            ax.set_title(f"{metric} [{u}]" + (f": {desc}" if desc else ""), fontsize=9.5)
-            hi = np.nanmax(np.concatenate([col("ST") + np.nan_to_num(col("ST_conf")), [1.0]]))
-            lo = np.nanmin(np.concatenate([col("S1") - np.nan_to_num(col("S1_conf")), [0.0]]))
-            ax.set_ylim(max(lo - 0.05, -0.3), min(hi + 0.05, 1.5))
-            ax.grid(axis="y", alpha=0.3)
-            ax.legend(fontsize=7, loc="upper right")
-        for ax in axes.flat[len(metrics):]:
-            ax.set_visible(False)
-        samples = (summary.get("samples") or {}).get("sobol", "?")
-        fig.suptitle(f"Sobol indices (N = {meta.get('n', '?')}, {samples} runs, no second order; "
-                     f"bars: 95 % confidence intervals)", fontsize=10)
-        fig.tight_layout(rect=(0, 0, 1, 0.97))
-        p = figdir / "sensitivity_sobol.png"
-        fig.savefig(p, dpi=130)
-        plt.close(fig)
-        paths.append(p)
-    return paths

@@ -238,7 +238,7 @@ def roi_section(ctx: ReportContext, extra_rows: Sequence[Row] = (), rules: str |
         intro = "The region is given in the study file (`stages.roi.manual`).\n\n"
     else:
         rules = rules if rules is not None else quoted(roi_rules(reg.inner, reg.outer))
-        intro = "Our region is computed from the grid (`fmusa/roi.py`):\n\n" + rules + "\n\n"
+        intro = "Our region is computed from the grid (`fmusa/analysis/roi.py`):\n\n" + rules + "\n\n"
     return "### Region of interest\n\n" + intro + table(["region", *head, "notes"], rows) + "\n"
 
 
@@ -553,7 +553,7 @@ def _sensitivity_rows(summ: Mapping) -> list[Row]:
 
 def _sensitivity_figures(ctx: ReportContext, sens, summ) -> tuple[list[Path], str]:
     try:
-        from fmusa.pipeline.sensitivity import plot_sensitivity
+        from fmusa.report.sensitivity_figures import plot_sensitivity
         return list(plot_sensitivity(sens, ctx.figdir)), ""
     except Exception:  # noqa: BLE001 - older/other sensitivity results: our own bar charts
         try:
