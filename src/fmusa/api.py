@@ -9,6 +9,7 @@ import os
 import time
 from pathlib import Path
 
+from fmusa.files import OutputError
 from fmusa.applications import extensions_for, report_sections_for, study_blocks
 from fmusa.pipeline.sweep import SweepResult, run_study as run_stages, write_summary
 from fmusa.report import markdown
@@ -41,8 +42,12 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     t0 = time.perf_counter()
     result = run_stages(study, out, resume=resume, workers=workers, scheduler=scheduler, progress=progress,
                         extensions=extensions_for(study, report=figures))
-    if figures:
-        write_report(result)
+    if figures:     # runs.csv and summary.json are on disk already: a report that fails loses neither
+        try:
+            write_report(result)
+        except OutputError as exc:
+            raise OutputError(f"{exc}. runs.csv and summary.json in {result.out} are complete; rerun with "
+                              f"--resume once the folder is writable, or with --no-figures") from None
         result.summary["wall_s_with_report"] = time.perf_counter() - t0
         write_summary(result)
     return result

@@ -5,6 +5,7 @@ import os
 import shutil
 from pathlib import Path
 
+from fmusa.fmi.archive import extract_fmu
 from fmusa.fmi.info import (FMUCompileError, FMUError, FMUInfo, binary_problem, host_platform, read_fmu_info,
                             select_interface)
 
@@ -104,8 +105,6 @@ def prepare_fmu(fmu_path: str | os.PathLike, interface: str = "auto",
     """
     import tempfile
 
-    import fmpy
-
     fmu_path = Path(fmu_path)
     info = read_fmu_info(fmu_path)
     iface = select_interface(info, interface)
@@ -124,7 +123,7 @@ def prepare_fmu(fmu_path: str | os.PathLike, interface: str = "auto",
         if fmu_path.is_dir():
             shutil.copytree(fmu_path, tmp, dirs_exist_ok=True)
         else:
-            fmpy.extract(str(fmu_path), str(tmp))
+            extract_fmu(fmu_path, tmp)
         compile_sources(tmp, info, iface)
         shutil.rmtree(dest, ignore_errors=True)
         tmp.rename(dest)

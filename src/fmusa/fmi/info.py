@@ -4,7 +4,7 @@ from __future__ import annotations
 import difflib
 import os
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Iterable
 
 from fmusa.errors import FmusaError
@@ -90,15 +90,33 @@ def _an(word: str) -> str:
     return f"an {word}" if word[:1].lower() in "aeiou" else f"a {word}"
 
 
+def member_problem(name: str) -> str | None:
+    """Why a member name cannot be unpacked inside the extraction folder, or None."""
+    if "\\" in name:
+        return "contains a backslash (FMI requires forward slashes)"
+    if name.startswith("/") or (len(name) > 1 and name[1] == ":"):
+        return "is an absolute path"
+    if ".." in PurePosixPath(name).parts:
+        return "leads out of the archive's folder ('..')"
+    return None
+
+
 def _archive_names(path: Path) -> list[str]:
+    """The files of an FMU folder or archive; a member that would unpack outside its folder is refused
+    here, when the FMU is first read, not halfway through a study."""
     if path.is_dir():
         return [p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file()]
     import zipfile
     try:
         with zipfile.ZipFile(path) as zf:
-            return [n for n in zf.namelist() if not n.endswith("/")]
+            names = zf.namelist()
     except zipfile.BadZipFile:
         raise FMUError(f"{path}: not an FMU (not a ZIP archive)") from None
+    for n in names:
+        problem = member_problem(n)
+        if problem:
+            raise FMUError(f"{path}: member '{n}' {problem}; the archive is not a valid FMU (export it again)")
+    return [n for n in names if not n.endswith("/")]
 
 
 def _root_attributes(path: Path) -> dict[str, str]:

@@ -37,6 +37,7 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 from fmusa.errors import UsageError
+from fmusa.fmi.archive import extract_fmu
 from fmusa.fmi.build import compile_sources
 from fmusa.fmi.info import (SOLVERS, FMUError, FMUNotFoundError, FMURunError, Value, binary_problem,
                             default_fmu_path, read_fmu_info, select_interface)
@@ -93,8 +94,6 @@ class FMURunner:
                  debug_logging: Iterable[str] | None = None, *, interface: str = "auto",
                  solver: str | None = None, relative_tolerance: float | None = None,
                  step_size: float | None = None) -> None:
-        import fmpy
-
         self.fmu_path = Path(fmu_path) if fmu_path is not None else default_fmu_path()
         if not self.fmu_path.exists():
             raise FMUNotFoundError(f"FMU not found: {self.fmu_path}")
@@ -122,7 +121,7 @@ class FMURunner:
                 raise FMUError(f"{self.fmu_path}: {problem}")
         if self.fmu_path.is_file():
             self._owns_unzipdir = True
-            self.unzipdir = Path(fmpy.extract(str(self.fmu_path)))
+            self.unzipdir = extract_fmu(self.fmu_path)
         elif needs_build:   # never write into the user's directory: build in a copy
             import tempfile
             self._owns_unzipdir = True

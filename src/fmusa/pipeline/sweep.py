@@ -25,6 +25,7 @@ from fmusa.analysis.regression import fit_by_level
 from fmusa.analysis.roi import Region, automatic_region, manual_region
 from fmusa.runs.store import RunStore
 from fmusa.analysis.search import SearchResult, nested_binary_search
+from fmusa.files import writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
 from fmusa.pipeline.sampling_check import sampling_summary
@@ -124,8 +125,7 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     renders the result."""
 
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = writable_folder(out, "output folder (--out)")
     t0 = time.perf_counter()
     runner = StudyRunner(study, out, resume, workers, scheduler, progress)
     summary: dict[str, Any] = {"study": study.name, "study_file": str(study.path)}

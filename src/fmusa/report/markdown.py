@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
+from fmusa.files import writable_folder
 from fmusa.report import sections as S
 from fmusa.report.context import ReportContext, ReportSection, Section
 from fmusa.report.study_figures import figures_section
@@ -78,8 +79,7 @@ def write_report(result, sections: Sequence[ReportSection] = ()) -> Path:
     ``summary["figures"]`` (paths relative to ``<out>``); ``sections`` are an application's additions
     (see :func:`arrange_sections`). Returns the path of report.md."""
     out = Path(result.out)
-    figdir = out / "figures"
-    figdir.mkdir(parents=True, exist_ok=True)
+    figdir = writable_folder(out / "figures", "figures folder")
     ctx = ReportContext(result, figdir)
     parts = _render(ctx, arrange_sections(sections))
     path = out / "report.md"

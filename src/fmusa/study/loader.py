@@ -30,6 +30,8 @@ _Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 _NULL = "tag:yaml.org,2002:null"
+#: Most values a free-form block may expand to (aliases included); the paper's block has about 40.
+MAX_PLAIN_VALUES = 100_000
 
 
 def _line(node: Node) -> int:
@@ -61,6 +63,7 @@ class _Parser:
         self.label = label
         self._constructor = SafeConstructor()
         self.lines: dict[str, int] = {}   # study key -> line, for the checks against the FMU
+        self.plain_nodes = 0              # values built by plain(), bounded by MAX_PLAIN_VALUES
 
     def mark(self, key: str, node: Node) -> None:
         self.lines.setdefault(key, _line(node))
@@ -96,7 +99,13 @@ class _Parser:
         return f"{type(v).__name__} {v!r}"
 
     def plain(self, node: Node, where: str):
-        """Free-form value (the ``paper`` section): plain Python, duplicate keys rejected."""
+        """Free-form value (the ``paper`` section): plain Python, duplicate keys rejected. Counts the
+        values it builds, so that YAML aliases that expand exponentially (an alias bomb) stop early."""
+        self.plain_nodes += 1
+        if self.plain_nodes > MAX_PLAIN_VALUES:
+            raise self.error(node, f"'{where.split('.')[0] or where}' expands to more than {MAX_PLAIN_VALUES} "
+                                   f"values (YAML aliases that repeat each other?); write the block out "
+                                   f"without nested aliases")
         if isinstance(node, MappingNode):
             self.flatten(node)
             out: dict = {}
@@ -531,7 +540,36 @@ def _parse_grid(p: _Parser, m: _Map, where: str, parameters: Mapping) -> GridSta
     if exponents and base == 1.0:
         raise p.error(m.items["base"][1], f"{_key('base', where)} must not be 1 (every power would "
                                           f"be 1); e.g. base: 25")
+    _check_grid_size(p, m, where, base, exponents, values)
     return GridStage(base=base, exponents=exponents, values=values)
+
+
+#: Most points a grid may have: far beyond any study run on a few cores, and small enough that the
+#: grid itself (its points, runs.csv) is never what exhausts time or memory.
+MAX_GRID_POINTS = 1_000_000
+
+
+def _check_grid_size(p: _Parser, m: _Map, where: str, base: float | None, exponents: Mapping,
+                     values: Mapping) -> None:
+    """Every power of the base a finite double, and the whole grid at most MAX_GRID_POINTS points."""
+    total = 1
+    for name, (lo, hi) in exponents.items():
+        node = m.items["exponents"][1]
+        for k in (lo, hi):
+            try:
+                x = float(base) ** k
+            except OverflowError:
+                x = math.inf
+            if not math.isfinite(x) or x == 0.0:
+                raise p.error(node, f"{_key(name, where + '.exponents')}: {base:g}^{k} is not a finite, "
+                                    f"nonzero double; narrow the range of exponents [{lo}, {hi}]")
+        total *= hi - lo + 1
+    for vals in values.values():
+        total *= len(vals)
+    if total > MAX_GRID_POINTS:
+        raise p.error(m.owner, f"'{where}' has {total} points, more than {MAX_GRID_POINTS}; use fewer "
+                               f"exponents or values (a coarse grid, then the region of interest and the "
+                               f"search, is the method)")
 
 
 def _parse_roi(p: _Parser, m: _Map, where: str, parameters: Mapping) -> RoiStage:
@@ -951,12 +989,28 @@ def parse_study(text: str, path: str | os.PathLike = "<string>",
     return _parse(p, root, base_dir, study_path, blocks)
 
 
+#: Largest study file read: study files are a few kilobytes; this stops a wrong path (a device, a
+#: data file) from being read until memory runs out.
+MAX_STUDY_BYTES = 1_000_000
+
+
 def load_study(path: str | os.PathLike, blocks: Mapping[str, BlockValidator] | None = None) -> Study:
     """Load and validate the study file ``path``. Raises :class:`StudyError` (a ValueError)."""
+    file = Path(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise StudyError(f"{path}:1: study file not found; check the path") from None
+        if not file.is_file():
+            if not file.exists():
+                raise StudyError(f"{path}:1: study file not found; check the path")
+            raise StudyError(f"{path}:1: not a regular file (a folder or a device); give the study's YAML file")
+        with open(file, "rb") as f:
+            data = f.read(MAX_STUDY_BYTES + 1)
     except OSError as exc:
         raise StudyError(f"{path}:1: cannot read the study file: {exc.strerror}") from None
+    if len(data) > MAX_STUDY_BYTES:
+        raise StudyError(f"{path}:1: larger than {MAX_STUDY_BYTES} bytes, which no study file is; check that "
+                         f"this is the study's YAML file")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise StudyError(f"{path}:1: not UTF-8 text (byte {exc.start}); save the study file as UTF-8") from None
     return parse_study(text, path, blocks)
