@@ -89,6 +89,10 @@ def test_one_parameter_study_lands_on_the_closed_form(spring_fmu, tmp_path):
     # roi, rule 1 alone: the grid neighbours that bracket the smallest feasible grid d (32 > d* > 8)
     assert s["roi"] == {"d": [8.0, 32.0], "source": "automatic", "notes": []}
     assert set(s["optimum"]) == {"d"}
+    # the grid's own findings: feasible count and the smallest feasible grid d (the closed form decides)
+    grid_feasible = [x for x in GRID_D if x >= 2 * math.sqrt(C * M) or peak(x) <= 1.1 * F_MAX / C]
+    assert s["grid"]["feasible"] == len(grid_feasible) and s["grid"]["failed"] == 0
+    assert s["grid"]["best"]["d"] == min(grid_feasible) == 32.0
     d = s["optimum"]["d"]
     assert D_STAR <= d <= D_STAR * (1 + 1e-3), (d, D_STAR)            # the feasible side, within inner_rtol
     assert s["search"]["outer"] is None and len(s["search"]["levels"]) == 1

@@ -121,3 +121,16 @@ def manual_region(manual: Mapping[str, Sequence[float]], inner: str, outer: str 
     """The region given by hand (``stages.roi.manual``): parameter -> [lo, hi]."""
     outer_range = None if outer is None else tuple(map(float, manual[outer]))
     return Region(inner, outer, tuple(map(float, manual[inner])), outer_range, "manual")
+
+
+def grid_findings(grid: pd.DataFrame, axes: Sequence[str], metrics: Sequence[str]) -> dict:
+    """What the grid found, for summary.json: how many runs meet every constraint, how many failed, and the
+    feasible point with the smallest value of ``axes[0]`` (ties: of the next axis), the point a search for
+    the smallest feasible parameters refines (None when no run is feasible)."""
+    ok = grid[grid["status"] == "ok"] if "status" in grid else grid
+    feasible = ok[ok["feasible"].astype(bool)] if "feasible" in ok else ok
+    out: dict = {"feasible": int(len(feasible)), "failed": int(len(grid) - len(ok)), "best": None}
+    if len(feasible) and axes:
+        best = feasible.sort_values(list(axes)).iloc[0]
+        out["best"] = {**{a: float(best[a]) for a in axes}, **{m: float(best[m]) for m in metrics if m in best}}
+    return out

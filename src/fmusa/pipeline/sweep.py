@@ -22,7 +22,7 @@ from fmusa.fmi.info import FMUCompileError, default_fmu_path
 from fmusa.runs.spec import RunResult
 from fmusa.fmi.build import prepare_fmu
 from fmusa.analysis.regression import fit_by_level
-from fmusa.analysis.roi import Region, automatic_region, manual_region
+from fmusa.analysis.roi import grid_findings, Region, automatic_region, manual_region
 from fmusa.runs.store import RunStore
 from fmusa.analysis.search import SearchResult, nested_binary_search
 from fmusa.files import writable_folder
@@ -144,7 +144,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                 runner.evaluate(pts, "grid")
                 grid_df = runner.store.frame("grid")
                 summary["grid"] = {"points": len(pts), "axes": {k: [float(x) for x in v]
-                                                                for k, v in stage.points().items()}}
+                                                                for k, v in stage.points().items()},
+                                   **grid_findings(grid_df, _grid_axes(study), list(study.metrics))}
             elif name == "roi":
                 search_stage = study.stages.get("search")
                 if search_stage is None:
@@ -210,6 +211,13 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         runner.close()
     write_summary(result)
     return result
+
+
+def _grid_axes(study: Study) -> list[str]:
+    """The study parameters in the order a search refines them: its inner, its outer, then the rest."""
+    s = study.stages.get("search")
+    first = [n for n in (getattr(s, "inner", None), getattr(s, "outer", None)) if n]
+    return first + [n for n in study.parameters if n not in first]
 
 
 def write_summary(result: SweepResult) -> Path:
