@@ -16,6 +16,15 @@ FMU_SRC := $(wildcard fmu/*.c) $(wildcard fmu/*.h)
 FMI_HEADERS := fmi2Functions.h fmi2FunctionTypes.h fmi2TypesPlatform.h
 CC := gcc
 CFLAGS := -std=c99 -O3 -fPIC -shared -Wall -Wextra -fvisibility=hidden
+# win64: the same sources cross-compiled with Debian's gcc-mingw-w64-x86-64, where it is installed
+# (`MINGW_CC=` builds linux64 only). fmi2Functions.h exports the fmi2 functions with
+# __declspec(dllexport) under _WIN32; -static-libgcc keeps the DLL's imports to Windows system DLLs
+# (KERNEL32, msvcrt).
+FMU_DLL := $(FMU_BUILD)/binaries/win64/ScrewVertebra.dll
+MINGW_CC ?= x86_64-w64-mingw32-gcc
+MINGW_CFLAGS := -std=c99 -O3 -shared -Wall -Wextra -static-libgcc -s -Wl,--no-insert-timestamp
+HAVE_MINGW := $(if $(MINGW_CC),$(shell command -v $(MINGW_CC) 2>/dev/null))
+FMU_BINARIES := $(FMU_SO) $(if $(HAVE_MINGW),$(FMU_DLL))
 
 .PHONY: all fmu sweep test bench diagnose clean
 .DELETE_ON_ERROR:
@@ -49,7 +58,14 @@ $(FMU_SO): $(SRC_STAMP)
 	mkdir -p $(dir $@)
 	$(CC) $(CFLAGS) -I$(FMU_BUILD)/sources -o $@ $(addprefix $(FMU_BUILD)/sources/,$(notdir $(FMU_C))) -lm
 
-$(FMU): $(FMU_SO) $(FMU_BUILD)/modelDescription.xml
+$(FMU_DLL): $(SRC_STAMP)
+	mkdir -p $(dir $@)
+	$(MINGW_CC) $(MINGW_CFLAGS) -I$(FMU_BUILD)/sources -o $@ $(addprefix $(FMU_BUILD)/sources/,$(notdir $(FMU_C)))
+
+# Without the cross compiler the FMU carries linux64 only (and no win64 DLL left from an older build).
+$(FMU): $(FMU_BINARIES) $(FMU_BUILD)/modelDescription.xml
+	$(if $(HAVE_MINGW),,@echo "NOTE: no win64 binary in $@: $(if $(MINGW_CC),the cross compiler $(MINGW_CC) was not found (apt-get install gcc-mingw-w64-x86-64),MINGW_CC is empty)")
+	$(if $(HAVE_MINGW),,rm -rf $(FMU_BUILD)/binaries/win64)
 	mkdir -p $(dir $@)
 	rm -f $@
 	if command -v zip >/dev/null 2>&1; then \
