@@ -538,6 +538,8 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->atol = 1e-15;            /* SI units: 1e-15 m, rad, m/s, rad/s: far below anything the study reads */
     sv->h_max = V(h_max);
     sv->monitors = V(monitors) != 0.0;
+    sv->lin2 = (int)V(mode) == 1 && V(tab_n) < 2.0 && V(gap) == 0.0 && V(yield_ratio) == 1.0 &&
+               V(nl_ratio) == 1.0 && V(fric_F) == 0.0 && V(ve_k) == 0.0;
     sv->eps_v = V(eps_v_eq);
     sv->eps_a = V(eps_a_eq);
     sv->rhs = rhs;

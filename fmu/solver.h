@@ -29,6 +29,8 @@ typedef struct {
     double atol;                 /* absolute floor of the error scale: a state that starts at exactly 0 and
                                   * grows like t^k would otherwise demand a relative accuracy it cannot have */
     double h_max;                /* 0: none */
+    int lin2;                    /* the model declares the (ipos, ivel) block exactly linear with a load
+                                  * affine between breakpoints: such pieces are taken in one exact step */
     int monitors;                /* 0: no dense-output checks and no monitors (outputs at step ends only) */
     double eps_v, eps_a;         /* equilibrium thresholds */
     /* monitors */
