@@ -190,17 +190,36 @@ class FMUInfo:
         return self.has_sources and bool(self.source_files)
 
 
+#: read_fmu_info's answers for FMU files, keyed by (path, size, modification time): a study reads the same
+#: FMU several times (checks, preparation, runners), and parsing its description costs ~10 ms each time.
+_INFO_CACHE: dict[tuple, "FMUInfo"] = {}
+
+
 def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo:
     """Read what ``path`` (an ``.fmu`` file or an extracted FMU directory) declares and contains.
 
     Raises :class:`FMUError` when it is not an FMU, or (``require_fmi2``) not an FMI 2.0 FMU. fmpy's
-    schema validation problems do not stop the reading: they are kept in ``warnings``.
+    schema validation problems do not stop the reading: they are kept in ``warnings``. An FMU file read
+    before is not parsed again while its size and modification time are the same.
     """
-    import fmpy
-
     path = Path(path)
     if not path.exists():
         raise FMUNotFoundError(f"FMU not found: {path}")
+    key = None
+    if path.is_file():
+        st = path.stat()
+        key = (str(path.resolve()), st.st_size, st.st_mtime_ns, require_fmi2)
+        if key in _INFO_CACHE:
+            return _INFO_CACHE[key]
+    info = _read_fmu_info(path, require_fmi2)
+    if key is not None:
+        _INFO_CACHE[key] = info
+    return info
+
+
+def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
+    import fmpy
+
     names = _archive_names(path)
     attrs = _root_attributes(path)
     version = attrs.get("fmiVersion", "?")
