@@ -198,3 +198,54 @@ def test_figures_that_cannot_be_written_keep_runs_and_summary(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["runs"] == 2
     assert len((out / "runs.csv").read_text().strip().splitlines()) == 3
+
+
+# ----------------------------------------------------------------------------------------------- the run store
+def test_a_rerun_without_resume_keeps_the_earlier_runs(tmp_path):
+    study = parse_study(SMALL, tmp_path / "s.yaml")
+    out = tmp_path / "out"
+    run_study(study, out, figures=False, progress=False)
+    first = (out / "runs.csv").read_text()
+    study2 = parse_study(SMALL.replace("[4.0e5, 1.0e6]", "[5.0e5, 2.0e6, 3.0e6]"), tmp_path / "s.yaml")
+    run_study(study2, out, figures=False, progress=False)
+    assert (out / "runs.previous-1.csv").read_text() == first          # moved aside, not emptied
+    assert len((out / "runs.csv").read_text().strip().splitlines()) == 4
+    run_study(study, out, figures=False, progress=False)
+    assert (out / "runs.previous-2.csv").exists()
+
+
+def test_two_studies_cannot_write_the_same_runs_file(tmp_path):
+    from fmusa.runs.store import RunStore, StoreBusyError
+
+    study = tmp_path / "s.yaml"
+    study.write_text(SMALL)
+    out = tmp_path / "out"
+    holder = RunStore(out / "runs.csv", ["c"], ["max_y"])
+    try:
+        with pytest.raises(StoreBusyError, match=rf"runs.csv: another fmusa study \(pid {os.getpid()}\) is "
+                                                 r"writing to this folder; .* another --out"):
+            RunStore(out / "runs.csv", ["c"], ["max_y"])
+        r = fmusa_cli("sweep", str(study), "--out", str(out), "--quiet")
+        assert r.returncode == 2 and "Traceback" not in r.stderr
+        assert "is writing to this folder" in r.stderr
+    finally:
+        holder.close()
+    RunStore(out / "runs.csv", ["c"], ["max_y"], resume=True).close()     # free again once closed
+
+
+def test_an_fmu_whose_binary_does_not_load_fails_its_runs_with_the_cause(tmp_path):
+    bad = tmp_path / "Short.fmu"
+    with zipfile.ZipFile(default_fmu_path()) as zin, zipfile.ZipFile(bad, "w") as zout:
+        for info in zin.infolist():
+            data = zin.read(info.filename)
+            zout.writestr(info.filename, data[:100] if info.filename.endswith(".so") else data)
+    text = SMALL.replace("fmu: default", f"fmu: {bad}") + "  roi: {}\n  search: {inner: c}\n"
+    study = parse_study(text, tmp_path / "s.yaml")
+    with pytest.raises(StudyError, match=r"all 2 grid runs failed, so there is no region of interest; the first "
+                                         r"says: the FMU could not be loaded or instantiated: .*ScrewVertebra.so"):
+        run_study(study, tmp_path / "out", figures=False, progress=False)
+    import pandas as pd
+    runs = pd.read_csv(tmp_path / "out" / "runs.csv")
+    assert (runs["status"] == "failed").all() and len(runs) == 2
+    assert runs["message"].str.contains("could not be loaded or instantiated").all()
+    assert not runs["message"].str.contains("worker exited").any()

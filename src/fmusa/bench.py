@@ -10,9 +10,15 @@ With ``--sobol-runs`` (default 10000; 0 skips it) it also measures a Sobol study
 (studies/six_dof.yaml: its 16 sensitivity parameters, N chosen so that N·(k + 2) ≈ the run count, no
 second-order indices) run by :func:`fmusa.sensitivity.run_sensitivity` through the Evaluator's process
 pool on all cores, with its RunStore and the SALib analysis: ``sobol_runs``, ``sobol_wall_s``,
-``sobol_runs_per_s`` and ``sobol_peak_rss_mb`` (parent and largest worker, ``ru_maxrss``), the same for
+``sobol_runs_per_s`` and ``sobol_peak_rss_mb`` (parent: VmHWM, largest worker: ``ru_maxrss``), the same for
 ``--sobol-small-runs`` (2500) to show how memory scales with the number of runs (each in a fresh
 process, so that the peaks are its own), and ``sobol_profile``: where a run's time goes.
+
+With ``--pipeline-runs`` (default 40000; 0 skips it) it measures the pipeline's own cost on cheap runs (the
+6-DOF Sobol study with the screw at rest: FMU runs of ~0.02 ms): ``pipeline_overhead_ms_per_run`` (CPU per
+run around the FMU, worker and parent), ``pipeline_worker_python_ms_per_run``,
+``pipeline_parent_cpu_ms_per_run`` and ``pipeline_parent_rss_kb_per_run`` (peak RSS growth per run between
+studies of a quarter of the runs and all of them), with the load average at the time.
 """
 from __future__ import annotations
 
@@ -82,6 +88,140 @@ def _rel_diff(a: float, b: float) -> float:
     return 0.0 if scale == 0 else abs(a - b) / scale
 
 
+# ---------------------------------------------------------------------------- what one run cannot beat
+#: doStep over an interval so short that there is nothing to integrate: the cost of calling the FMU at all.
+FLOOR_STOP = 1e-9
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _load() -> float | None:
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+
+
+def bench_fmu_limits(fmu_path: Path, runs: int = 2000, warmup: int = 50) -> dict:
+    """The axial pullout against its floor, interleaved so that both see the same machine load:
+    ``fmu_run_ms_median`` of a whole run (reset, set, initialise, one doStep 0 -> 12 s, read the monitors)
+    against ``fmu_floor_ms``, the same call sequence with a doStep of ``FLOOR_STOP`` s; the doStep alone
+    (``axial_dostep_us_median``) against the floor's doStep (``floor_dostep_us_median``)."""
+    values = [PARAMS[k] for k in PARAMS]
+    run, floor, step, floor_step = [], [], [], []
+    load_before = _load()
+    with FMURunner(fmu_path) as fmu:
+        plans = {stop: RunPlan(fmu, list(PARAMS), {}, MONITORS, stop, None) for stop in (STOP_TIME, FLOOR_STOP)}
+        for _ in range(warmup):
+            for plan in plans.values():
+                plan(values)
+        for _ in range(runs):
+            for stop, acc in ((STOP_TIME, run), (FLOOR_STOP, floor)):
+                t0 = time.perf_counter()
+                plans[stop](values)
+                acc.append(time.perf_counter() - t0)
+        for _ in range(runs):
+            for stop, acc in ((STOP_TIME, step), (FLOOR_STOP, floor_step)):
+                plan = plans[stop]
+                plan.start(values)
+                s = plan.runner.instance
+                t0 = time.perf_counter()
+                s.fmi2DoStep(s.component, 0.0, stop, 1)
+                acc.append(time.perf_counter() - t0)
+                plan.read()
+                plan.runner.mark_done()
+    return {"fmu_run_ms_median_interleaved": statistics.median(run) * 1e3,
+            "fmu_floor_ms": statistics.median(floor) * 1e3,
+            "fmu_floor_stop_s": FLOOR_STOP,
+            "axial_dostep_us_median": statistics.median(step) * 1e6,
+            "floor_dostep_us_median": statistics.median(floor_step) * 1e6,
+            "limits_runs": runs,
+            "limits_loadavg_1min": [load_before, _load()]}
+
+
+def bench_closed_form_c(repeats: int = 400) -> dict:
+    """The axial pullout in C without fmpy (fmu/bench/closed_form.c, compiled here with the FMU's flags):
+    ``closed_form_us_median``, the closed-form solution (matrix exponential per load piece, extrema and
+    rest by root finding) of the paper's case, and ``model_c_run_us_median``, the FMU's model layer
+    (parameters, initialisation, one step to 12 s, outputs) called directly."""
+    import shutil
+
+    src, inc = REPO / "fmu" / "bench" / "closed_form.c", REPO / "build" / "fmu" / "sources"
+    if not (src.exists() and (inc / "variables.h").exists() and shutil.which("gcc")):
+        return {"closed_form_note": "not measured: needs gcc, fmu/bench/closed_form.c and `make fmu`"}
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-cf-") as tmp:
+        exe = Path(tmp) / "closed_form"
+        subprocess.run(["gcc", "-std=c99", "-O3", "-D_POSIX_C_SOURCE=199309L", f"-I{inc}", "-o", str(exe),
+                        str(src), str(REPO / "fmu" / "model.c"), "-lm"], check=True, capture_output=True)
+        load = _load()
+        proc = subprocess.run([str(exe), str(PARAMS["c_y"]), str(PARAMS["d_y"]), str(PARAMS["F_max"]),
+                               str(PARAMS["t_ramp"]), str(STOP_TIME), str(repeats)],
+                              check=True, capture_output=True, text=True)
+    res = json.loads(proc.stdout)
+    return {"closed_form_us_median": res["closed_form_us_median"], "closed_form_us_min": res["closed_form_us_min"],
+            "model_c_run_us_median": res["model_run_us_median"], "model_c_run_us_min": res["model_run_us_min"],
+            "closed_form_monitors": dict(zip(MONITORS, res["closed_form_monitors"])),
+            "closed_form_loadavg_1min": [load, _load()]}
+
+
+def bench_six_dof_runs(samples: int = 200, fmu_path: Path | None = None, seed: int = 1) -> dict:
+    """Whole runs (reset, set, initialise, one doStep, read) of the 6-DOF study at the Sobol samples of
+    :func:`profile_six_dof` (same seed, same points): ``six_dof_run_ms_median`` and the solver's internal
+    steps ``six_dof_steps_median``."""
+    import dataclasses
+
+    from fmpy.fmi2 import fmi2Integer, fmi2ValueReference
+
+    from fmusa.analysis.sensitivity import draw_samples, to_physical
+    from fmusa.pipeline.sensitivity import sensitivity_spec
+    from fmusa.runs.spec import plan_for
+
+    study, stage = _six_dof()
+    stage = dataclasses.replace(stage, seed=seed)
+    spec = sensitivity_spec(study, stage, fmu_path=fmu_path)
+    P = to_physical(stage, draw_samples(stage, "sobol", n=max(1, samples // (len(stage.parameters) + 2) + 1)))
+    P = P[:samples]
+    plan = plan_for(spec)
+    r = plan.runner
+    vr = (fmi2ValueReference * 1)(r.variables["n_steps"].valueReference)
+    val = (fmi2Integer * 1)()
+    plan(list(P[0]))
+    load_before = _load()
+    times, steps = [], []
+    for row in P:
+        t0 = time.perf_counter()
+        plan(list(row))
+        times.append(time.perf_counter() - t0)
+        r.instance.fmi2GetInteger(r.instance.component, vr, 1, val)
+        steps.append(val[0])
+    return {"six_dof_run_ms_median": statistics.median(times) * 1e3,
+            "six_dof_run_ms_mean": float(np.mean(times) * 1e3),
+            "six_dof_run_ms_p90": _percentile(times, 90) * 1e3,
+            "six_dof_steps_median": float(np.median(steps)),
+            "six_dof_steps_mean": float(np.mean(steps)),
+            "six_dof_samples": len(P),
+            "six_dof_loadavg_1min": [load_before, _load()]}
+
+
+def limits_note(res: dict) -> str:
+    """Each figure next to its limit, as a ratio."""
+    parts = []
+    if "fmu_floor_ms" in res:
+        parts.append(f"axial run {res['fmu_run_ms_median_interleaved']:.4f} ms = "
+                     f"{res['fmu_run_ms_median_interleaved'] / res['fmu_floor_ms']:.2f} x the floor "
+                     f"{res['fmu_floor_ms']:.4f} ms (target <= 1.5)")
+        parts.append(f"axial doStep {res['axial_dostep_us_median']:.2f} us = "
+                     f"{res['axial_dostep_us_median'] / res['floor_dostep_us_median']:.2f} x the floor's doStep "
+                     f"{res['floor_dostep_us_median']:.2f} us (target <= 20 us)")
+    if "closed_form_us_median" in res:
+        parts.append(f"in C: model run {res['model_c_run_us_median']:.2f} us = "
+                     f"{res['model_c_run_us_median'] / res['closed_form_us_median']:.2f} x the closed form "
+                     f"{res['closed_form_us_median']:.2f} us")
+    if "six_dof_run_ms_median" in res and "fmu_floor_ms" in res:
+        parts.append(f"6-DOF run {res['six_dof_run_ms_median']:.4f} ms = "
+                     f"{res['six_dof_run_ms_median'] / res['fmu_floor_ms']:.2f} x the floor "
+                     f"({res['six_dof_steps_median']:.0f} internal steps, median)")
+    if "paper_study_wall_s" in res:
+        parts.append(f"paper study {res['paper_study_wall_s']:.3f} s (target <= 0.1 s)")
+    return "; ".join(parts)
+
+
 # ---------------------------------------------------------------------------- Sobol study throughput
 SIX_DOF = Path(__file__).resolve().parents[2] / "studies" / "six_dof.yaml"
 #: What the Sobol study of the 6-DOF case should reach on this 2-core machine.
@@ -94,9 +234,31 @@ def _six_dof(study_path: Path | None = None):
     return study, study.stages["sensitivity"]
 
 
-def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str | None = None) -> dict:
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory: VmHWM, which execve resets (``ru_maxrss`` keeps the peak of
+    the process that started this one, e.g. the whole benchmark's)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def cheap_six_dof(study):
+    """The 6-DOF study with the screw at rest (no pull, no lateral load): the same 16 parameters, 7
+    metrics, RunStore and pool, but an FMU run of ~0.02 ms, so the pipeline's own cost shows."""
+    import dataclasses
+    return dataclasses.replace(study, fixed={**study.fixed, "F_max": 0.0},
+                               scenario=dataclasses.replace(study.scenario, inputs={}))
+
+
+def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str | None = None,
+                cheap: bool = False) -> dict:
     """One Sobol study of about ``runs`` runs, in THIS process (call it in a fresh one): wall time,
-    throughput and peak resident memory of this process and of its largest worker."""
+    throughput and peak resident memory of this process and of its largest worker. ``cheap``: the screw
+    at rest (:func:`cheap_six_dof`), to measure the pipeline rather than the FMU."""
     import dataclasses
     from types import SimpleNamespace
 
@@ -105,11 +267,15 @@ def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str
     study, stage = _six_dof(Path(study_path) if study_path else None)
     if fmu:
         study = dataclasses.replace(study, fmu=Path(fmu))
+    if cheap:
+        study = cheap_six_dof(study)
     k = len(stage.parameters)
     n = max(1, round(runs / (k + 2)))
     stage = dataclasses.replace(stage, methods=["sobol"], n=n)
     runner = SimpleNamespace(evaluator=SimpleNamespace(workers=workers, scheduler=None), simulated=0)
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    import SALib.analyze.sobol  # noqa: F401 - imported before the clocks start: a one-off cost, not per run
+    import SALib.sample.sobol  # noqa: F401
+    rss_before = _peak_rss_mb()
     load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     _r = resource.getrusage(resource.RUSAGE_SELF)
     cpu_before = _r.ru_utime + _r.ru_stime
@@ -117,6 +283,7 @@ def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str
         t0 = time.perf_counter()
         res = run_sensitivity(study, stage, Path(tmp), runner, progress=False, resume=False, accuracy_samples=0)
         wall = time.perf_counter() - t0
+        rss_study = _peak_rss_mb()         # the study's peak, before the benchmark reads runs.csv back
         import pandas as pd
         secs = pd.read_csv(Path(tmp) / "sensitivity_runs.csv", usecols=["seconds"])["seconds"].to_numpy()
     s = res["summary"]
@@ -128,7 +295,7 @@ def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str
         "runs": int(s["runs"]), "n": n, "k": k, "workers": workers, "failed": int(s["failed"]),
         "wall_s": ev, "wall_s_with_analysis": wall, "runs_per_s": s["runs"] / ev,
         "peak_rss_mb": {
-            "parent": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "parent": rss_study,
             "parent_before_study": rss_before,
             "largest_worker": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
         },
@@ -146,11 +313,11 @@ def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str
     }
 
 
-def bench_sobol(runs: int, workers: int, fmu_path: Path | None = None) -> dict:
+def bench_sobol(runs: int, workers: int, fmu_path: Path | None = None, cheap: bool = False) -> dict:
     """:func:`sobol_child` in a fresh interpreter, so that ru_maxrss is this study's own peak."""
     code = ("import json, sys; from fmusa.bench import sobol_child; "
             f"print('@@' + json.dumps(sobol_child({int(runs)}, {int(workers)}, None, "
-            f"{str(fmu_path) if fmu_path else None!r})))")
+            f"{str(fmu_path) if fmu_path else None!r}, {bool(cheap)!r})))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"Sobol benchmark ({runs} runs) failed:\n{proc.stderr[-4000:]}")
@@ -168,7 +335,7 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
 
     from fmpy.fmi2 import fmi2Integer, fmi2ValueReference
 
-    from fmusa.runs.spec import plan_for, run_chunk
+    from fmusa.runs.spec import plan_for, run_batch
     from fmusa.analysis.sensitivity import draw_samples, to_physical
     from fmusa.pipeline.sensitivity import sensitivity_spec
 
@@ -202,13 +369,12 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
         t_step.append(t2 - t1)
         t_read.append(t3 - t2)
         r.mark_done()
-        # 2) the same run as a worker does it (run_chunk: RunPlan, metrics, RunResult), right after
-        t0, c0 = time.perf_counter(), time.process_time()
-        res = run_chunk(spec, [(j, tuple(map(float, row)))])
-        t_full.append(time.perf_counter() - t0)
-        cpu_full.append(time.process_time() - c0)
-        if res[0].status != "ok":
-            failed.append(res[0].message[:300])
+    # 2) the same runs as a worker does them (run_batch: RunPlan, metrics reduced over the batch)
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = run_batch(spec, np.arange(len(P)), P)
+    t_full.append((time.perf_counter() - t0) / len(P))
+    cpu_full.append((time.process_time() - c0) / len(P))
+    failed.extend(m[:300] for m in res.messages.values())
     steps = np.asarray(steps, dtype=float)
     step_s = np.asarray(t_step)
     full = float(np.mean(t_full))
@@ -227,8 +393,9 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
         "fmu_dostep_cpu_ms": float(np.mean(cpu_step) * 1e3),
         "fmu_read_ms": float(np.mean(t_read) * 1e3),
         "python_overhead_ms": (full - fmu_parts) * 1e3,
-        "python_overhead_note": ("run_chunk of one run minus the same run's FMU calls timed by hand just "
-                                 "before (reset/set/initialise + doStep + read): RunPlan, metrics, RunResult"),
+        "python_overhead_note": ("run_batch of the samples per run minus the same runs' FMU calls timed by "
+                                 "hand (reset/set/initialise + doStep + read): RunPlan, metrics; noisy with "
+                                 "runs of this length, see pipeline_worker_python_ms_per_run (cheap runs)"),
         "fmu_integration_share": float(np.mean(step_s) / full) if full > 0 else None,
         "solver_steps_mean": float(steps.mean()),
         "solver_steps_median": float(np.median(steps)),
@@ -238,6 +405,68 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
         "ceiling_runs_per_s_all_cores_fmu_only": cores / float(np.mean(step_s)),
         "ceiling_runs_per_s_all_cores_without_integration": cores / max(full - float(np.mean(step_s)), 1e-9),
         "loadavg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+    }
+
+
+def profile_pipeline(samples: int = 4000, fmu_path: Path | None = None, repeats: int = 3) -> dict:
+    """The worker's Python per run on cheap runs (:func:`cheap_six_dof`), in this process: ``run_batch``
+    of ``samples`` Sobol points per run minus the same runs' FMU calls timed by hand (reset, parameters,
+    initialisation, doStep, read through fmpy); the best of ``repeats`` of each, as the machine is shared."""
+    from fmusa.runs.spec import plan_for, run_batch
+    from fmusa.analysis.sensitivity import draw_samples, to_physical
+    from fmusa.pipeline.sensitivity import sensitivity_spec
+
+    study, stage = _six_dof()
+    spec = sensitivity_spec(cheap_six_dof(study), stage, fmu_path=fmu_path)
+    P = to_physical(stage, draw_samples(stage, "sobol", n=samples // (len(stage.parameters) + 2) + 1))[:samples]
+    plan = plan_for(spec)
+    rows = P.tolist()
+    plan(rows[0])
+    ids = np.arange(len(P))
+    t_fmu, t_batch = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for row in rows:
+            plan.start(row)
+            s = plan.runner.instance
+            s.fmi2DoStep(s.component, 0.0, plan.stop_time, 1)
+            plan.read()
+            plan.runner.mark_done()
+        t_fmu.append((time.perf_counter() - t0) / len(P))
+        t0 = time.perf_counter()
+        b = run_batch(spec, ids, P)
+        t_batch.append((time.perf_counter() - t0) / len(P))
+    fmu, batch = min(t_fmu), min(t_batch)
+    return {"samples": len(P), "failed": int((~b.ok).sum()), "fmu_ms_per_run": fmu * 1e3,
+            "run_batch_ms_per_run": batch * 1e3, "worker_python_ms_per_run": (batch - fmu) * 1e3,
+            "loadavg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+
+
+def bench_pipeline(workers: int, runs: int = 40000, small_runs: int = 10000, fmu_path: Path | None = None) -> dict:
+    """What the pipeline itself costs per run, on cheap runs (the 6-DOF study with the screw at rest,
+    :func:`cheap_six_dof`: the same 16 parameters, 7 metrics, pool, RunStore and SALib analysis, an FMU run
+    of ~0.02 ms): the worker's Python (:func:`profile_pipeline`), the worker's and the parent's CPU time per
+    run of a pooled Sobol study of ``runs`` runs (``pipeline_overhead_ms_per_run``: both, without the FMU's
+    own calls), and the parent's peak RSS growth per run between studies of ``small_runs`` and ``runs``."""
+    prof = profile_pipeline(fmu_path=fmu_path)
+    big = bench_sobol(runs, workers, fmu_path, cheap=True)
+    small = bench_sobol(small_runs, workers, fmu_path, cheap=True)
+    fmu = prof["fmu_ms_per_run"]
+    worker = big["worker_cpu_ms_per_run"] - fmu
+    rss = ((big["peak_rss_mb"]["parent"] - small["peak_rss_mb"]["parent"]) * 1024
+           / max(1, big["runs"] - small["runs"]))
+    return {
+        "pipeline_overhead_ms_per_run": worker + big["parent_cpu_ms_per_run"],
+        "pipeline_worker_python_ms_per_run": prof["worker_python_ms_per_run"],
+        "pipeline_worker_cpu_ms_per_run_without_fmu": worker,
+        "pipeline_parent_cpu_ms_per_run": big["parent_cpu_ms_per_run"],
+        "pipeline_parent_rss_kb_per_run": rss,
+        "pipeline_runs_per_s_cheap": big["runs_per_s"],
+        "pipeline_loadavg_1min": [prof["loadavg_1min"], big["loadavg_1min_before"], big["loadavg_1min_after"],
+                                  small["loadavg_1min_before"], small["loadavg_1min_after"]],
+        "pipeline_detail": {"profile": prof, "pooled": big, "pooled_small": small,
+                            "note": "CPU times per run; overhead = worker CPU - the FMU's calls + parent CPU "
+                                    "(store, pool, sampling, SALib analysis); FMU run ~0.02 ms"},
     }
 
 
@@ -343,6 +572,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="runs of the 6-DOF Sobol study (N·(k+2) ≈ this; 0 skips the Sobol measurements)")
     ap.add_argument("--sobol-small-runs", type=int, default=2500,
                     help="runs of the second, smaller Sobol study (memory against run count; 0 skips it)")
+    ap.add_argument("--pipeline-runs", type=int, default=40000,
+                    help="runs of the cheap Sobol study that measures the pipeline's own cost (0 skips it)")
     ap.add_argument("--workers", type=int, default=None, help="pool workers (default: all cores)")
     ap.add_argument("--no-diagnose", dest="diagnose", action="store_false",
                     help="skip the timings of `fmusa diagnose`")
@@ -383,11 +614,27 @@ def main(argv: list[str] | None = None) -> int:
     }
 
     result.update(bench_paper_study())
+    result.update(bench_fmu_limits(fmu_path))
+    result.update(bench_closed_form_c())
+    result.update(bench_six_dof_runs(fmu_path=args.fmu))
+    result["limits_note"] = limits_note(result)
+    print("limits: " + result["limits_note"])
     if args.diagnose:
         result.update(bench_diagnose(fmu_path, args.workers))
         print(f"diagnose: one driven run {result['diagnose_run_ms_displacement_baseline']:.2f} ms (baseline, "
               f"300 samples), {result['diagnose_run_ms_force_friction']:.2f} ms (force drive, friction); a "
               f"real unit, 6 candidates: {result['diagnose_shear_unit_wall_s']:.1f} s")
+
+    pipe = None
+    if args.pipeline_runs > 0:
+        workers = args.workers or os.cpu_count() or 1
+        pipe = bench_pipeline(workers, args.pipeline_runs, max(1, args.pipeline_runs // 4), args.fmu)
+        result.update(pipe)
+        print(f"pipeline (cheap runs): {pipe['pipeline_overhead_ms_per_run']:.3f} ms CPU per run around the FMU "
+              f"(worker Python {pipe['pipeline_worker_python_ms_per_run']:.3f} ms, parent "
+              f"{pipe['pipeline_parent_cpu_ms_per_run']:.3f} ms), {pipe['pipeline_runs_per_s_cheap']:.0f} runs/s, "
+              f"parent RSS {pipe['pipeline_parent_rss_kb_per_run']:.2f} KB per run; load "
+              f"{pipe['pipeline_loadavg_1min']}")
 
     if args.sobol_runs > 0:
         workers = args.workers or os.cpu_count() or 1
@@ -425,14 +672,22 @@ def main(argv: list[str] | None = None) -> int:
             prof["pooled_worker_ms_per_run_mean"] = big["worker_s_per_run"]["mean_ms"]
             prof["pooled_overhead_ms_per_run"] = (big["wall_s"] * workers / big["runs"] * 1e3
                                                   - big["worker_s_per_run"]["mean_ms"])
+            # where each millisecond goes, per run: the FMU's integration, the worker's Python (on cheap
+            # runs, where it is not lost in the FMU's spread), the parent (CPU: store, pool, analysis)
+            prof["worker_python_ms_per_run"] = (pipe["pipeline_worker_python_ms_per_run"] if pipe
+                                                else prof["python_overhead_ms"])
+            prof["parent_cpu_ms_per_run"] = big["parent_cpu_ms_per_run"]
+            prof["worker_cpu_ms_per_run"] = big["worker_cpu_ms_per_run"]
+            prof["loadavg_1min_study"] = [big["loadavg_1min_before"], big["loadavg_1min_after"]]
             prof["why"] = (f"target {SOBOL_TARGET_RUNS_PER_S:.0f} runs/s on {workers} cores needs "
                            f"<= {workers / SOBOL_TARGET_RUNS_PER_S * 1e3:.2f} ms per run; the FMU's integration "
                            f"(one doStep) alone takes {prof['fmu_dostep_ms']:.2f} ms per run on average "
                            f"({prof['solver_steps_mean']:.0f} internal solver steps at "
                            f"{prof['solver_us_per_step']:.0f} us each); reset, parameters, initialisation "
                            f"and reading {prof['fmu_setup_ms'] + prof['fmu_read_ms']:.3f} ms, Python around the "
-                           f"FMU in the worker {prof['python_overhead_ms']:.3f} ms, pool and parent "
-                           f"{max(0.0, prof['pooled_overhead_ms_per_run']):.2f} ms per run")
+                           f"FMU in the worker {prof['worker_python_ms_per_run']:.3f} ms, the parent "
+                           f"{prof['parent_cpu_ms_per_run']:.3f} ms CPU per run (pool wall time not spent in "
+                           f"runs: {max(0.0, prof['pooled_overhead_ms_per_run']):.2f} ms per run)")
             result["sobol_profile"] = prof
             print("Sobol target missed: " + prof["why"])
 

@@ -136,7 +136,6 @@ class RunPlan:
             return self._call_me(values)
         r.ready()
         s = r.instance
-        params = dict(zip(self.varied, values))
         data = np.empty((len(self.times), len(self.outputs)))
         t = 0.0
         try:
@@ -150,9 +149,10 @@ class RunPlan:
                 t = t_next
                 data[k] = self._read()
         except Exception as exc:
-            raise r.fail(exc, {**self.fixed, **params}) from exc
+            raise r.fail(exc, {**self.fixed, **dict(zip(self.varied, values))}) from exc
         r.mark_done()
-        if not np.all(np.isfinite(data[-1])):
+        if not np.isfinite(data[-1]).all():
+            params = dict(zip(self.varied, values))
             bad = [n for n, x in zip(self.outputs, data[-1]) if not math.isfinite(x)]
             raise r.reject(f"non-finite output {', '.join(bad)} at t = {t:.10g} s; parameters {params}")
         return data

@@ -22,7 +22,8 @@ are :mod:`fmusa.analysis.sensitivity`, the figures :mod:`fmusa.report.sensitivit
    in ``out/sensitivity_accuracy.csv``, resumed the same way) and the largest differences of every
    metric are reported.
 
-Only metric arrays are kept (no time series): memory is one small row per run.
+Only metric arrays are kept (no time series): memory is one small row per run. Workers get the samples in
+chunks and send back one RunBatch (arrays) per chunk; the store keeps arrays and writes runs.csv in blocks.
 
 Example::
 
@@ -42,7 +43,7 @@ import numpy as np
 import pandas as pd
 
 from fmusa.runs.evaluator import Evaluator
-from fmusa.runs.spec import PlanSpec, RunResult
+from fmusa.runs.spec import PlanSpec
 from fmusa.fmi.info import default_fmu_path
 from fmusa.runs.store import RunStore
 from fmusa.runs.progress import progress_bar
@@ -104,48 +105,79 @@ def _evaluator(spec: PlanSpec, runner, study, **overrides) -> Evaluator:
 
 
 # ---------------------------------------------------------------------------- evaluation
-def _keys(P: np.ndarray) -> list[tuple[float, ...]]:
-    return [RunStore.key(row) for row in P.tolist()]
+def _keys(P: np.ndarray) -> np.ndarray:
+    """The samples' parameter values as the store keys them: a float array, one row per sample."""
+    return np.ascontiguousarray(P, dtype=float)
 
 
-def evaluate_keys(store: RunStore, evaluator: Evaluator, keys: Sequence[tuple[float, ...]], stage_label: str,
-                  progress=None) -> int:
-    """Simulate the keys the store does not have (each distinct key once); returns how many ran."""
-    todo: dict[tuple, int] = {}
-    for k in keys:
-        if k not in todo and store.get(k) is None:
-            todo[k] = store.new_id()
-    if not todo:
+def _distinct(P: np.ndarray) -> np.ndarray:
+    """Indices of the first occurrence of every distinct row of ``P`` (as the store keys rows: -0.0 is
+    0.0), in order. Rows whose 64-bit hashes all differ are distinct; only otherwise are they compared."""
+    P = np.asarray(P, dtype=float)
+    n = len(P)
+    if not n:
+        return np.empty(0, dtype=np.int64)
+    mix = np.random.default_rng(1).integers(1, 2**63, size=P.shape[1], dtype=np.uint64) | np.uint64(1)
+    h = np.empty(n, dtype=np.uint64)
+    for a in range(0, n, 4096):                 # a slice at a time: no second copy of the samples
+        x = ((P[a:a + 4096] + 0.0).view(np.uint64) * mix).sum(axis=1, dtype=np.uint64)
+        x ^= x >> np.uint64(31)
+        x *= np.uint64(0x9E3779B97F4A7C15)
+        h[a:a + 4096] = x ^ (x >> np.uint64(29))
+    if len(np.unique(h)) == n:
+        return np.arange(n)
+    Q = np.ascontiguousarray(P) + 0.0
+    _, first = np.unique(Q.view(np.dtype((np.void, Q.dtype.itemsize * Q.shape[1]))).ravel(), return_index=True)
+    return np.sort(first)
+
+
+def _first_rows(rows: np.ndarray) -> np.ndarray:
+    """Indices of the first occurrence of every distinct stored row in ``rows`` (store rows, -1 for none;
+    the store keys a parameter set to one row), in order."""
+    rows = np.asarray(rows)
+    _, first = np.unique(rows, return_index=True)
+    first = np.sort(first)
+    return first[rows[first] >= 0]
+
+
+def evaluate_keys(store: RunStore, evaluator: Evaluator, keys, stage_label: str, progress=None) -> int:
+    """Simulate the keys (parameter sets, one per row) the store does not have, each distinct key once;
+    the results go to the store in blocks as they arrive. Returns how many ran."""
+    P = np.asarray(keys, dtype=float).reshape(len(keys), len(store.params))
+    missing = np.flatnonzero(store.rows_of(P) < 0)
+    if not len(missing):
         return 0
-    items = [(rid, k) for k, rid in todo.items()]
-
-    def keep(r: RunResult) -> None:
-        store.add(r.run_id, stage_label, r.values, r.metrics, r.status, r.message, r.seconds)
+    todo = P if len(missing) == len(P) else P[missing]
+    distinct = _distinct(todo)
+    if len(distinct) < len(todo):
+        todo = todo[distinct]
+    ids = store.new_ids(len(todo))
+    store.reserve(len(todo))
 
     bar = None
     if progress:
-        bar = progress_bar(len(items), f"sensitivity ({stage_label})", True)
+        bar = progress_bar(len(todo), f"sensitivity ({stage_label})", True)
     try:
-        evaluator.map(items, on_result=keep, progress=bar)
+        evaluator.map_batches((ids, todo), lambda b: store.add_batch(stage_label, b), progress=bar)
     finally:
         if bar is not None:
             bar.close()
-    return len(items)
+    return len(todo)
 
 
-def _collect(store: RunStore, keys: Sequence[tuple], metrics: Sequence[str]) -> tuple[np.ndarray, list[dict]]:
+def _collect(store: RunStore, keys, metrics: Sequence[str]) -> tuple[np.ndarray, list[dict]]:
     """Metric matrix (samples × metrics; NaN where a run failed) and the failed rows."""
-    Y = np.full((len(keys), len(metrics)), np.nan)
-    failed: dict[tuple, dict] = {}
-    for i, k in enumerate(keys):
-        row = store.get(k)
-        if row is None:  # pragma: no cover - evaluate_keys ran every key
-            raise RuntimeError(f"sample {k} was not evaluated")
-        if row["status"] != "ok":
-            failed.setdefault(k, row)
-            continue
-        Y[i] = [float(row[m]) for m in metrics]
-    return Y, list(failed.values())
+    P = np.asarray(keys, dtype=float).reshape(len(keys), len(store.params))
+    rows = store.rows_of(P)
+    if (rows < 0).any():  # pragma: no cover - evaluate_keys ran every key
+        raise RuntimeError(f"sample {tuple(P[np.flatnonzero(rows < 0)[0]])} was not evaluated")
+    cols = [store.metrics.index(m) for m in metrics]
+    Y = store.metric_matrix(rows)[:, cols]
+    ok = store.ok(rows)
+    Y[~ok] = np.nan
+    bad = np.flatnonzero(~ok)
+    failed_rows = list(dict.fromkeys(rows[bad].tolist()))
+    return Y, [store.record(r) for r in failed_rows]
 
 
 def _resume_flag(runner, resume: bool | None) -> bool:
@@ -188,14 +220,17 @@ def accuracy_check(study, stage, spec: PlanSpec, store: RunStore, keys: Sequence
     The tolerance is the FMU parameter ``rtol`` when the study fixes it (our FMU), and the experiment
     tolerance (``fmi2SetupExperiment``, or the model exchange solver's) in any case; our FMU takes the
     smaller of the two."""
-    ok_keys = [k for k in dict.fromkeys(keys) if (store.get(k) or {}).get("status") == "ok"]
+    P = np.asarray(keys, dtype=float).reshape(len(keys), len(store.params))
+    rows = store.rows_of(P)
+    first = _first_rows(rows)
+    ok_keys = first[store.ok(rows[first])]          # indices in P of the distinct samples that worked
     study_rtol = dict(study.fixed).get("rtol")
     exp_tol = getattr(spec, "relative_tolerance", None)
     report: dict[str, Any] = {"reference_rtol": reference_rtol,
                               "study_rtol": float(study_rtol) if study_rtol is not None else None,
                               "study_experiment_tolerance": exp_tol,
                               "samples": 0}
-    if not ok_keys or samples <= 0:
+    if not len(ok_keys) or samples <= 0:
         report["note"] = "no successful sample to check"
         return report, 0
     if any(p.variable == "rtol" for p in stage.parameters.values()):
@@ -203,7 +238,7 @@ def accuracy_check(study, stage, spec: PlanSpec, store: RunStore, keys: Sequence
         return report, 0
     rng = np.random.default_rng(stage.seed)
     pick = sorted(rng.choice(len(ok_keys), size=min(samples, len(ok_keys)), replace=False).tolist())
-    chosen = [ok_keys[i] for i in pick]
+    chosen = [RunStore.key(P[ok_keys[i]]) for i in pick]
     override = {"rtol": reference_rtol} if study_rtol is not None else {}
     changes = {}
     if "relative_tolerance" in PlanSpec.__dataclass_fields__:
@@ -283,8 +318,11 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
     X: dict[str, np.ndarray] = {}
     keys: dict[str, list[tuple]] = {}
     for method in stage.methods:
-        X[method] = draw_samples(stage, method, problem)
-        keys[method] = _keys(to_physical(stage, X[method]))
+        sample = draw_samples(stage, method, problem)
+        keys[method] = _keys(to_physical(stage, sample))
+        if method == "morris":      # the Sobol analysis needs the outputs only: no second copy of its sample
+            X[method] = sample
+        del sample
 
     store = RunStore(out / RUNS_FILE, names, metrics, resume=resume)
     simulated = 0
@@ -310,7 +348,7 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
             for j in range(len(outputs)):
                 if bad[:, j].any():
                     rows = np.flatnonzero(bad[:, j])
-                    distinct = list(dict.fromkeys(keys[method][i] for i in rows))
+                    distinct = list(dict.fromkeys(RunStore.key(keys[method][i]) for i in rows))
                     shown = []
                     for k in distinct[:_SHOW]:
                         rec = store.get(k)
@@ -335,7 +373,11 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
             frames[method] = pd.DataFrame(rows, columns=cols)
             frames[method].to_csv(out / f"sensitivity_{method}.csv", index=False)
 
-        all_keys = list(dict.fromkeys(k for m in stage.methods for k in keys[m]))
+        all_keys = keys[stage.methods[0]] if len(stage.methods) == 1 else np.concatenate(
+            [keys[m] for m in stage.methods])
+        first = _first_rows(store.rows_of(all_keys))
+        if len(first) < len(all_keys):
+            all_keys = all_keys[first]
         acc, acc_sim = accuracy_check(study, stage, spec, store, all_keys, out, metrics, runner, resume,
                                       samples=accuracy_samples)
     finally:

@@ -19,7 +19,6 @@ import pandas as pd
 
 from fmusa.runs.evaluator import Evaluator
 from fmusa.fmi.info import FMUCompileError, default_fmu_path
-from fmusa.runs.spec import RunResult
 from fmusa.fmi.build import prepare_fmu
 from fmusa.analysis.regression import fit_by_level
 from fmusa.analysis.roi import grid_findings, Region, automatic_region, manual_region
@@ -100,11 +99,8 @@ class StudyRunner:
         if todo:
             bar = progress_bar(len(todo), stage, self.progress)
             items = [(rid, k) for k, rid in todo.items()]
-
-            def keep(r: RunResult) -> None:
-                self.store.add(r.run_id, stage, r.values, r.metrics, r.status, r.message, r.seconds)
-
-            self.evaluator.map(items, on_result=keep, progress=bar)
+            # results arrive as blocks (arrays) and go to runs.csv as one write each
+            self.evaluator.map_batches(items, lambda batch: self.store.add_batch(stage, batch), progress=bar)
             self.simulated += len(items)
             if bar is not None:
                 bar.close()
@@ -159,6 +155,10 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                                          f"before stages.roi (or give roi.manual)")
                     # the grid runs where the search will run: the other parameters at their defaults
                     at = {k: v for k, v in runner.defaults.items() if k not in (inner, outer)}
+                    if len(grid_df) and (grid_df["status"] != "ok").all():
+                        raise StudyError(f"{study.path}: all {len(grid_df)} grid runs failed, so there is no "
+                                         f"region of interest; the first says: {grid_df['message'].iloc[0]} "
+                                         f"(every run's reason is in runs.csv, column message)")
                     result.region = automatic_region(grid_df, inner, outer, at)
                 summary["roi"] = result.region.as_dict()
             elif name == "search":

@@ -5,7 +5,7 @@ mean, … of the sampled output) and maps it to study units. Pure numpy: no FMU 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -77,6 +77,33 @@ def reduce_series(t: np.ndarray, values: np.ndarray, rules: Sequence[MetricRule]
         if r.missing_below is not None and v < r.missing_below:
             v = float("nan")
         out[k] = r.scale * v + r.offset
+    return out
+
+
+def reduce_batch(t: np.ndarray, data: np.ndarray, rules: Sequence[MetricRule]) -> np.ndarray:
+    """:func:`reduce_series` of many runs sampled at the same times ``t``: ``data`` has one block per run
+    (runs × samples × outputs); one row of metrics per run. The order-free reductions (final, max, min,
+    max_abs) and the mapping to study units are done with numpy over the batch, the others run by run, so
+    every value equals :func:`reduce_series`'s bit for bit."""
+    data = np.asarray(data, dtype=float)
+    n = data.shape[0]
+    out = np.empty((n, len(rules)))
+    for k, r in enumerate(rules):
+        x = data[:, :, r.column]
+        if r.reduce == "final":
+            v = x[:, -1].copy()
+        elif r.reduce == "max":
+            v = np.max(x, axis=1)
+        elif r.reduce == "min":
+            v = np.min(x, axis=1)
+        elif r.reduce == "max_abs":
+            v = np.max(np.abs(x), axis=1)
+        else:   # time means and settling times: run by run, on each run's own block as reduce_series
+            v = np.array([reduce_series(t, data[i], [replace(r, scale=1.0, offset=0.0, missing_below=None)])[0]
+                          for i in range(n)], dtype=float)
+        if r.missing_below is not None:
+            v = np.where(v < r.missing_below, np.nan, v)
+        out[:, k] = r.scale * v + r.offset
     return out
 
 

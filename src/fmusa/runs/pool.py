@@ -4,10 +4,11 @@ from __future__ import annotations
 import shutil
 from dataclasses import replace
 from pathlib import Path
-from typing import Sequence
 
+import numpy as np
 
-from fmusa.runs.spec import PlanSpec, RunResult, run_chunk
+from fmusa.fmi.archive import extract_fmu
+from fmusa.runs.spec import PlanSpec, RunBatch, as_arrays, run_batch
 
 
 def _signal_name(num: int) -> str:
@@ -18,8 +19,10 @@ def _signal_name(num: int) -> str:
         return f"signal {num}"
 
 
-def _worker_main(conn, spec: PlanSpec) -> None:
-    """A pool worker: receive chunks, send back one result per run as soon as it is done."""
+def _worker_main(conn, spec: PlanSpec, started) -> None:
+    """A pool worker: receive chunks (run ids, study values), send back their results as RunBatches, one
+    message per chunk (more for a chunk that takes longer than half a second). Before each run it counts
+    up ``started`` and stamps its start time, so the parent knows which run crashed or hangs."""
     import faulthandler
     import signal
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # the parent decides when to stop
@@ -31,25 +34,48 @@ def _worker_main(conn, spec: PlanSpec) -> None:
             return
         if msg is None:
             return
-        for item in msg:
-            conn.send(run_chunk(spec, [item])[0])
+        ids, values = msg
+        conn.send(run_batch(spec, ids, values, started, emit=conn.send))
 
 
 class _Worker:
-    """One supervised worker process and the items it has been given but not answered yet."""
+    """One supervised worker process and the runs it has been given but not answered yet."""
 
     def __init__(self, ctx, spec: PlanSpec) -> None:
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, args=(child, spec), daemon=True)
+        #: [runs started, time.monotonic() when the last one started], written by the worker
+        self.started = ctx.RawArray("d", 2)
+        self.proc = ctx.Process(target=_worker_main, args=(child, spec, self.started), daemon=True)
         self.proc.start()
         child.close()
-        self.pending: list[tuple[int, tuple[float, ...]]] = []
-        self.since = 0.0           # when the current run started (last answer or hand-out)
+        self.ids = np.empty(0, dtype=np.int64)     # runs given, not answered (in the order they run)
+        self.values = np.empty((0, len(spec.varied)))
+        self.answered = 0          # runs this process has answered
+        self.given_at = 0.0        # when the current chunk was handed out
 
-    def give(self, items: list, now: float) -> None:
-        self.pending = list(items)
-        self.since = now
-        self.conn.send(items)
+    @property
+    def pending(self) -> int:
+        return len(self.ids)
+
+    def give(self, ids: np.ndarray, values: np.ndarray, now: float) -> None:
+        self.ids, self.values = ids, values
+        self.given_at = now
+        self.conn.send((ids, values))
+
+    def answer(self, n: int) -> None:
+        self.ids, self.values = self.ids[n:], self.values[n:]
+        if not len(self.ids):      # views no longer needed: let the caller's arrays go
+            self.ids, self.values = self.ids.copy(), self.values.copy()
+        self.answered += n
+
+    def current(self) -> tuple[int, float]:
+        """(index in the pending runs of the run in progress, when it started); index 0 and the hand-out
+        time when no run of the pending ones has started."""
+        count, since = int(self.started[0]), float(self.started[1])
+        k = count - 1 - self.answered
+        if not 0 <= k < len(self.ids):
+            return 0, self.given_at
+        return k, max(since, self.given_at)
 
     def kill(self) -> None:
         try:
@@ -60,11 +86,31 @@ class _Worker:
         self.conn.close()
 
 
+class _Chunks:
+    """The runs not handed out yet, handed out in chunks of at most ``most`` runs and at most
+    1/``parts`` of what is left (guided self-scheduling)."""
+
+    def __init__(self, ids: np.ndarray, values: np.ndarray, most: int, parts: int) -> None:
+        self.ids, self.values, self.most, self.parts = ids, values, max(1, most), max(1, parts)
+        self.pos = 0
+
+    def __bool__(self) -> bool:
+        return self.pos < len(self.ids)
+
+    def popleft(self) -> tuple[np.ndarray, np.ndarray]:
+        left = len(self.ids) - self.pos
+        size = max(1, min(self.most, -(-left // self.parts)))
+        a, self.pos = self.pos, self.pos + size
+        return self.ids[a:self.pos], self.values[a:self.pos]
+
+
 class WorkerPool:
     """Local worker processes supervised run by run.
 
+    Workers get chunks of runs and answer with one RunBatch per chunk (arrays, not an object per run).
     A run that crashes its worker (segfault, abort) or exceeds ``timeout_s`` is recorded as failed with
-    the reason, the worker is replaced, the rest of its chunk is handed out again and the study goes on.
+    the reason, the worker is replaced, the rest of its chunk (including runs done but not yet answered)
+    is handed out again and the study goes on.
     """
 
     def __init__(self, spec: PlanSpec, workers: int, timeout_s: float | None) -> None:
@@ -102,16 +148,23 @@ class WorkerPool:
                 w.kill()
         self.workers = []
 
-    def map(self, items: list, take, chunk: int) -> None:
+    def map(self, items, take, chunk: int) -> None:
+        """Run ``items`` (a list of (run id, values), or the pair of arrays run ids, values) in chunks of at
+        most ``chunk`` runs; ``take`` gets every RunBatch as it arrives. Chunks shrink as the runs left
+        do (a worker gets at most 1/(2·workers) of them), so the workers finish together."""
         import time
         from multiprocessing.connection import wait
 
-        queue = [items[i:i + chunk] for i in range(0, len(items), chunk)]
-        while len(self.workers) < min(self.n, len(queue)):
+        ids, values = as_arrays(items)
+        if not len(ids):
+            return
+        values = values.reshape(len(ids), len(self.spec.varied))
+        queue = _Chunks(ids, values, chunk, 2 * self.n)
+        while len(self.workers) < min(self.n, len(ids)):
             self.workers.append(self._start_worker())
         for w in self.workers:
             if queue:
-                w.give(queue.pop(0), time.monotonic())
+                w.give(*queue.popleft(), time.monotonic())
         while any(w.pending for w in self.workers):
             busy = {w.conn: w for w in self.workers if w.pending}
             ready = wait(list(busy), timeout=0.05 if self.timeout_s else None)
@@ -128,14 +181,13 @@ class WorkerPool:
                               else f"the worker process exited with code {code}")
                     self._replace(w, reason, take, now)
                     continue
-                w.pending.pop(0)
-                w.since = now
-                take([res])
+                w.answer(len(res))
+                take(res)
                 if not w.pending and queue:
-                    w.give(queue.pop(0), now)
+                    w.give(*queue.popleft(), now)
             if self.timeout_s:
                 for w in list(self.workers):
-                    if w.pending and now - w.since > self.timeout_s:
+                    if w.pending and now - w.current()[1] > self.timeout_s:
                         if w.conn.poll():      # an answer arrived after wait(): read it next round
                             continue
                         self._replace(w, f"timed out after {self.timeout_s:g} s (the FMU hangs or is too slow; "
@@ -144,17 +196,20 @@ class WorkerPool:
             # workers replaced without a chunk left to finish pick up queued chunks
             for w in self.workers:
                 if not w.pending and queue:
-                    w.give(queue.pop(0), now)
+                    w.give(*queue.popleft(), now)
 
     def _replace(self, w: _Worker, reason: str, take, now: float) -> None:
-        run_id, values = w.pending[0]
-        rest = w.pending[1:]
+        """``w`` crashed or hangs in its current run: that run fails with ``reason``; the others it was
+        given and has not answered go to a new worker."""
+        k, since = w.current()
         w.kill()
-        take([RunResult(run_id, tuple(values), None, "failed", reason, now - w.since)])
+        take(RunBatch.failed(w.ids[k:k + 1], w.values[k:k + 1], len(self.spec.rules), reason, now - since))
+        rest_ids = np.concatenate([w.ids[:k], w.ids[k + 1:]])
+        rest_vals = np.concatenate([w.values[:k], w.values[k + 1:]])
         nw = self._start_worker()
         self.workers[self.workers.index(w)] = nw
-        if rest:
-            nw.give(rest, now)
+        if len(rest_ids):
+            nw.give(rest_ids, rest_vals, now)
 
 
 _DASK_POOLS: dict = {}
@@ -174,8 +229,7 @@ def _dask_pool(spec: PlanSpec, timeout_s: float | None) -> WorkerPool:
     if local is None:
         local = spec
         if Path(spec.fmu_path).is_file():
-            import fmpy
-            unzipdir = fmpy.extract(spec.fmu_path)
+            unzipdir = str(extract_fmu(spec.fmu_path))
             atexit.register(shutil.rmtree, unzipdir, ignore_errors=True)
             local = replace(spec, fmu_path=unzipdir)
         _DASK_POOLS[("unzipped", spec)] = local
@@ -185,14 +239,14 @@ def _dask_pool(spec: PlanSpec, timeout_s: float | None) -> WorkerPool:
     return pool
 
 
-def run_chunk_supervised(spec: PlanSpec, chunk: Sequence[tuple[int, tuple[float, ...]]],
-                         timeout_s: float | None) -> list[RunResult]:
+def run_chunk_supervised(spec: PlanSpec, chunk, timeout_s: float | None) -> RunBatch:
     """A Dask task: run ``chunk`` in a supervised process of this Dask worker, as the local pool does. A run
     that crashes that process, hangs past ``timeout_s`` or fails is recorded as failed with its reason; the
     process is replaced and the chunk goes on, so the Dask worker itself never dies with the FMU."""
     pool = _dask_pool(spec, timeout_s)
-    out: list[RunResult] = []
-    pool.map(list(chunk), out.extend, max(1, len(chunk)))
-    return out
+    out: list[RunBatch] = []
+    ids, values = as_arrays(chunk)
+    pool.map((ids, values), out.append, max(1, len(ids)))
+    return RunBatch.concat(out)
 
 

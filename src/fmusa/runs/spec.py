@@ -1,4 +1,5 @@
-"""What a worker needs to make runs (PlanSpec), what it gives back (RunResult), and a chunk of runs in this process."""
+"""What a worker needs to make runs (PlanSpec), what it gives back (RunResult for one run, RunBatch for many, as
+arrays), and a batch of runs in this process (run_batch; run_chunk gives RunResults)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,7 +10,7 @@ import numpy as np
 from fmusa.fmi.info import Value
 from fmusa.fmi.plans import RunPlan
 from fmusa.fmi.runner import FMURunner
-from fmusa.runs.metrics import MetricRule, reduce_series
+from fmusa.runs.metrics import MetricRule, reduce_batch, reduce_series
 
 
 # ---------------------------------------------------------------------- batches, pools, clusters
@@ -68,25 +69,159 @@ def release_plan(spec: PlanSpec) -> None:
         plan.runner.close()
 
 
-def run_chunk(spec: PlanSpec, chunk: Sequence[tuple[int, tuple[float, ...]]]) -> list[RunResult]:
-    """Run a chunk of parameter sets; a failing run is recorded with its reason and the rest go on."""
+@dataclass
+class RunBatch:
+    """Many runs as arrays, one row each: what a worker sends back for a chunk (one message, not one
+    object per run). ``metrics`` is NaN on the rows of failed runs; ``messages`` holds the reasons of the
+    failed runs only, by row."""
+    run_ids: np.ndarray                      # int64 (n,)
+    values: np.ndarray                       # float (n, k): study values
+    metrics: np.ndarray                      # float (n, m)
+    ok: np.ndarray                           # bool (n,)
+    seconds: np.ndarray                      # float (n,)
+    messages: dict[int, str]
+
+    def __len__(self) -> int:
+        return len(self.run_ids)
+
+    @classmethod
+    def failed(cls, run_ids, values, n_metrics: int, reason: str, seconds: float = 0.0) -> "RunBatch":
+        """Every run of ``run_ids``/``values`` failed with ``reason``."""
+        ids = np.asarray(run_ids, dtype=np.int64).reshape(-1)
+        n = len(ids)
+        vals = np.asarray(values, dtype=float).reshape(n, -1)
+        return cls(ids, vals, np.full((n, n_metrics), np.nan), np.zeros(n, bool), np.full(n, float(seconds)),
+                   {i: reason for i in range(n)})
+
+    @classmethod
+    def from_results(cls, results: Sequence[RunResult], n_metrics: int, n_values: int) -> "RunBatch":
+        n = len(results)
+        M = np.full((n, n_metrics), np.nan)
+        for i, r in enumerate(results):
+            if r.metrics is not None:
+                M[i] = r.metrics
+        return cls(np.array([r.run_id for r in results], dtype=np.int64),
+                   np.array([r.values for r in results], dtype=float).reshape(n, n_values), M,
+                   np.array([r.status == "ok" for r in results], dtype=bool),
+                   np.array([r.seconds for r in results], dtype=float),
+                   {i: r.message for i, r in enumerate(results) if r.status != "ok"})
+
+    @classmethod
+    def concat(cls, batches: Sequence["RunBatch"]) -> "RunBatch":
+        batches = [b for b in batches if len(b)]
+        if len(batches) == 1:
+            return batches[0]
+        if not batches:
+            return cls(np.empty(0, np.int64), np.empty((0, 0)), np.empty((0, 0)), np.empty(0, bool),
+                       np.empty(0), {})
+        msgs, off = {}, 0
+        for b in batches:
+            msgs.update({off + i: m for i, m in b.messages.items()})
+            off += len(b)
+        return cls(np.concatenate([b.run_ids for b in batches]), np.concatenate([b.values for b in batches]),
+                   np.concatenate([b.metrics for b in batches]), np.concatenate([b.ok for b in batches]),
+                   np.concatenate([b.seconds for b in batches]), msgs)
+
+    def results(self) -> list[RunResult]:
+        """One RunResult per run (study values as tuples of floats, metrics rows for the runs that worked)."""
+        out = []
+        for i, (rid, vals, ok, sec) in enumerate(zip(self.run_ids.tolist(), self.values.tolist(),
+                                                     self.ok.tolist(), self.seconds.tolist())):
+            if ok:
+                out.append(RunResult(rid, tuple(vals), self.metrics[i].copy(), "ok", "", sec))
+            else:
+                out.append(RunResult(rid, tuple(vals), None, "failed", self.messages.get(i, ""), sec))
+        return out
+
+
+def as_arrays(chunk) -> tuple[np.ndarray, np.ndarray]:
+    """(run ids, study values) of a chunk given as [(run id, values), ...] or as the pair of arrays."""
+    if isinstance(chunk, tuple) and len(chunk) == 2 and isinstance(chunk[0], np.ndarray):
+        return chunk
+    chunk = list(chunk)
+    ids = np.fromiter((c[0] for c in chunk), dtype=np.int64, count=len(chunk))
+    vals = np.array([tuple(c[1]) for c in chunk], dtype=float)
+    return ids, (vals.reshape(len(chunk), -1) if len(chunk) else np.empty((0, 0)))
+
+
+def _message(exc: BaseException) -> str:
+    return str(exc).strip().replace("\n", " | ")[:2000]
+
+
+def run_batch(spec: PlanSpec, ids: np.ndarray, values: np.ndarray, started=None, emit=None,
+              emit_every_s: float = 0.5) -> RunBatch:
+    """Run many parameter sets (``ids``, study ``values`` one row each) in this process; a failing run is
+    recorded with its reason and the rest go on. The metrics are reduced with numpy over the whole batch
+    (:func:`~fmusa.runs.metrics.reduce_batch`, the same values as run by run).
+
+    ``started`` (a shared ``[count, time]`` array, for the supervising parent): before each run its count
+    goes up by one and its time is set to ``time.monotonic()``, so the parent can tell which run crashed
+    or hangs. ``emit``: called with the runs done so far every ``emit_every_s`` seconds (their results
+    reach the parent and disk early); the runs after the last emit are returned."""
     import time
 
-    plan = plan_for(spec)
-    out = []
-    for run_id, values in chunk:
-        t0 = time.perf_counter()
-        fmu_values = [s * x + o for s, x, o in zip(spec.scale, values, spec.offset)]
-        try:
-            data = plan(fmu_values)
-            metrics = reduce_series(plan.times, data, spec.rules)
-            if spec.refine_factor and type(plan) is RunPlan:
-                from fmusa.runs.refine import refine_run
-                metrics = refine_run(spec, plan, fmu_values, data, metrics)
-            out.append(RunResult(run_id, tuple(values), metrics, "ok", "", time.perf_counter() - t0))
-        except Exception as exc:  # the FMU's own error: record it, keep going
-            msg = str(exc).strip().replace("\n", " | ")
-            out.append(RunResult(run_id, tuple(values), None, "failed", msg[:2000], time.perf_counter() - t0))
-    return out
+    try:
+        plan = plan_for(spec)
+    except Exception as exc:    # an FMU that does not load or instantiate: every run says why, no dead worker
+        reason = " | ".join(str(exc).strip().splitlines()) or type(exc).__name__
+        return RunBatch.failed(ids, values, len(spec.rules),
+                               f"the FMU could not be loaded or instantiated: {reason}"[:2000])
+    n = len(ids)
+    values = np.asarray(values, dtype=float).reshape(n, len(spec.varied))
+    # FMU value = scale * study value + offset, elementwise as run by run
+    fmu = (values * np.asarray(spec.scale, dtype=float) + np.asarray(spec.offset, dtype=float)).tolist()
+    perf, mono = time.perf_counter, time.monotonic
+    refine = bool(spec.refine_factor) and type(plan) is RunPlan
+    if refine:
+        from fmusa.runs.refine import refine_run
+    lo = 0
+    while True:
+        deadline = perf() + emit_every_s if emit is not None else None
+        datas: list = []
+        okl: list[int] = []
+        secs: list[float] = []
+        msgs: dict[int, str] = {}
+        i = lo
+        while i < n:
+            if started is not None:
+                started[1] = mono()
+                started[0] += 1
+            t0 = perf()
+            try:
+                data = plan(fmu[i])
+                if refine:   # re-runs finer around the peaks: run by run, timed and supervised as the run;
+                    # then ``datas`` holds the metrics of the runs rather than their outputs
+                    datas.append(refine_run(spec, plan, fmu[i], data, reduce_series(plan.times, data, spec.rules)))
+                else:
+                    datas.append(data)
+                okl.append(i - lo)
+            except Exception as exc:  # the FMU's own error: record it, keep going
+                msgs[i - lo] = _message(exc)
+            t1 = perf()
+            secs.append(t1 - t0)
+            i += 1
+            if deadline is not None and t1 > deadline:
+                break
+        m = i - lo
+        metrics = np.full((m, len(spec.rules)), np.nan)
+        ok = np.zeros(m, dtype=bool)
+        if okl:
+            ok[okl] = True
+            if refine:      # the metrics themselves, already
+                metrics[okl] = datas
+            elif len({d.shape for d in datas}) == 1:
+                metrics[okl] = reduce_batch(plan.times, np.stack(datas), spec.rules)
+            else:  # pragma: no cover - a plan samples every run at the same times
+                metrics[okl] = [reduce_series(plan.times, d, spec.rules) for d in datas]
+        batch = RunBatch(np.asarray(ids[lo:i], dtype=np.int64), values[lo:i], metrics, ok,
+                         np.asarray(secs, dtype=float), msgs)
+        if i >= n or emit is None:
+            return batch
+        emit(batch)
+        lo = i
 
 
+def run_chunk(spec: PlanSpec, chunk: Sequence[tuple[int, tuple[float, ...]]]) -> list[RunResult]:
+    """Run a chunk of parameter sets; a failing run is recorded with its reason and the rest go on."""
+    ids, vals = as_arrays(chunk)
+    return run_batch(spec, ids, vals).results()

@@ -2,12 +2,18 @@
 
 The key of a run is its study parameter values, so any stage that asks for a point already run (in this
 session or, with ``resume``, in an interrupted one) gets the stored row instead of a new simulation.
+
+The rows are kept as arrays (parameters, metrics, constraint flags, status, seconds; the message of a
+failed run only), not as a Python object per run, and a batch of results is written as one block
+(:meth:`RunStore.add_batch`): the same bytes as row by row (:meth:`RunStore.add`), one write and one
+flush. A block cut short by a kill leaves a partial last line; resuming drops it (the run is made again).
 """
 from __future__ import annotations
 
 import csv
 import math
 import os
+import weakref
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -20,6 +26,55 @@ from fmusa.runs.metrics import constraint_table
 FLOAT = "%.17g"   # round-trips a double exactly, so reloaded keys match new ones
 
 
+def _quote(text: str) -> str:
+    """A text field as the csv module writes it (excel dialect, minimal quoting)."""
+    if any(c in text for c in ',"\r\n'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
+
+
+def _num(x: float) -> str:
+    return "" if math.isnan(x) else FLOAT % x
+
+
+class StoreBusyError(UsageError):
+    """Another process writes the same runs file."""
+
+
+def _lock_folder(path: Path):
+    """An exclusive lock on ``<runs file>.lock`` for as long as the store is open: two studies writing the
+    same runs.csv would interleave their rows. Released by the system when the process dies."""
+    import fcntl
+
+    fh = open(path.with_name(path.name + ".lock"), "a+")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.seek(0)
+        owner = fh.read().strip() or "another process"
+        fh.close()
+        raise StoreBusyError(f"{path}: another fmusa study ({owner}) is writing to this folder; wait for it to "
+                             f"finish, or give this study another --out") from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"pid {os.getpid()}")
+    fh.flush()
+    # a forked worker must not keep the lock alive after this process dies: it closes its copy at once
+    ref = weakref.ref(fh)
+    os.register_at_fork(after_in_child=lambda: (ref() is not None and ref().close()))
+    return fh
+
+
+def _keep_previous(path: Path) -> Path:
+    """Move an earlier study's runs file aside (``runs.previous-<n>.csv``) instead of emptying it: a new
+    study that then fails to start (a scheduler that cannot be reached, say) has cost nothing."""
+    n = 1
+    while (target := path.with_name(f"{path.stem}.previous-{n}{path.suffix}")).exists():
+        n += 1
+    path.replace(target)
+    return target
+
+
 class RunStore:
     def __init__(self, path: str | os.PathLike, params: Sequence[str], metrics: Sequence[str],
                  constraints: Iterable = (), resume: bool = False) -> None:
@@ -27,60 +82,289 @@ class RunStore:
         self.params = list(params)
         self.metrics = list(metrics)
         self.constraints = list(constraints)
-        self.columns = (["run_id", "stage"] + self.params + self.metrics
-                        + [f"ok_{c.name}" for c in self.constraints]
-                        + (["feasible"] if self.constraints else []) + ["status", "message", "seconds"])
-        self.rows: dict[tuple[float, ...], dict] = {}
+        self.flags = [f"ok_{c.name}" for c in self.constraints] + (["feasible"] if self.constraints else [])
+        self.columns = (["run_id", "stage"] + self.params + self.metrics + self.flags
+                        + ["status", "message", "seconds"])
+        # key -> row: by a 64-bit hash of the parameter values (an int per run, not a tuple or bytes), the
+        # rare key whose hash another key already has by its bytes
+        self._index: dict[int, int] = {}
+        self._spill: dict[bytes, int] = {}
+        self._mix = np.random.default_rng(0x5EED).integers(1, 2**63, size=max(1, len(self.params)),
+                                                            dtype=np.uint64) | np.uint64(1)
+        self._n = 0
+        self._alloc(1024)
+        self._stages: list[str] = []
+        self._stage_code: dict[str, int] = {}
+        self._statuses: list[str] = ["ok", "failed"]
+        self._messages: dict[int, str] = {}       # row -> message (failed runs, mostly)
         self.next_id = 0
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        if resume and self.path.exists() and self.path.stat().st_size > 0:
-            self._load()
+        self._lock = _lock_folder(self.path)
+        #: where the runs of an earlier study went when this one started afresh (nothing is deleted)
+        self.previous: Path | None = None
+        if resume and self.path.exists() and self.path.stat().st_size > 0 and self._load():
             self._fh = open(self.path, "a", newline="")
         else:
+            if self.path.exists() and self.path.stat().st_size > 0:
+                self.previous = _keep_previous(self.path)
             self._fh = open(self.path, "w", newline="")
             csv.writer(self._fh).writerow(self.columns)
             self._fh.flush()
         self._writer = csv.writer(self._fh)
+        n_num = len(self.params) + len(self.metrics)
+        self._num_fmt = ",".join([FLOAT] * n_num)
 
-    def _load(self) -> None:
-        df = pd.read_csv(self.path, keep_default_na=True)
+    # ------------------------------------------------------------------ arrays
+    def _alloc(self, cap: int) -> None:
+        p, m, f = len(self.params), len(self.metrics), len(self.flags)
+        old = getattr(self, "_ids", None)
+        new = {"_ids": np.empty(cap, np.int64), "_stage": np.empty(cap, np.int32),
+               "_P": np.empty((cap, p)), "_M": np.empty((cap, m)), "_F": np.empty((cap, f), bool),
+               "_status": np.empty(cap, np.int8), "_secs": np.empty(cap), "_live": np.zeros(cap, bool)}
+        for name, arr in new.items():
+            if old is not None:
+                arr[:self._n] = getattr(self, name)[:self._n]
+            setattr(self, name, arr)
+        self._cap = cap
+
+    def reserve(self, n: int) -> None:
+        """Make room for ``n`` more runs at once (arrays of the right size, not doubled as rows come)."""
+        if self._n + n > self._cap:
+            self._alloc(self._n + n)
+
+    def _reserve(self, n: int) -> int:
+        """Room for ``n`` more rows; the first new row."""
+        if self._n + n > self._cap:
+            self._alloc(max(2 * self._cap, self._n + n))
+        i = self._n
+        self._n += n
+        return i
+
+    def _code(self, table: list[str], codes: dict | None, value: str) -> int:
+        if codes is not None:
+            c = codes.get(value)
+            if c is None:
+                c = codes[value] = len(table)
+                table.append(value)
+            return c
+        if value not in table:
+            table.append(value)
+        return table.index(value)
+
+    def _bits(self, P: np.ndarray) -> np.ndarray:
+        """The parameter values as the key compares them: their bits, -0.0 as 0.0."""
+        P = np.ascontiguousarray(np.asarray(P, dtype=float).reshape(-1, len(self.params))) + 0.0
+        return P.view(np.uint64)
+
+    def _hashes(self, U: np.ndarray) -> list[int]:
+        h = (U * self._mix).sum(axis=1, dtype=np.uint64)       # arithmetic modulo 2**64
+        h ^= h >> np.uint64(31)
+        h *= np.uint64(0x9E3779B97F4A7C15)
+        h ^= h >> np.uint64(29)
+        return h.tolist()
+
+    def _insert(self, start: int, n: int) -> None:
+        U = self._bits(self._P[start:start + n])
+        index = self._index
+        for j, h in enumerate(self._hashes(U)):
+            row = start + j
+            old = index.get(h)
+            if old is None:
+                index[h] = row
+                continue
+            if np.array_equal(self._bits(self._P[old])[0], U[j]):     # the same key again: the new row
+                self._live[old] = False
+                index[h] = row
+            else:                                                   # another key with this hash
+                k = U[j].tobytes()
+                prev = self._spill.get(k)
+                if prev is not None:
+                    self._live[prev] = False
+                self._spill[k] = row
+        self._live[start:start + n] = True
+
+    def _load(self) -> bool:
+        with open(self.path, "r+b") as fh:   # a block cut short by a kill: drop its partial last line
+            end = fh.seek(0, os.SEEK_END)
+            pos = end
+            while pos > 0:
+                start = max(0, pos - 65536)
+                fh.seek(start)
+                nl = fh.read(pos - start).rfind(b"\n")
+                if nl >= 0:
+                    pos = start + nl + 1
+                    break
+                pos = start
+            if pos < end:
+                fh.truncate(pos)
+        if pos == 0:                           # not even the header survived: start afresh
+            return False
+        df = pd.read_csv(self.path, keep_default_na=True,
+                         dtype={"stage": str, "status": str, "message": str})
         missing = [c for c in self.columns if c not in df.columns]
         if missing:
             raise UsageError(f"{self.path}: cannot resume: columns {', '.join(missing)} are missing "
                              f"(the study changed?); start afresh without --resume or use another --out")
-        for rec in df.to_dict("records"):
-            if not isinstance(rec.get("message"), str):
-                rec["message"] = ""
-            self.rows[self.key([rec[p] for p in self.params])] = rec
-        self.next_id = int(df["run_id"].max()) + 1 if len(df) else 0
+        n = len(df)
+        i = self._reserve(n)
+        self._ids[i:i + n] = df["run_id"].to_numpy(np.int64)
+        self._P[i:i + n] = df[self.params].to_numpy(float)
+        self._M[i:i + n] = df[self.metrics].to_numpy(float)
+        if self.flags:
+            self._F[i:i + n] = df[self.flags].astype(bool).to_numpy()
+        self._secs[i:i + n] = df["seconds"].to_numpy(float)
+        codes: dict[str, int] = {}
+        self._stage[i:i + n] = [self._code(self._stages, codes, str(s)) for s in df["stage"].tolist()]
+        status = df["status"].fillna("").astype(str).tolist()
+        self._status[i:i + n] = [self._code(self._statuses, None, s) for s in status]
+        for j, msg in enumerate(df["message"].tolist()):
+            if isinstance(msg, str) and msg:
+                self._messages[i + j] = msg
+        self._stage_code = {s: c for c, s in enumerate(self._stages)}
+        self._insert(i, n)
+        self.next_id = int(df["run_id"].max()) + 1 if n else 0
+        return True
 
+    # ------------------------------------------------------------------ lookups
     @staticmethod
     def key(values: Sequence[float]) -> tuple[float, ...]:
         return tuple(float(v) for v in values)
 
+    def rows_of(self, P) -> np.ndarray:
+        """Row of every parameter set in ``P`` (one per row), -1 where the store has none."""
+        P = np.asarray(P, dtype=float).reshape(-1, len(self.params))
+        get = self._index.get
+        out = np.empty(len(P), dtype=np.int64)
+        for a in range(0, len(P), 4096):         # a slice at a time: no key object for every row at once
+            u = self._bits(P[a:a + 4096])
+            rows = np.array([get(h, -1) for h in self._hashes(u)], dtype=np.int64)
+            found = rows >= 0
+            same = np.zeros(len(u), dtype=bool)
+            if found.any():
+                same[found] = (self._bits(self._P[rows[found]]) == u[found]).all(axis=1)
+            rows[~same] = -1
+            if self._spill:                               # no row, or another key's: the spilled keys
+                for j in np.flatnonzero(~same).tolist():
+                    rows[j] = self._spill.get(u[j].tobytes(), -1)
+            out[a:a + 4096] = rows
+        return out
+
+    def __contains__(self, values) -> bool:
+        return int(self.rows_of(values)[0]) >= 0
+
+    def __len__(self) -> int:
+        return len(self._index) + len(self._spill)
+
+    def _record(self, i: int) -> dict:
+        rec: dict = {"run_id": int(self._ids[i]), "stage": self._stages[self._stage[i]]}
+        rec.update(zip(self.params, self._P[i].tolist()))
+        rec.update(zip(self.metrics, self._M[i].tolist()))
+        rec.update(zip(self.flags, self._F[i].tolist()))
+        rec.update(status=self._statuses[self._status[i]], message=self._messages.get(i, ""),
+                   seconds=float(self._secs[i]))
+        return rec
+
     def get(self, values: Sequence[float]) -> dict | None:
-        return self.rows.get(self.key(values))
+        i = int(self.rows_of(values)[0])
+        return None if i < 0 else self._record(i)
+
+    def metric_matrix(self, rows: np.ndarray) -> np.ndarray:
+        """Metrics of the store's ``rows`` (NaN where a run failed)."""
+        return self._M[rows]
+
+    def ok(self, rows: np.ndarray) -> np.ndarray:
+        """Whether the runs on ``rows`` worked (status ok)."""
+        return self._status[rows] == self._statuses.index("ok")
+
+    def record(self, row: int) -> dict:
+        """The stored row ``row`` (from :meth:`rows_of`) as a dict, one entry per column."""
+        return self._record(int(row))
+
+    def new_ids(self, n: int) -> np.ndarray:
+        """``n`` new run ids."""
+        ids = np.arange(self.next_id, self.next_id + n, dtype=np.int64)
+        self.next_id += n
+        return ids
 
     def new_id(self) -> int:
         i = self.next_id
         self.next_id += 1
         return i
 
+    # ------------------------------------------------------------------ adding rows
+    def _flag_rows(self, M: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        table = constraint_table({k: M[:, j] for j, k in enumerate(self.metrics)}, self.constraints)
+        F = np.empty((len(M), len(self.flags)), bool)
+        for j, name in enumerate(self.flags):
+            F[:, j] = table[name] & ok
+        return F
+
     def add(self, run_id: int, stage: str, values: Sequence[float], metrics: np.ndarray | None,
             status: str, message: str, seconds: float) -> dict:
-        rec: dict = {"run_id": run_id, "stage": stage}
-        rec.update(zip(self.params, map(float, values)))
-        mvals = metrics if metrics is not None else np.full(len(self.metrics), np.nan)
-        rec.update(zip(self.metrics, map(float, mvals)))
-        if self.constraints:
-            table = constraint_table({k: np.array([rec[k]]) for k in self.metrics}, self.constraints)
-            for k, v in table.items():
-                rec[k] = bool(v[0]) and status == "ok"
-        rec.update(status=status, message=message, seconds=float(seconds))
-        self.rows[self.key(values)] = rec
+        """One run: stored, written as one row of runs.csv and flushed."""
+        i = self._reserve(1)
+        self._ids[i] = run_id
+        self._stage[i] = self._code(self._stages, self._stage_code, stage)
+        self._P[i] = [float(v) for v in values]
+        self._M[i] = metrics if metrics is not None else np.nan
+        self._status[i] = self._code(self._statuses, None, status)
+        if self.flags:
+            self._F[i] = self._flag_rows(self._M[i:i + 1], np.array([status == "ok"]))[0]
+        self._secs[i] = float(seconds)
+        if message:
+            self._messages[i] = message
+        self._insert(i, 1)
+        rec = self._record(i)
         self._writer.writerow([self._fmt(rec[c]) for c in self.columns])
         self._fh.flush()
         return rec
+
+    def add_batch(self, stage: str, batch) -> None:
+        """A :class:`~fmusa.runs.spec.RunBatch` of results: stored and written as one block of rows (the
+        bytes :meth:`add` writes for them one by one), one write, one flush."""
+        n = len(batch)
+        if not n:
+            return
+        i = self._reserve(n)
+        sl = slice(i, i + n)
+        ok = np.asarray(batch.ok, dtype=bool)
+        self._ids[sl] = batch.run_ids
+        self._stage[sl] = self._code(self._stages, self._stage_code, stage)
+        self._P[sl] = np.asarray(batch.values, dtype=float).reshape(n, len(self.params))
+        M = np.array(batch.metrics, dtype=float).reshape(n, len(self.metrics))
+        M[~ok] = np.nan
+        self._M[sl] = M
+        ok_code, failed_code = self._statuses.index("ok"), self._statuses.index("failed")
+        self._status[sl] = np.where(ok, ok_code, failed_code)
+        if self.flags:
+            self._F[sl] = self._flag_rows(M, ok)
+        self._secs[sl] = batch.seconds
+        for j, msg in batch.messages.items():
+            if msg:
+                self._messages[i + j] = msg
+        self._insert(i, n)
+        self._fh.write(self._block(sl))
+        self._fh.flush()
+
+    def _block(self, sl: slice) -> str:
+        """The rows ``sl`` as csv text, as the csv module writes them row by row."""
+        ids = self._ids[sl].tolist()
+        nums = np.hstack([self._P[sl], self._M[sl]]).tolist()
+        flags = [",".join("True" if f else "False" for f in row) + "," for row in self._F[sl].tolist()] \
+            if self.flags else None
+        stage_text = [_quote(s) for s in self._stages]
+        status_text = [_quote(s) for s in self._statuses]
+        stages, status, secs = self._stage[sl].tolist(), self._status[sl].tolist(), self._secs[sl].tolist()
+        fmt, msgs, first = self._num_fmt, self._messages, sl.start
+        lines = []
+        for j, rid in enumerate(ids):
+            num = fmt % tuple(nums[j])
+            if "nan" in num:
+                num = ",".join(map(_num, nums[j]))
+            msg = msgs.get(first + j)
+            lines.append(f"{rid},{stage_text[stages[j]]},{num},{flags[j] if flags else ''}"
+                         f"{status_text[status[j]]},{_quote(msg) if msg else ''},{_num(secs[j])}\r\n")
+        return "".join(lines)
 
     @staticmethod
     def _fmt(x):
@@ -91,11 +375,25 @@ class RunStore:
         return x
 
     def frame(self, stage: str | None = None) -> pd.DataFrame:
-        df = pd.DataFrame(list(self.rows.values()), columns=self.columns)
+        rows = np.flatnonzero(self._live[:self._n])
         if stage is not None:
-            df = df[df["stage"] == stage]
-        return df.sort_values("run_id").reset_index(drop=True)
+            code = self._stage_code.get(stage)
+            rows = rows[self._stage[rows] == code] if code is not None else rows[:0]
+        if not len(rows):
+            return pd.DataFrame([], columns=self.columns).reset_index(drop=True)
+        rows = rows[np.argsort(self._ids[rows], kind="stable")]
+        cols: dict = {"run_id": self._ids[rows], "stage": np.array(self._stages, dtype=object)[self._stage[rows]]}
+        cols.update(zip(self.params, self._P[rows].T))
+        cols.update(zip(self.metrics, self._M[rows].T))
+        cols.update(zip(self.flags, self._F[rows].T))
+        cols["status"] = np.array(self._statuses, dtype=object)[self._status[rows]]
+        cols["message"] = np.array([self._messages.get(i, "") for i in rows.tolist()], dtype=object)
+        cols["seconds"] = self._secs[rows]
+        return pd.DataFrame(cols, columns=self.columns)
 
     def close(self) -> None:
         if not self._fh.closed:
             self._fh.close()
+        if self._lock is not None:
+            self._lock.close()          # closing the file releases the lock
+            self._lock = None
