@@ -21,6 +21,7 @@ import pytest
 from fmusa.api import load_study, parse_study, run_study
 from fmusa.fmi.archive import ENV_MAX_BYTES, OWNER_FILE, PREFIX, extract_fmu, remove_orphans
 from fmusa.fmi.info import FMUError, default_fmu_path, read_fmu_info
+from fmusa.errors import UsageError
 from fmusa.files import OutputError
 from fmusa.study.schema import StudyError
 
@@ -249,3 +250,54 @@ def test_an_fmu_whose_binary_does_not_load_fails_its_runs_with_the_cause(tmp_pat
     assert (runs["status"] == "failed").all() and len(runs) == 2
     assert runs["message"].str.contains("could not be loaded or instantiated").all()
     assert not runs["message"].str.contains("worker exited").any()
+
+
+def _paper_text() -> str:
+    text = (ROOT / "studies" / "paper.yaml").read_text()
+    return text[:text.index("\npaper:")] + "\n"
+
+
+def test_resume_refuses_runs_made_under_another_scenario(tmp_path):
+    out = tmp_path / "out"
+    run_study(parse_study(_paper_text(), tmp_path / "p.yaml"), out, figures=False, progress=False)
+    changed = parse_study(_paper_text().replace("F_max: 411", "F_max: 200"), tmp_path / "p.yaml")
+    with pytest.raises(UsageError, match=r"cannot resume: the study changed since these runs were made "
+                                         r"\(fixed.F_max: 411 → 200\), so their metrics would be stale"):
+        run_study(changed, out, resume=True, figures=False, progress=False)
+    fresh = run_study(changed, out, figures=False, progress=False)        # the old runs are kept aside
+    assert (out / "runs.previous-1.csv").exists()
+    assert fresh.summary["optimum"]["c"] == pytest.approx(200 / 5e-4, rel=1e-3)
+
+
+def test_resume_after_new_thresholds_recomputes_feasibility(tmp_path):
+    out = tmp_path / "out"
+    run_study(parse_study(_paper_text(), tmp_path / "p.yaml"), out, figures=False, progress=False)
+    doubled = _paper_text().replace("max: 5.0e-4", "max: 1.0e-3").replace("max: 5.0e-5", "max: 1.0e-4")
+    resumed = run_study(parse_study(doubled, tmp_path / "p.yaml"), out, resume=True, figures=False, progress=False)
+    fresh = run_study(parse_study(doubled, tmp_path / "p.yaml"), tmp_path / "fresh", figures=False, progress=False)
+    assert resumed.summary["optimum"] == fresh.summary["optimum"]
+    assert resumed.summary["optimum"]["c"] == pytest.approx(411 / 1e-3, rel=1e-3)
+    assert resumed.summary["simulated_this_session"] < fresh.summary["simulated_this_session"]
+
+
+def test_a_damaged_cell_in_runs_csv_cannot_change_the_answer(tmp_path):
+    import pandas as pd
+
+    out = tmp_path / "out"
+    study = parse_study(_paper_text(), tmp_path / "p.yaml")
+    ref = run_study(study, out, figures=False, progress=False).summary["optimum"]
+    lines = (out / "runs.csv").read_text().splitlines(keepends=True)
+    header = lines[0].rstrip("\r\n").split(",")
+    cells = lines[5].rstrip("\r\n").split(",")
+    cells[header.index("feasible")] = "garbage"          # a flag is never read back: recomputed
+    lines[5] = ",".join(cells) + "\r\n"
+    (out / "runs.csv").write_text("".join(lines))
+    again = run_study(study, out, resume=True, figures=False, progress=False)
+    assert again.summary["optimum"] == ref and again.summary["simulated_this_session"] == 0
+    cells[header.index("max_y")] = "1.2.3"               # a metric is: an error that names line and column
+    lines[5] = ",".join(cells) + "\r\n"
+    (out / "runs.csv").write_text("".join(lines))
+    with pytest.raises(UsageError, match=r"runs.csv:6: column 'max_y' holds '1.2.3', not a number; fix or "
+                                         r"delete that line"):
+        run_study(study, out, resume=True, figures=False, progress=False)
+    assert len(pd.read_csv(out / "runs.csv")) == len(lines) - 1          # nothing was lost

@@ -79,7 +79,7 @@ def compile_sources(unzipdir: str | os.PathLike, info: FMUInfo | None = None,
     return target
 
 
-def _file_digest(path: Path) -> str:
+def file_digest(path: Path) -> str:
     import hashlib
     h = hashlib.sha256()
     if path.is_dir():
@@ -115,7 +115,7 @@ def prepare_fmu(fmu_path: str | os.PathLike, interface: str = "auto",
         raise FMUError(f"{fmu_path}: {problem}")
     root = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="fmusa-fmu-"))
     root.mkdir(parents=True, exist_ok=True)
-    dest = root / f"{fmu_path.stem}-{_file_digest(fmu_path)}"
+    dest = root / f"{fmu_path.stem}-{file_digest(fmu_path)}"
     if (dest / "binaries" / host_platform() / info.binary_name(iface)).is_file():
         return dest
     tmp = Path(tempfile.mkdtemp(prefix=".build-", dir=root))

@@ -246,7 +246,8 @@ def accuracy_check(study, stage, spec: PlanSpec, store: RunStore, keys: Sequence
     ref_spec = dataclasses.replace(spec, fixed=tuple({**dict(spec.fixed), **override}.items()), **changes)
     report["reference_via"] = (["fixed rtol"] if override else []) + (
         ["experiment tolerance"] if changes else [])
-    ref_store = RunStore(out / ACCURACY_FILE, list(stage.parameters), list(metrics), resume=resume)
+    ref_store = RunStore(out / ACCURACY_FILE, list(stage.parameters), list(metrics), resume=resume,
+                         fingerprint=getattr(runner, "fingerprint", None))
     t0 = time.perf_counter()
     timeout = getattr(getattr(runner, "evaluator", None), "timeout_s", study.execution.timeout_s)
     try:   # a reference run costs ~100 study runs: a longer per-run limit
@@ -324,7 +325,8 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
             X[method] = sample
         del sample
 
-    store = RunStore(out / RUNS_FILE, names, metrics, resume=resume)
+    fingerprint = getattr(runner, "fingerprint", None)
+    store = RunStore(out / RUNS_FILE, names, metrics, resume=resume, fingerprint=fingerprint)
     simulated = 0
     try:
         t_eval = time.perf_counter()

@@ -28,7 +28,7 @@ from fmusa.files import writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
 from fmusa.pipeline.sampling_check import sampling_summary
-from fmusa.study.plan import check_fmu, grid_points, study_plan_spec
+from fmusa.study.plan import check_fmu, grid_points, run_fingerprint, study_plan_spec
 
 
 @dataclass
@@ -72,7 +72,10 @@ class StudyRunner:
         self.params = list(study.parameters)
         self.metrics = list(study.metrics)
         spec = self.spec = study_plan_spec(study, run_path)
-        self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume)
+        #: what besides the parameters decides a run: a resumed study reuses stored runs only while it holds
+        self.fingerprint = run_fingerprint(study, fmu_path)
+        self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
+                              fingerprint=self.fingerprint)
         # any FMU but our own runs in supervised workers: a crash or hang then costs one run
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
                                    scheduler=scheduler or study.execution.scheduler,

@@ -11,6 +11,7 @@ flush. A block cut short by a kill leaves a partial last line; resuming drops it
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
 import weakref
@@ -65,6 +66,49 @@ def _lock_folder(path: Path):
     return fh
 
 
+def _numbers(path: Path, df: pd.DataFrame, columns: Sequence[str]) -> np.ndarray:
+    """The columns as floats; a cell that is not a number (an edited or damaged file) is an error that
+    names its line and column, never a silent string or NaN."""
+    out = np.empty((len(df), len(columns)))
+    for j, c in enumerate(columns):
+        col = df[c]
+        x = pd.to_numeric(col, errors="coerce")
+        bad = x.isna() & col.notna() & (col.astype(str).str.strip() != "")
+        if bad.any():
+            k = int(np.flatnonzero(bad.to_numpy())[0])
+            raise UsageError(f"{path}:{k + 2}: column '{c}' holds {str(col.iloc[k])!r}, not a number; fix or "
+                             f"delete that line (a deleted run is simply run again with --resume)")
+        out[:, j] = x.to_numpy(float)
+    return out
+
+
+def _check_fingerprint(path: Path, meta: Path, fingerprint: dict | None) -> None:
+    """Refuse to resume when what decides a run (FMU, fixed values, scenario, metrics) has changed since
+    the stored runs were made: their metrics would be stale."""
+    if fingerprint is None or not meta.exists():
+        return
+    try:
+        old = json.loads(meta.read_text())
+    except (OSError, ValueError):
+        return
+    new = json.loads(json.dumps(fingerprint))         # the same JSON form as stored
+    changed = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            changed += [f"{key}.{k}: {a.get(k)!r} → {b.get(k)!r}" for k in sorted(set(a) | set(b))
+                        if a.get(k) != b.get(k)]
+        else:
+            changed.append(f"{key}: changed" if key == "fmu" else f"{key}: {a!r} → {b!r}")
+    if changed:
+        raise UsageError(f"{path}: cannot resume: the study changed since these runs were made ("
+                         + "; ".join(changed[:6]) + ("; …" if len(changed) > 6 else "")
+                         + "), so their metrics would be stale; run without --resume (the old runs are "
+                           "kept as runs.previous-<n>.csv) or use another --out")
+
+
 def _keep_previous(path: Path) -> Path:
     """Move an earlier study's runs file aside (``runs.previous-<n>.csv``) instead of emptying it: a new
     study that then fails to start (a scheduler that cannot be reached, say) has cost nothing."""
@@ -77,7 +121,7 @@ def _keep_previous(path: Path) -> Path:
 
 class RunStore:
     def __init__(self, path: str | os.PathLike, params: Sequence[str], metrics: Sequence[str],
-                 constraints: Iterable = (), resume: bool = False) -> None:
+                 constraints: Iterable = (), resume: bool = False, fingerprint: dict | None = None) -> None:
         self.path = Path(path)
         self.params = list(params)
         self.metrics = list(metrics)
@@ -102,14 +146,23 @@ class RunStore:
         self._lock = _lock_folder(self.path)
         #: where the runs of an earlier study went when this one started afresh (nothing is deleted)
         self.previous: Path | None = None
+        #: what, besides the parameters, decided the stored runs (``<runs file>.study.json``)
+        self.fingerprint = fingerprint
+        meta = self.path.with_name(self.path.name + ".study.json")
+        if resume and self.path.exists() and self.path.stat().st_size > 0:
+            _check_fingerprint(self.path, meta, fingerprint)
         if resume and self.path.exists() and self.path.stat().st_size > 0 and self._load():
             self._fh = open(self.path, "a", newline="")
         else:
             if self.path.exists() and self.path.stat().st_size > 0:
                 self.previous = _keep_previous(self.path)
+                if meta.exists():
+                    meta.replace(self.previous.with_name(self.previous.name + ".study.json"))
             self._fh = open(self.path, "w", newline="")
             csv.writer(self._fh).writerow(self.columns)
             self._fh.flush()
+        if fingerprint is not None:
+            meta.write_text(json.dumps(fingerprint, indent=1, sort_keys=True))
         self._writer = csv.writer(self._fh)
         n_num = len(self.params) + len(self.metrics)
         self._num_fmt = ",".join([FLOAT] * n_num)
@@ -207,12 +260,10 @@ class RunStore:
                              f"(the study changed?); start afresh without --resume or use another --out")
         n = len(df)
         i = self._reserve(n)
-        self._ids[i:i + n] = df["run_id"].to_numpy(np.int64)
-        self._P[i:i + n] = df[self.params].to_numpy(float)
-        self._M[i:i + n] = df[self.metrics].to_numpy(float)
-        if self.flags:
-            self._F[i:i + n] = df[self.flags].astype(bool).to_numpy()
-        self._secs[i:i + n] = df["seconds"].to_numpy(float)
+        self._ids[i:i + n] = _numbers(self.path, df, ["run_id"]).astype(np.int64)[:, 0]
+        self._P[i:i + n] = _numbers(self.path, df, self.params)
+        self._M[i:i + n] = _numbers(self.path, df, self.metrics)
+        self._secs[i:i + n] = _numbers(self.path, df, ["seconds"])[:, 0]
         codes: dict[str, int] = {}
         self._stage[i:i + n] = [self._code(self._stages, codes, str(s)) for s in df["stage"].tolist()]
         status = df["status"].fillna("").astype(str).tolist()
@@ -221,6 +272,8 @@ class RunStore:
             if isinstance(msg, str) and msg:
                 self._messages[i + j] = msg
         self._stage_code = {s: c for c, s in enumerate(self._stages)}
+        if self.flags:   # never read back: recomputed from the metrics under today's constraints
+            self._F[i:i + n] = self._flag_rows(self._M[i:i + n], self._status[i:i + n] == 0)
         self._insert(i, n)
         self.next_id = int(df["run_id"].max()) + 1 if n else 0
         return True

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fmusa.fmi.build import file_digest
 from fmusa.runs.metrics import metric_rules
 from fmusa.runs.spec import PlanSpec
 from fmusa.study.schema import Study, StudyError
@@ -100,3 +101,23 @@ def grid_points(study: Study) -> list[dict[str, float]]:
     mesh = np.meshgrid(*[axes[n] for n in names], indexing="ij")
     return [dict(zip(names, map(float, vals))) for vals in zip(*[m.ravel() for m in mesh])]
 
+
+
+def run_fingerprint(study: Study, fmu_path: str | Path) -> dict:
+    """Everything besides the study parameters that decides a run's metrics: the FMU's content, the fixed
+    values, the scenario, how each metric is read, how the FMU runs. A resumed study may reuse a stored run
+    only while this is unchanged. Constraints are not in it: feasibility is recomputed from the metrics."""
+    path = Path(fmu_path)
+    return {
+        "fmu": file_digest(path) if path.is_file() else str(path.resolve()),
+        "parameters": {n: [p.variable, float(p.scale), float(p.offset)] for n, p in study.parameters.items()},
+        "fixed": {k: (v if isinstance(v, (bool, int, str)) else float(v)) for k, v in study.fixed.items()},
+        "scenario": {"stop_time": float(study.scenario.stop_time), "step": study.scenario.step,
+                     "inputs": {k: float(v) for k, v in study.scenario.inputs.items()},
+                     "refine_peaks": bool(study.scenario.refine_peaks),
+                     "refine_factor": int(study.scenario.refine_factor)},
+        "metrics": {m.name: [m.output, m.reduce, float(m.scale), float(m.offset), m.missing_below, m.settle_tol]
+                    for m in study.metrics.values()},
+        "fmu_options": [study.fmu_options.interface, study.fmu_options.solver,
+                        study.fmu_options.relative_tolerance, study.fmu_options.step_size],
+    }
