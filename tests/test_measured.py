@@ -11,7 +11,7 @@ import pytest
 from fmusa.applications.shear_c67 import data as shear_c67
 from fmusa.diagnose.measured import ColumnSpec, Experiment, MeasuredDataError, downsample, load_experiment, load_experiments, parse_rate
 
-#: The repository's copy of the shear data (specimens H1–H3).
+#: The repository's copy of the shear data (specimens H1–H3 and H10–H21).
 SHEAR = Path(__file__).resolve().parents[1] / "data" / "shear-c67"
 
 N = 20
@@ -302,6 +302,8 @@ def test_load_experiments_unique_names_and_all_errors(tmp_path):
 # ============================================================================ the real data
 def test_shear_tests_load():
     tests = shear_c67.list_tests(SHEAR)
+    assert {"H1", "H2", "H3"} <= set(tests.specimen) and not {f"H{k}" for k in range(4, 10)} & set(tests.specimen)
+    tests = tests[tests.specimen.isin(["H1", "H2", "H3"])].reset_index(drop=True)   # the folder also holds H10–H21
     assert len(tests) == 18
     assert set(tests.specimen) == {"H1", "H2", "H3"} and set(tests.direction) == {"Ant", "Pos"}
     assert sorted(set(tests.rate_mm_s)) == [1.0, 10.0, 100.0]
@@ -323,7 +325,7 @@ def test_shear_tests_load():
 
 def test_shear_authors_bilinear():
     fits = shear_c67.authors_bilinear(SHEAR)
-    assert len(fits) == 18
+    assert len(fits) == 6 * shear_c67.list_tests(SHEAR).specimen.nunique()      # one row per test on file
     assert {"specimen", "direction", "rate_mm_s", "stiffness_1", "stiffness_2", "breakpoint_mm",
             "intercept_1", "intercept_2", "r2_1", "peak_load_N", "peak_disp_mm"} <= set(fits)
     row = fits[(fits.specimen == "H1") & (fits.direction == "Ant") & (fits.rate_mm_s == 1)].iloc[0]

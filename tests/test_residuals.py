@@ -198,6 +198,136 @@ def test_oscillation_across_experiments_with_different_phases():
     assert osc["amplitude"] == pytest.approx(0.6, rel=0.10)
 
 
+# ---------------------------------------------------------------------------------------------- edges (issue 11)
+
+def _stack(sizes, dt, make):
+    """Experiments of the given sizes, each starting at t = 0 (as the shear tests do); make(j, tt) -> r."""
+    t = np.concatenate([np.arange(m) * dt for m in sizes])
+    r = np.concatenate([make(j, np.arange(m) * dt) for j, m in enumerate(sizes)])
+    return t, r, np.split(np.arange(len(r)), np.cumsum(sizes)[:-1])
+
+
+def _room(r, segs, which=None):
+    """Mean square of r about each experiment's own mean, over the experiments ``which`` (all by default)."""
+    which = range(len(segs)) if which is None else which
+    x = np.concatenate([r[segs[j]] - r[segs[j]].mean() for j in which])
+    return float(np.mean(x ** 2))
+
+
+def _assert_possible(out, r, segs):
+    """Every statement fits in the residual: A^2/2 <= the variance about the experiments' means, a ramp's
+    variance (total change^2 / 12) <= that variance, shares in [0, 1]."""
+    room = _room(r, segs)
+    osc, drift = out["oscillation"], out["drift"]
+    if osc is not None:
+        assert osc["amplitude"] ** 2 / 2 <= room * (1 + 1e-9)
+        assert 0.0 <= osc["share_of_variance"] <= 1.0
+    if drift is not None:
+        assert 0.0 <= drift["share_of_variance"] <= 1.0
+        assert drift["total_change"] ** 2 / 12 <= 1.05 * room
+
+
+def test_oscillation_in_segments_of_25_to_500_samples():
+    """A 5 Hz, 0.8 N oscillation in 0.3 N noise, experiments of 25–500 samples at 250 Hz (0.1–2 s), each with
+    its own phase and offset: frequency and amplitude found, within what the residual holds."""
+    rng = np.random.default_rng(3)
+    sizes = [25, 500, 44, 300, 120, 25]
+    t, r, segs = _stack(sizes, 0.004, lambda j, tt: 0.8 * np.sin(2 * np.pi * 5.0 * tt + rng.uniform(0, 6))
+                        + rng.normal(0, 5.0) + rng.normal(0.0, 0.3, len(tt)))
+    out = residual_structure(t, r, segments=segs, unit="N")
+    osc = out["oscillation"]
+    assert osc is not None and osc["frequency_hz"] == pytest.approx(5.0, rel=0.02)
+    assert osc["amplitude"] == pytest.approx(0.8, rel=0.10)
+    # 25 samples (0.1 s) hold half a period of 5 Hz: only the experiments holding two periods (>= 0.4 s) carry it
+    assert osc["experiments"] == 3
+    _assert_possible(out, r, segs)
+
+
+def test_period_longer_than_every_segment_is_not_reported():
+    """The degenerate case of issue 11: short experiments (25–44 samples, 0.25–0.44 s) of a slow wave
+    (0.86 Hz, period 1.2 s, 3–5 times an experiment) with offsets. A free-phase sinusoid of that period over
+    one experiment is an offset, a slope and a bend: no oscillation may be stated, no amplitude beyond the
+    residual, and the description says which periods were looked at."""
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        sizes = list(rng.integers(25, 45, 6))
+        t, r, segs = _stack(sizes, 0.01, lambda j, tt: 4.0 * np.sin(2 * np.pi * 0.86 * tt + rng.uniform(0, 6))
+                            + rng.normal(0, 3.0) + rng.normal(0.0, 0.5, len(tt)))
+        out = residual_structure(t, r, segments=segs, unit="N")
+        osc = out["oscillation"]
+        assert osc is None or osc["frequency_hz"] >= 2.0 / (0.01 * max(sizes)) * (1 - 1e-6)
+        _assert_possible(out, r, segs)
+        assert out["longest_period_s"] == pytest.approx(0.01 * max(sizes) / 2.0)
+        assert out["structured"]                      # the slow wave is structure (Ljung–Box, runs) ...
+        assert " Hz" not in out["description"] and "period up to" in out["description"]   # ... but no line
+
+
+def test_long_period_found_only_in_the_long_segment():
+    """Segments of different lengths: a 1 Hz wave in one 5 s experiment (2000 samples) and in six 0.1 s
+    ones (25 samples). Only the long one can show it; the amplitude is that experiment's."""
+    rng = np.random.default_rng(5)
+    sizes = [2000] + [25] * 6
+    t, r, segs = _stack(sizes, 0.0025, lambda j, tt: 1.5 * np.sin(2 * np.pi * 1.0 * tt + rng.uniform(0, 6))
+                        + rng.normal(0, 4.0) + rng.normal(0.0, 0.4, len(tt)))
+    out = residual_structure(t, r, segments=segs, unit="N")
+    osc = out["oscillation"]
+    assert osc is not None and osc["frequency_hz"] == pytest.approx(1.0, rel=0.02)
+    assert osc["experiments"] == 1 and osc["samples"] == 2000
+    assert osc["amplitude"] == pytest.approx(1.5, rel=0.10)
+    assert osc["amplitude"] ** 2 / 2 <= _room(r, segs, [0])
+    _assert_possible(out, r, segs)
+
+
+def test_white_noise_in_segments_of_25_to_500_samples():
+    """No oscillation, no structure: white noise with offsets in experiments of 25–500 samples is called
+    structured at about the nominal rate (alpha = 0.01; 60 draws, at most 3 calls), and whatever is said
+    is possible."""
+    calls = 0
+    for seed in range(60):
+        rng = np.random.default_rng(100 + seed)
+        sizes = list(rng.integers(25, 501, 5))
+        t, r, segs = _stack(sizes, 0.01, lambda j, tt: rng.normal(0, 10.0) + rng.normal(0.0, 1.0, len(tt)))
+        out = residual_structure(t, r, segments=segs)
+        calls += out["structured"]
+        _assert_possible(out, r, segs)
+    assert calls <= 3
+
+
+def test_no_impossible_amplitude_on_slow_structure_in_short_segments():
+    """Random slow structure (bends, ramps, slow waves of any phase) in experiments of 25–60 samples, as the
+    100 mm/s shear tests leave: whatever is stated must fit in the residual (the bug: 931 N at 0.86 Hz on
+    a 4 N rms residual)."""
+    for seed in range(40):
+        rng = np.random.default_rng(1000 + seed)
+        sizes = list(rng.integers(25, 61, int(rng.integers(2, 7))))
+        def make(j, tt):
+            u = tt / tt[-1]
+            return (rng.normal(0, 20) + rng.normal(0, 5) * u + rng.normal(0, 5) * u ** 2
+                    + rng.normal(0, 3) * np.sin(2 * np.pi * rng.uniform(0.2, 3) * tt + rng.uniform(0, 6))
+                    + rng.normal(0, 0.5, len(tt)))
+        t, r, segs = _stack(sizes, 0.01, make)
+        out = residual_structure(t, r, segments=segs, unit="N")
+        _assert_possible(out, r, segs)
+
+
+def test_very_short_segments_cannot_tell_an_oscillation():
+    """Experiments of 6 samples: no period can be searched (longest_period_s NaN, no oscillation); a drift
+    across them is still found and the description says an oscillation cannot be told."""
+    rng = np.random.default_rng(8)
+    sizes = [6] * 40
+    t, r, segs = _stack(sizes, 0.01, lambda j, tt: rng.normal(0, 5.0) + 60.0 * tt + rng.normal(0, 0.1, len(tt)))
+    out = residual_structure(t, r, segments=segs, unit="N")
+    assert out["oscillation"] is None and np.isnan(out["longest_period_s"])
+    assert out["drift"] is not None and out["drift"]["slope_per_s"] == pytest.approx(60.0, rel=0.1)
+    _assert_possible(out, r, segs)
+    t2, r2, segs2 = _stack(sizes, 0.01, lambda j, tt: rng.normal(0, 5.0) + np.r_[1, 1, 1, -1, -1, -1] * 0.5
+                           + rng.normal(0, 0.05, len(tt)))
+    out2 = residual_structure(t2, r2, segments=segs2)
+    assert out2["oscillation"] is None
+    if out2["structured"] and out2["drift"] is None:
+        assert "cannot be told" in out2["description"]
+
+
 # ---------------------------------------------------------------------------------------------- for plots
 
 def test_binned_residuals_follow_a_linear_error():

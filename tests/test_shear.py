@@ -12,6 +12,9 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+import numpy as np
+
+from fmusa.applications.shear_c67 import bilinear
 from fmusa.applications.shear_c67 import data as shear_c67
 from fmusa.applications.shear_c67.study import fit_bilinear_per_test, run_shear_diagnosis
 from fmusa.diagnose.run import diagnose
@@ -26,7 +29,7 @@ SHARED = ROOT.parent / "shared" / "data" / "shear-c67"
 def test_two_phase_fit_matches_the_authors_breakpoint_analysis(fmu_path):
     """At 1 and 10 mm/s (hundreds of samples per test) our continuous bilinear fit through the FMU must
     agree with the authors' two-line fit: second stiffness within 3 %, first within 10 %, breakpoint
-    within 0.1 mm."""
+    within 0.1 mm; the two-line fit as the authors did it within 1 %, 2 % and 0.02 mm."""
     tests = shear_c67.list_tests(SHEAR)
     pick = tests[((tests.specimen == "H1") & (tests.direction == "Ant") & (tests.rate_mm_s == 1))
                  | ((tests.specimen == "H2") & (tests.direction == "Pos") & (tests.rate_mm_s == 10))]
@@ -34,10 +37,75 @@ def test_two_phase_fit_matches_the_authors_breakpoint_analysis(fmu_path):
     ours = fit_bilinear_per_test(pick, str(fmu_path), max_points=300)
     cmp_ = ours.merge(shear_c67.authors_bilinear(SHEAR), on=["specimen", "direction", "rate_mm_s"])
     for _, r in cmp_.iterrows():
-        assert abs(r.k2_N_mm / r.stiffness_2 - 1) < 0.03, r.to_dict()
-        assert abs(r.k1_N_mm / r.stiffness_1 - 1) < 0.10, r.to_dict()
-        assert abs(r.bp_mm - r.breakpoint_mm) < 0.1, r.to_dict()
-        assert r.rmse_N < 0.5 * r.linear_rmse_N      # the bend is real: a line fits far worse
+        # fmusa's two-phase model through the FMU (from the unloaded start, 300 block means)
+        assert abs(r.model_k2_N_mm / r.stiffness_2 - 1) < 0.03, r.to_dict()
+        assert abs(r.model_k1_N_mm / r.stiffness_1 - 1) < 0.10, r.to_dict()
+        assert abs(r.model_bp_mm - r.breakpoint_mm) < 0.1, r.to_dict()
+        # the authors' method redone: two continuous lines, free intercept, every sample
+        assert abs(r.k2_N_mm / r.stiffness_2 - 1) < 0.01, r.to_dict()
+        assert abs(r.k1_N_mm / r.stiffness_1 - 1) < 0.02, r.to_dict()
+        assert abs(r.bp_mm - r.breakpoint_mm) < 0.02, r.to_dict()
+        assert r.rmse_N < 0.6 * r.linear_rmse_N      # the bend is real: a line fits far worse
+
+
+def test_two_lines_recover_a_known_curve():
+    """Two continuous lines with a free intercept (a toe: the force starts at -20 N) and 1 N noise, bending
+    up or down (k1 > k2), loaded anteriorly and posteriorly, with 30 (a 100 mm/s record) and 2000 samples:
+    stiffnesses within 2 %, breakpoint within 0.02 mm, reported in the raw frame (dF/dx > 0, Pos breakpoint
+    negative)."""
+    rng = np.random.default_rng(4)
+    for n, sign, k1, k2 in [(n, sign, k1, k2) for n in (30, 2000) for sign in (1.0, -1.0)
+                            for k1, k2 in ((90.0, 230.0), (400.0, 150.0))]:   # stiffening and softening bends
+        u = np.linspace(0.03, 1.6, n)
+        f = -20.0 + k1 * u + (k2 - k1) * np.maximum(u - 0.6, 0.0) + rng.normal(0, 1.0, n)
+        out = bilinear.fit_two_lines(sign * u, sign * f)
+        assert out["k1_N_mm"] == pytest.approx(k1, rel=0.02), (n, sign, out)
+        assert out["k2_N_mm"] == pytest.approx(k2, rel=0.02), (n, sign, out)
+        assert out["bp_mm"] == pytest.approx(sign * 0.6, abs=0.02), (n, sign, out)
+        assert out["intercept_1_N"] == pytest.approx(sign * -20.0, abs=2.0)
+
+
+def test_through_the_unloaded_start_the_first_stiffness_is_off():
+    """Why the FMU's two-phase model differs from the authors on k1: a spring that starts unloaded must pass
+    through the first sample, so a toe (force lagging the displacement) bends its first line. The free
+    intercept recovers k1; a line forced through the start does not."""
+    u = np.linspace(0.0, 1.5, 400)
+    f = np.where(u < 0.6, -15.0 + 100.0 * u, -15.0 + 60.0 + 250.0 * (u - 0.6))
+    f = np.maximum(f, 0.0)                               # the toe: no force until 0.15 mm
+    free = bilinear.fit_two_lines(u, f)
+    X = np.c_[u - u[0], np.maximum(u - free["bp_mm"], 0.0)]
+    through, *_ = np.linalg.lstsq(X, f - f[0], rcond=None)
+    assert abs(free["k1_N_mm"] / 100.0 - 1) < abs(through[0] / 100.0 - 1)
+    assert abs(through[0] / 100.0 - 1) > 0.05
+
+
+def test_split_of_specimens_is_fixed():
+    assert bilinear.TUNING == ("H1", "H2", "H3", "H10", "H11", "H12", "H13", "H14")
+    assert bilinear.split(["H21", "H2", "H15", "H10"]) == {"tuning": ["H2", "H10"], "held_out": ["H21", "H15"]}
+
+
+@pytest.mark.skipif(not (SHEAR / "H21").is_dir(), reason="data/shear-c67 without H15–H21")
+def test_two_lines_match_the_authors_on_held_out_specimens():
+    """Issue 11: median |Δk1| <= 5 % and |Δk2| <= 2 % per rate on the specimens the breakpoint rule was not
+    chosen on (H15–H21), and on the tuning ones (H1–H3, H10–H14). Measured (2026-11-30): held out k1 0.02 /
+    0.18 / 1.06 %, k2 0.00 % at 1 / 10 / 100 mm/s; tuning k1 0.02 / 0.08 / 1.92 %, k2 0.00 %."""
+    from fmusa.applications.shear_c67.study import summarize
+
+    tests = shear_c67.list_tests(SHEAR)
+    ours = fit_bilinear_per_test(tests, None, 300)
+    assert ours["model_k1_N_mm"].isna().all()            # no FMU asked for
+    cmp_ = ours.merge(shear_c67.authors_bilinear(SHEAR), on=["specimen", "direction", "rate_mm_s"], how="left")
+    assert cmp_["stiffness_1"].notna().all()
+    s = summarize({}, cmp_, {})
+    parts = s["bilinear_by_split"]
+    assert parts["held_out"]["specimens"] == [f"H{k}" for k in range(15, 22)]
+    assert set(parts["tuning"]["specimens"]) == set(bilinear.TUNING)
+    for part in ("held_out", "tuning"):
+        assert set(parts[part]["by_rate"]) == {"1", "10", "100"}
+        for rate, v in parts[part]["by_rate"].items():
+            assert v["k1_rel_diff_median"] <= 0.05, (part, rate, v)
+            assert v["k2_rel_diff_median"] <= 0.02, (part, rate, v)
+            assert v["breakpoint_abs_diff_median_mm"] <= 0.05, (part, rate, v)
 
 
 def test_monotonic_real_tests_name_a_stiffening_bend(fmu_path):

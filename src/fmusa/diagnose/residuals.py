@@ -20,6 +20,10 @@ OVERSAMPLE = 5          # frequency grid points per independent frequency 1/T: t
 LOCAL_WINDOW = 25       # independent frequencies each side of a peak that estimate the local continuum
 LOCAL_GAP = 2           # ... leaving out this many each side of the peak (its main lobe)
 HOLD_FRACTION = 0.02    # |v| below this fraction of max |v| counts as a hold
+MIN_PERIODS = 2.0       # an experiment says something about a period only when it holds this many of them:
+#                         over a shorter stretch a free-phase sinusoid is indistinguishable from an offset, a
+#                         slope and a bend, and its fitted amplitude is meaningless (it can be 100x the rms)
+MIN_SAMPLES = 8         # ... and when it has at least this many samples
 
 
 # ---------------------------------------------------------------------------------------------- segments
@@ -118,10 +122,14 @@ def runs_test(r: np.ndarray, center: float | str = 0.0, *,
 
 # ---------------------------------------------------------------------------------------------- components
 
-def _design(t: np.ndarray, segs: list[np.ndarray], freq: float | None) -> tuple[np.ndarray, int]:
+def _design(t: np.ndarray, segs: list[np.ndarray], freq: float | None,
+            active: Sequence[bool] | None = None) -> tuple[np.ndarray, int]:
     """Columns: one intercept per experiment, a common slope in time (about each experiment's mean time), and
     when ``freq`` is given a cosine and sine per experiment (common frequency, phase free per experiment:
-    experiments start at arbitrary phases of a rig oscillation). Returns (X, column of the slope)."""
+    experiments start at arbitrary phases of a rig oscillation). ``active`` (one flag per experiment) leaves
+    the cosine and sine of an experiment at zero where it cannot hold the period (see _eligible): there a
+    free-phase sinusoid would be offset, slope and curvature with a huge amplitude. Returns (X, column of
+    the slope)."""
     k = len(segs)
     ncol = k + 1 + (2 * k if freq is not None else 0)
     X = np.zeros((sum(len(s) for s in segs), ncol))     # rows: the experiments stacked in order
@@ -131,20 +139,45 @@ def _design(t: np.ndarray, segs: list[np.ndarray], freq: float | None) -> tuple[
         rr = slice(start, start + len(idx))
         X[rr, j] = 1.0
         X[rr, k] = tt - tt.mean()
-        if freq is not None:
+        if freq is not None and (active is None or active[j]):
             X[rr, k + 1 + 2 * j] = np.cos(2 * np.pi * freq * tt)
             X[rr, k + 2 + 2 * j] = np.sin(2 * np.pi * freq * tt)
         start += len(idx)
     return X, k
 
 
-def _fit(t: np.ndarray, r: np.ndarray, segs: list[np.ndarray],
-         freq: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _fit(t: np.ndarray, r: np.ndarray, segs: list[np.ndarray], freq: float | None,
+         active: Sequence[bool] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least squares of the stacked experiments on _design; returns (X, coefficients, residual)."""
-    X, _ = _design(t, segs, freq)
+    X, _ = _design(t, segs, freq, active)
     y = np.concatenate([r[idx] for idx in segs])
     beta, *_ = np.linalg.lstsq(X, y, rcond=None)
     return X, beta, y - X @ beta
+
+
+def _duration(t: np.ndarray, idx: np.ndarray) -> float:
+    """Time an experiment covers: its span plus one (median) sample step."""
+    if len(idx) < 2:
+        return 0.0
+    tt = t[idx]
+    return float(tt[-1] - tt[0] + np.median(np.diff(tt)))
+
+
+def _band(t: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
+    """(lowest, highest) frequency an experiment can say anything about: at least MIN_PERIODS periods in it,
+    at most its Nyquist frequency; (inf, 0) for one shorter than MIN_SAMPLES."""
+    if len(idx) < MIN_SAMPLES:
+        return float("inf"), 0.0
+    return MIN_PERIODS / _duration(t, idx), 0.5 / float(np.median(np.diff(t[idx])))
+
+
+def _eligible(t: np.ndarray, segs: list[np.ndarray], freq: float) -> list[bool]:
+    """Which experiments hold at least MIN_PERIODS periods of ``freq`` (and resolve it)."""
+    out = []
+    for idx in segs:
+        lo, hi = _band(t, idx)
+        out.append(bool(lo * (1 - 1e-9) <= freq <= hi * (1 + 1e-9)))
+    return out
 
 
 def _is_uniform(t: np.ndarray) -> bool:
@@ -202,45 +235,57 @@ def _periodogram(t: np.ndarray, x: np.ndarray, freqs: np.ndarray) -> np.ndarray:
 
 
 def _oscillation(t: np.ndarray, r: np.ndarray, segs: list[np.ndarray]) -> dict | None:
-    """Strongest spectral line of the per-experiment detrended residual and its p-value. The pooled power
-    Z(f) = sum over experiments of P_s(f) / var_s is Gamma(K) under white noise (K experiments). Two tests
-    must both pass, the p-value is the larger: Z_max against white noise scanned over the band (Baluev's
-    false-alarm probability), and Z_max rescaled by the local continuum (median of Z around the peak), so that
-    the red spectrum of correlated noise is not taken for a line."""
-    spans = [float(t[idx[-1]] - t[idx[0]]) for idx in segs if len(idx) >= 8]
-    if not spans or max(spans) <= 0:
+    """Strongest spectral line of the per-experiment detrended residual and its p-value, searched only where
+    it can be told from an offset and a drift: an experiment takes part at frequency f when it holds at least
+    MIN_PERIODS periods (and f is below its Nyquist frequency), so experiments of different lengths cover
+    different bands and periods longer than every experiment / MIN_PERIODS are not searched at all (None).
+    The pooled power Z(f) = sum over the K(f) taking part of P_s(f) / var_s is Gamma(K(f)) under white noise;
+    the peak is the frequency least likely under it. Two tests must both pass, the p-value is the larger:
+    Z_max against white noise scanned over the band (Baluev's false-alarm probability), and Z_max rescaled by
+    the local continuum (median of Z around the peak), so that the red spectrum of correlated noise is not
+    taken for a line."""
+    bands = [_band(t, idx) for idx in segs]
+    f_lo = min(b[0] for b in bands)
+    f_hi = max(b[1] for b in bands)
+    if not np.isfinite(f_lo) or f_hi <= f_lo:
         return None
-    t_max = max(spans)
-    nyq = min(0.5 / float(np.median(np.diff(t[idx]))) for idx in segs if len(idx) >= 8)
-    f_min = 1.0 / t_max
-    if nyq <= f_min:
-        return None
+    t_max = max(_duration(t, idx) for idx, b in zip(segs, bands) if np.isfinite(b[0]))
     df = 1.0 / (OVERSAMPLE * t_max)
-    freqs = np.arange(f_min, nyq + 0.5 * df, df)
+    freqs = np.arange(f_lo, f_hi + 0.5 * df, df)
     if len(freqs) < 3:
         return None
     _, _, e = _fit(t, r, segs, None)              # detrended per experiment, common slope
     z = np.zeros(len(freqs))
-    k = 0
+    kk = np.zeros(len(freqs), int)
     start = 0
-    for idx in segs:
+    for idx, (lo, hi) in zip(segs, bands):
         x = e[start:start + len(idx)]
         start += len(idx)
-        if len(idx) < 8:
+        if not np.isfinite(lo):
             continue
         var = float(np.mean((x - x.mean()) ** 2))
         if var <= 0:
             continue
-        z += _periodogram(t[idx], x - x.mean(), freqs) / var
-        k += 1
-    if k == 0:
+        use = (freqs >= lo * (1 - 1e-9)) & (freqs <= hi * (1 + 1e-9))
+        if np.count_nonzero(use) == 0:
+            continue
+        sub = freqs[use]
+        z[use] += _periodogram(t[idx], x - x.mean(), sub) / var
+        kk[use] += 1
+    if not np.any(kk > 0):
         return None
-    var_t = max(float(np.var(t[idx])) for idx in segs if len(idx) >= 8)
+    score = np.full(len(freqs), np.inf)           # -log P(Gamma(K) > Z): the least likely peak under noise
+    on = kk > 0
+    score[on] = stats.gamma.logsf(z[on], kk[on])
+    i = int(np.argmin(score))
+    k = int(kk[i])
+    var_t = max(float(np.var(t[idx])) for idx, b in zip(segs, bands) if np.isfinite(b[0]))
     w_band = (freqs[-1] - freqs[0]) * np.sqrt(4 * np.pi * var_t)
-    i = int(np.argmax(z))
-    lo, hi = max(0, i - LOCAL_WINDOW * OVERSAMPLE), min(len(z), i + LOCAL_WINDOW * OVERSAMPLE + 1)
-    window = np.r_[z[lo:max(lo, i - LOCAL_GAP * OVERSAMPLE)], z[min(hi, i + LOCAL_GAP * OVERSAMPLE + 1):hi]]
-    level = float(np.median(window)) / stats.gamma.median(k) if len(window) >= 10 else 1.0
+    zn = np.where(on, z / stats.gamma.median(np.maximum(kk, 1)), np.nan)   # about 1 per frequency under noise
+    lo_i, hi_i = max(0, i - LOCAL_WINDOW * OVERSAMPLE), min(len(z), i + LOCAL_WINDOW * OVERSAMPLE + 1)
+    window = np.r_[zn[lo_i:max(lo_i, i - LOCAL_GAP * OVERSAMPLE)], zn[min(hi_i, i + LOCAL_GAP * OVERSAMPLE + 1):hi_i]]
+    window = window[np.isfinite(window)]
+    level = float(np.median(window)) if len(window) >= 10 else 1.0
 
     def p_max(zz: float) -> float:
         # Baluev (2008): false-alarm probability of the highest peak of a periodogram scanned over a band,
@@ -252,15 +297,26 @@ def _oscillation(t: np.ndarray, r: np.ndarray, segs: list[np.ndarray]) -> dict |
         return float(min(1.0, -np.expm1(np.log1p(-stats.gamma.sf(zz, k)) - tau)))
     p = max(p_max(z[i]), p_max(z[i] / max(level, 1e-300)))
 
+    active = _eligible(t, segs, float(freqs[i]))
+
     def sse(f: float) -> float:
-        return float(np.sum(_fit(t, r, segs, f)[2] ** 2))
+        return float(np.sum(_fit(t, r, segs, f, active)[2] ** 2))
     f_best = float(freqs[i])
     if 0 < i < len(freqs) - 1:
         res = optimize.minimize_scalar(sse, bounds=(freqs[i - 1], freqs[i + 1]), method="bounded",
                                        options={"xatol": 1e-4 * df})
         if res.fun <= sse(f_best):
             f_best = float(res.x)
-    return {"frequency_hz": f_best, "p_value": p, "peak_power": float(z[i]), "continuum": level}
+    return {"frequency_hz": f_best, "p_value": p, "peak_power": float(z[i]), "continuum": level,
+            "active": active, "experiments": k}
+
+
+def longest_period(t: np.ndarray, segs: list[np.ndarray]) -> float:
+    """The longest period the oscillation search looks at (s): the longest experiment / MIN_PERIODS; NaN when
+    no experiment has MIN_SAMPLES samples. Longer periods cannot be told from an offset and a drift."""
+    lows = [_band(t, idx)[0] for idx in segs]
+    lows = [x for x in lows if np.isfinite(x)]
+    return 1.0 / min(lows) if lows else float("nan")
 
 
 def _hac_slope_p(X: np.ndarray, e: np.ndarray, col: int, slope: float,
@@ -334,7 +390,14 @@ def _describe(out: dict, unit: str, n_segments: int) -> str:
                     f"runs test z = {out['runs_z']:.1f})")
         else:
             kind = f"residuals that alternate more than noise does (lag-1 autocorrelation {rho:.2f})"
-        parts.append(f"{kind}, but no single oscillation or drift")
+        lp = out.get("longest_period_s", float("nan"))
+        if np.isfinite(lp):
+            parts.append(f"{kind}, but no single drift or oscillation with a period up to {_fmt(lp)} s (longer "
+                         f"periods cannot be told from an offset and a drift: an experiment must hold "
+                         f"{MIN_PERIODS:g} of them)")
+        else:
+            parts.append(f"{kind}, but no single drift; whether it oscillates cannot be told (segments too "
+                         f"short: fewer than {MIN_SAMPLES} samples each)")
     return "structured: " + "; ".join(parts)
 
 
@@ -352,10 +415,17 @@ def residual_structure(t: np.ndarray, r: np.ndarray, *, segments: Sequence[np.nd
 
     The mean (a bias) is reported but is not structure: a constant offset passes as white.
 
+    Oscillations are searched only at periods that every experiment taking part holds at least MIN_PERIODS
+    times (experiments of different lengths cover different bands); the amplitude is that of the sinusoid
+    whose mean square is the fitted wave's, never more than the residual of those experiments can hold
+    (A^2/2 <= their variance), and each share of variance is what the component explains (nested least
+    squares), so it is between 0 and 1.
+
     Keys: structured, description, n, n_segments, alpha, alpha_per_test, mean, rms, noise_rms,
     lag1_autocorrelation, ljung_box_q, ljung_box_df, ljung_box_p, runs, runs_z, runs_p, p_values (the four
-    tests), oscillation (None or frequency_hz, amplitude, share_of_variance, p_value), drift (None or
-    slope_per_s, slope_se, total_change, share_of_variance, p_value)."""
+    tests), oscillation (None or frequency_hz, amplitude, share_of_variance, p_value, experiments, samples),
+    drift (None or slope_per_s, slope_se, total_change, share_of_variance, p_value), longest_period_s (the
+    longest period searched, NaN when none can be)."""
     t = np.asarray(t, float).ravel()
     r = np.asarray(r, float).ravel()
     if t.shape != r.shape:
@@ -376,35 +446,53 @@ def residual_structure(t: np.ndarray, r: np.ndarray, *, segments: Sequence[np.nd
     osc = _oscillation(t, r, segs)
     p_osc = osc["p_value"] if osc is not None else float("nan")
     freq = osc["frequency_hz"] if osc is not None and p_osc < a_each else None
-    X, beta, e = _fit(t, r, segs, freq)
+    active = osc["active"] if freq is not None else None
     k = len(segs)
-    slope = float(beta[k])
     y = np.concatenate([r[idx] for idx in segs])
-    centred = y - X[:, :k] @ beta[:k]
+    bounds = np.cumsum([0] + [len(s) for s in segs])
+    centred = np.concatenate([y[a:b] - y[a:b].mean() for a, b in zip(bounds[:-1], bounds[1:])])
     var_total = float(np.mean(centred ** 2)) if n else float("nan")
+    sse_total = float(centred @ centred)
+    oscillation = None
+    if freq is not None:
+        X, beta, e = _fit(t, r, segs, freq, active)
+        _, _, e0 = _fit(t, r, segs, None)          # the same without the oscillation: what it explains
+        rows = np.concatenate([np.full(b - a, bool(on)) for a, b, on in zip(bounds[:-1], bounds[1:], active)])
+        wave = (X[:, k + 1:] @ beta[k + 1:])[rows]
+        # Amplitude of the sinusoid whose mean square is the fitted wave's, over the experiments that hold
+        # it; it cannot exceed what those experiments' residual holds: A^2 / 2 <= their variance. A fit that
+        # would needs the offsets and the drift to cancel it: degenerate, and not reported.
+        ms_wave = float(np.mean(wave ** 2))
+        ms_room = float(np.mean(centred[rows] ** 2))
+        if ms_wave <= 1.05 * ms_room:
+            amp = float(np.sqrt(2.0 * min(ms_wave, ms_room)))
+            explained = max(0.0, float(e0 @ e0) - float(e @ e))
+            oscillation = {"frequency_hz": freq, "amplitude": amp,
+                           "share_of_variance": float(min(1.0, explained / sse_total)) if sse_total > 0
+                           else float("nan"),
+                           "p_value": p_osc, "experiments": int(sum(active)),
+                           "samples": int(np.count_nonzero(rows))}
+        else:
+            freq, active = None, None
+    X, beta, e = _fit(t, r, segs, freq, active)
+    slope = float(beta[k])
     if var_total <= (1e-12 * float(np.max(np.abs(y)))) ** 2:      # constant per experiment: nothing to test
         slope_se, p_drift = float("nan"), float("nan")
     else:
         slope_se, p_drift = _hac_slope_p(X, e, k, slope, segs)
-    share = (lambda v: float(v / var_total) if var_total > 0 else float("nan"))
-
-    oscillation = None
-    if freq is not None:
-        ab = beta[k + 1:].reshape(k, 2)
-        sizes = np.array([len(s) for s in segs], float)
-        amp = float(np.sqrt(np.sum(sizes * np.sum(ab ** 2, axis=1)) / sizes.sum()))
-        wave = X[:, k + 1:] @ beta[k + 1:]
-        oscillation = {"frequency_hz": freq, "amplitude": amp, "share_of_variance": share(np.mean(wave ** 2)),
-                       "p_value": p_osc}
     drift = None
     if np.isfinite(p_drift) and p_drift < a_each:
         span = float(np.mean([t[idx[-1]] - t[idx[0]] for idx in segs]))
+        keep = [c for c in range(X.shape[1]) if c != k]
+        b1, *_ = np.linalg.lstsq(X[:, keep], y, rcond=None)
+        e1 = y - X[:, keep] @ b1                    # the same without the drift: what it explains
+        explained = max(0.0, float(e1 @ e1) - float(e @ e))
         drift = {"slope_per_s": slope, "slope_se": slope_se, "total_change": slope * span,
-                 "share_of_variance": share(np.mean((slope * X[:, k]) ** 2)), "p_value": p_drift}
+                 "share_of_variance": float(min(1.0, explained / sse_total)) if sse_total > 0 else float("nan"),
+                 "p_value": p_drift}
 
     p_values = {"ljung_box": p_lb, "runs": p_runs, "oscillation": p_osc, "drift": p_drift}
     finite = [p for p in p_values.values() if np.isfinite(p)]
-    bounds = np.cumsum([0] + [len(s) for s in segs])
     out = {
         "structured": bool(finite and min(finite) < a_each),
         "n": n, "n_segments": k, "alpha": float(alpha), "alpha_per_test": a_each,
@@ -415,6 +503,7 @@ def residual_structure(t: np.ndarray, r: np.ndarray, *, segments: Sequence[np.nd
         "ljung_box_q": q, "ljung_box_df": df_lb, "ljung_box_p": p_lb,
         "runs": n_runs, "runs_z": z_runs, "runs_p": p_runs,
         "p_values": p_values, "oscillation": oscillation, "drift": drift,
+        "longest_period_s": longest_period(t, segs),
     }
     out["description"] = _describe(out, unit, k)
     return out

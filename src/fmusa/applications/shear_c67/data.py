@@ -26,12 +26,13 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Mapping
 
+import numpy as np
 import pandas as pd
 
 from fmusa.diagnose.measured import ColumnSpec, Experiment, MeasuredDataError, downsample, load_experiment
 
 __all__ = ["DEFAULT_DATA", "DRIVE", "data_root", "list_tests", "parse_name", "column_spec", "load_test",
-           "authors_bilinear", "DIRECTION_NAMES"]
+           "load_raw", "authors_bilinear", "DIRECTION_NAMES"]
 
 #: Where `fmusa diagnose-shear` looks by default: relative to the current directory (the repository root).
 DEFAULT_DATA = Path("data") / "shear-c67"
@@ -104,6 +105,19 @@ def load_test(path_or_row: str | Path | Mapping, max_points: int | None = 1000,
                           zero_drive=zero_drive)
     exp = replace(exp, meta=dict(exp.meta, specimen=specimen, direction=direction, rate_mm_s=rate))
     return exp if max_points is None else downsample(exp, max_points)
+
+
+def load_raw(path_or_row: str | Path | Mapping) -> tuple[np.ndarray, np.ndarray]:
+    """(disp_x [mm], Fx [N]) of one test as recorded: every sample, signed, not shifted, not averaged (the
+    frame of the authors' analysis in test_info.csv)."""
+    path = Path(path_or_row["path"] if isinstance(path_or_row, (Mapping, pd.Series)) else path_or_row)
+    parse_name(path)
+    try:
+        df = pd.read_csv(path, usecols=["disp_x_mm", "Fx_N"])
+    except ValueError as e:
+        raise MeasuredDataError(f"{path}: {e}; expected the columns disp_x_mm and Fx_N") from None
+    df = df.dropna()
+    return df["disp_x_mm"].to_numpy(float), df["Fx_N"].to_numpy(float)
 
 
 _BILINEAR = {

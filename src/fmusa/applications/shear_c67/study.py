@@ -19,6 +19,7 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
+from fmusa.applications.shear_c67 import bilinear
 from fmusa.applications.shear_c67 import data as shear_c67
 from fmusa.diagnose.calibrate import ModelRunner, calibrate, fit_candidate
 from fmusa.diagnose.effects import CANDIDATES, data_scales
@@ -28,37 +29,64 @@ from fmusa.diagnose.run import run_diagnosis
 __all__ = ["fit_bilinear_per_test", "rate_dependence", "run_shear_diagnosis", "describe_data", "summarize"]
 
 
-def fit_bilinear_per_test(tests: pd.DataFrame, fmu: str, max_points: int, max_starts: int = 6) -> pd.DataFrame:
-    """Our two-phase elastic fit of every test, in the authors' units and frame (raw displacement)."""
+def fit_bilinear_per_test(tests: pd.DataFrame, fmu: str | None, max_points: int, max_starts: int = 6,
+                          model_specimens: Sequence[str] | None = None) -> pd.DataFrame:
+    """The two-phase fit of every test, in the authors' units and frame (raw displacement).
+
+    k1_N_mm, k2_N_mm, bp_mm, rmse_N, intercept_1_N: the authors' method redone
+    (:func:`bilinear.fit_two_lines`: two continuous lines with a free intercept, least squares on every raw
+    sample, no FMU); linear_k_N_mm, linear_rmse_N: one straight line. model_k1_N_mm, model_k2_N_mm,
+    model_bp_mm, model_rmse_N, model_k1_ci: fmusa's two-phase elastic model through the FMU (a spring that
+    starts unloaded, on the block-averaged record), for the tests of ``model_specimens`` (all when None;
+    none when ``fmu`` is None), NaN elsewhere. split: 'tuning' or 'held_out' (:data:`bilinear.TUNING`)."""
     rows = []
-    # the fitted names do not depend on the data: one extracted FMU per model for all tests
-    model = ModelRunner(fmu, "displacement", ["c_y", "d_y", "nl_ratio", "nl_y_b"])
-    base = ModelRunner(fmu, "displacement", ["c_y", "d_y"])
+    want = set(tests.specimen) if model_specimens is None else set(model_specimens)
+    model = base = None
+    if fmu is not None and want & set(tests.specimen):
+        # the fitted names do not depend on the data: one extracted FMU per model for all tests
+        model = ModelRunner(fmu, "displacement", ["c_y", "d_y", "nl_ratio", "nl_y_b"])
+        base = ModelRunner(fmu, "displacement", ["c_y", "d_y"])
     try:
         for _, row in tests.iterrows():
-            rows.append(_bilinear_row(row, model, base, max_points, max_starts))
+            out = _direct_row(row)
+            if model is not None and row["specimen"] in want:
+                out.update(_model_row(row, model, base, max_points, max_starts))
+            else:
+                out.update({"model_k1_N_mm": np.nan, "model_k2_N_mm": np.nan, "model_bp_mm": np.nan,
+                            "model_rmse_N": np.nan, "model_k1_ci": [np.nan, np.nan]})
+            rows.append(out)
     finally:
-        model.close()
-        base.close()
+        if model is not None:
+            model.close()
+            base.close()
     return pd.DataFrame(rows)
 
 
-def _bilinear_row(row: pd.Series, model: ModelRunner, base: ModelRunner, max_points: int,
-                  max_starts: int) -> dict:
-    """One test: the two-phase and the straight-line fit, stiffnesses in N/mm, breakpoint in the raw frame."""
+def _direct_row(row: pd.Series) -> dict:
+    """One test by the authors' method: every raw sample, two continuous lines with a free intercept."""
+    x, f = shear_c67.load_raw(row)
+    two = bilinear.fit_two_lines(x, f)
+    line = bilinear.fit_line(x, f)
+    return {"specimen": row["specimen"], "direction": row["direction"], "rate_mm_s": row["rate_mm_s"],
+            "split": bilinear.split_of(row["specimen"]),
+            "k1_N_mm": two["k1_N_mm"], "k2_N_mm": two["k2_N_mm"], "bp_mm": two["bp_mm"],
+            "intercept_1_N": two["intercept_1_N"], "rmse_N": two["rmse_N"], "bp_global_mm": two["bp_global_mm"],
+            "linear_k_N_mm": line["k_N_mm"], "linear_rmse_N": line["rmse_N"],
+            "peak_N": float(np.max(np.abs(f))), "points": int(len(x))}
+
+
+def _model_row(row: pd.Series, model: ModelRunner, base: ModelRunner, max_points: int,
+               max_starts: int) -> dict:
+    """One test through the FMU: fmusa's two-phase elastic model (from the unloaded start), N/mm, raw frame."""
     exp = shear_c67.load_test(row, max_points=max_points)
     sc = data_scales([exp])
     fit = calibrate(model, "nonlinear_stiffness", "displacement", [exp], sc, max_starts=max_starts)
-    lin = calibrate(base, "none", "displacement", [exp], sc)
     sign = 1.0 if row["direction"] == "Ant" else -1.0
     x0 = float(exp.meta.get("zero_shift", 0.0))
     c1 = fit.params["c_y"] / 1000.0
-    return {"specimen": row["specimen"], "direction": row["direction"], "rate_mm_s": row["rate_mm_s"],
-            "k1_N_mm": c1, "k2_N_mm": c1 * fit.params["nl_ratio"],
-            "bp_mm": 1000.0 * (x0 + sign * fit.params["nl_y_b"]),
-            "k1_ci": [v / 1000.0 for v in fit.ci95["c_y"]],
-            "rmse_N": fit.rmse, "linear_rmse_N": lin.rmse, "linear_k_N_mm": lin.params["c_y"] / 1000.0,
-            "peak_N": float(np.max(np.abs(exp.force))), "points": len(exp.t)}
+    return {"model_k1_N_mm": c1, "model_k2_N_mm": c1 * fit.params["nl_ratio"],
+            "model_bp_mm": 1000.0 * (x0 + sign * fit.params["nl_y_b"]),
+            "model_rmse_N": fit.rmse, "model_k1_ci": [v / 1000.0 for v in fit.ci95["c_y"]]}
 
 
 def rate_dependence(exps: Sequence, fmu: str, diag: dict, max_starts: int = 6) -> dict:
@@ -77,23 +105,32 @@ def rate_dependence(exps: Sequence, fmu: str, diag: dict, max_starts: int = 6) -
             "heldout_ratio": both.heldout_rmse / two.heldout_rmse, "delta_bic": both.bic - two.bic}
 
 
+#: Specimens diagnosed through the FMU by default (the first of the folder): the per-unit diagnosis costs
+#: about a minute per unit on two cores; the two-line comparison with the authors covers every test.
+DEFAULT_DIAGNOSED = 3
+
+
 def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu_path: str | None = None,
                         max_points: int = 300, workers: int | None = None, max_starts: int = 6,
-                        candidates: Sequence[str] = CANDIDATES, specimens: Sequence[str] | None = None) -> dict:
-    """Diagnose every unit (specimen and direction, all rates jointly) of the data folder ``root``, fit
-    the per-test bilinear model, compare with the authors, and write out_dir/summary.json,
-    out_dir/bilinear_comparison.csv, out_dir/report.md and figures. ``specimens`` (e.g. ["H10"])
-    limits the run to those specimens."""
+                        candidates: Sequence[str] = CANDIDATES, specimens: Sequence[str] | None = None,
+                        diagnosed: int | None = DEFAULT_DIAGNOSED) -> dict:
+    """Diagnose the units (specimen and direction, all rates jointly) of the first ``diagnosed`` specimens
+    of the data folder ``root`` (None: all), fit every test's two lines as the authors did and compare with
+    their analysis (tuning and held-out specimens apart), and write out_dir/summary.json,
+    out_dir/bilinear_comparison.csv, out_dir/report.md and figures. ``specimens`` (e.g. ["H10"]) limits
+    everything to those specimens."""
     from fmusa.applications.shear_c67 import report as shear_report
     from fmusa.fmi.info import default_fmu_path
 
     out = Path(out_dir)
     fmu = str(fmu_path or default_fmu_path())
     tests = _select(shear_c67.list_tests(root), specimens, root)
+    names = list(dict.fromkeys(tests.specimen))
+    chosen = names if diagnosed is None else names[:max(1, int(diagnosed))]
     authors = shear_c67.authors_bilinear(root)
     out.mkdir(parents=True, exist_ok=True)
     groups, unit_exps = {}, {}
-    for (spec, direction), g in tests.groupby(["specimen", "direction"], sort=False):
+    for (spec, direction), g in tests[tests.specimen.isin(chosen)].groupby(["specimen", "direction"], sort=False):
         key = f"{spec}_{direction}"
         unit_exps[key] = exps = [shear_c67.load_test(r, max_points=max_points) for _, r in g.iterrows()]
         print(f"{spec} {direction}: {len(exps)} tests", flush=True)
@@ -103,12 +140,16 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     for key, diag in groups.items():
         print(f"{key}: rate dependence on top of the two-phase curve", flush=True)
         rate_models[key] = rate_dependence(unit_exps[key], fmu, diag, max_starts)
-    ours = fit_bilinear_per_test(tests, fmu, max_points, max_starts)
+    print(f"two-line fits of {len(tests)} tests", flush=True)
+    ours = fit_bilinear_per_test(tests, fmu, max_points, max_starts, model_specimens=chosen)
     cmp_ = ours.merge(authors, on=["specimen", "direction", "rate_mm_s"], how="left")
-    summary = summarize(groups, cmp_, describe_data(root, tests, max_points))
+    data = describe_data(root, tests, max_points)
+    data["diagnosed_specimens"] = chosen
+    data["diagnosed_tests"] = int(tests.specimen.isin(chosen).sum())
+    summary = summarize(groups, cmp_, data)
     summary["rate_models"] = rate_models
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
-    cmp_.drop(columns=["k1_ci"]).to_csv(out / "bilinear_comparison.csv", index=False)
+    cmp_.drop(columns=["model_k1_ci"]).to_csv(out / "bilinear_comparison.csv", index=False)
     figs = shear_report.write_figures(summary, cmp_, out)
     shear_report.write_report(summary, cmp_, out, figs)
     return summary
@@ -171,25 +212,59 @@ def _rate_trend(spec: str, direction: str, g: pd.DataFrame) -> dict:
 
 
 def _by_rate(g: pd.DataFrame) -> dict:
-    """Median differences to the authors at one rate, and the median and range of the samples per test."""
-    return {"k1_rel_diff_median": float(np.nanmedian(np.abs((g["k1_N_mm"] - g["stiffness_1"]) / g["stiffness_1"]))),
-            "k2_rel_diff_median": float(np.nanmedian(np.abs((g["k2_N_mm"] - g["stiffness_2"]) / g["stiffness_2"]))),
-            "k1_diff_median_sign": float(np.sign(np.nanmedian(g["k1_N_mm"] - g["stiffness_1"]))),
-            "breakpoint_abs_diff_median_mm": float(np.nanmedian(np.abs(g["bp_mm"] - g["breakpoint_mm"]))),
+    """Median differences to the authors at one rate, and the median and range of the samples per test;
+    the same for fmusa's two-phase model through the FMU where it was fitted (model_*)."""
+    def med(col: pd.Series) -> float:
+        col = col.dropna()
+        return float(np.median(col)) if len(col) else float("nan")
+    dm = (g["model_k1_N_mm"] - g["stiffness_1"]) / g["stiffness_1"]
+    return {"k1_rel_diff_median": med(((g["k1_N_mm"] - g["stiffness_1"]) / g["stiffness_1"]).abs()),
+            "k2_rel_diff_median": med(((g["k2_N_mm"] - g["stiffness_2"]) / g["stiffness_2"]).abs()),
+            "k1_diff_median_sign": float(np.sign(med(g["k1_N_mm"] - g["stiffness_1"]))),
+            "breakpoint_abs_diff_median_mm": med((g["bp_mm"] - g["breakpoint_mm"]).abs()),
+            "model_k1_rel_diff_median": med(dm.abs()),
+            "model_k1_diff_median_sign": float(np.sign(med(dm))) if dm.notna().any() else float("nan"),
+            "model_k2_rel_diff_median": med(((g["model_k2_N_mm"] - g["stiffness_2"]) / g["stiffness_2"]).abs()),
+            "model_tests": int(g["model_k1_N_mm"].notna().sum()),
+            "tests": int(len(g)), "specimens": list(dict.fromkeys(g["specimen"])),
             "points_median": float(np.median(g["points"])), "points_min": int(g["points"].min()),
             "points_max": int(g["points"].max())}
 
 
 def summarize(groups: dict, cmp_: pd.DataFrame, data: dict | None = None) -> dict:
     """The numbers and facts the report states: what was diagnosed, effects per unit, our vs the
-    authors' bilinear, rate trends (units with more than one rate)."""
+    authors' bilinear (all tests, and per rate on the tuning and the held-out specimens apart), rate trends
+    (units with more than one rate)."""
+    if "split" not in cmp_:
+        cmp_ = cmp_.assign(split=[bilinear.split_of(s) for s in cmp_["specimen"]])
+    for col in ("model_k1_N_mm", "model_k2_N_mm"):
+        if col not in cmp_:
+            cmp_ = cmp_.assign(**{col: np.nan})
     dk1 = (cmp_["k1_N_mm"] - cmp_["stiffness_1"]) / cmp_["stiffness_1"]
     dk2 = (cmp_["k2_N_mm"] - cmp_["stiffness_2"]) / cmp_["stiffness_2"]
     dbp = cmp_["bp_mm"] - cmp_["breakpoint_mm"]
     rate = [_rate_trend(spec, direction, g) for (spec, direction), g in cmp_.groupby(["specimen", "direction"])
             if g["rate_mm_s"].nunique() > 1]
+    far = (cmp_["bp_global_mm"] - cmp_["bp_mm"]).abs() > 0.05 if "bp_global_mm" in cmp_ else \
+        pd.Series(False, index=cmp_.index)
+    nearer = ((cmp_["breakpoint_mm"] - cmp_["bp_mm"]).abs() < (cmp_["breakpoint_mm"] - cmp_.get("bp_global_mm",
+              cmp_["bp_mm"])).abs()) & far
+    by_split = {}
+    for part in ("tuning", "held_out"):
+        g = cmp_[cmp_["split"] == part]
+        if len(g):
+            by_split[part] = {"specimens": list(dict.fromkeys(g["specimen"])),
+                              "by_rate": {f"{r:g}": _by_rate(gg) for r, gg in g.groupby("rate_mm_s")}}
     return {"data": data or {}, "groups": {k: _group_summary(d) for k, d in groups.items()},
+            "bilinear_method": {"how": "continuous two-line least squares of raw Fx against raw disp_x, every "
+                                       "sample, free intercept, no FMU (the authors' method)",
+                                "breakpoint_rule": f"first local minimum of the squared error over "
+                                                   f"{bilinear.GRID} evenly spaced interior breakpoints, refined",
+                                "tuned_on": list(bilinear.TUNING),
+                                "global_elsewhere": int(far.sum()),
+                                "authors_at_first": int(nearer.sum())},
             "bilinear_by_rate": {f"{r:g}": _by_rate(g) for r, g in cmp_.groupby("rate_mm_s")},
+            "bilinear_by_split": by_split,
             "bilinear": {"k1_rel_diff_median": float(np.nanmedian(np.abs(dk1))),
                          "k2_rel_diff_median": float(np.nanmedian(np.abs(dk2))),
                          "breakpoint_abs_diff_median_mm": float(np.nanmedian(np.abs(dbp)))},
