@@ -82,7 +82,7 @@ from scipy.special import expit
 
 __all__ = ["DEFAULTS", "DRIVES", "EFFECTS", "MAIN_PARAMETER", "Protocol", "simulate", "make_protocol",
            "main_parameter",
-           "draw_case", "synthesize", "full_params"]
+           "draw_case", "synthesize", "synthesize_protocol", "full_params", "PROTOCOLS"]
 
 #: MODEL.md / variables.csv defaults of every parameter used here (effects off).
 DEFAULTS = {
@@ -363,11 +363,14 @@ class Protocol:
 
 def make_protocol(drive: str, rng: np.random.Generator, *, peak: float | None = None,
                   T_load: float | None = None, T_hold: float | None = None,
-                  rate: float = SAMPLE_RATE) -> Protocol:
+                  rate: float = SAMPLE_RATE, hold: bool = True, unload: bool = True) -> Protocol:
     """Load-hold-unload: 0 -> peak over T_load, hold T_hold, peak -> 0 over T_load, hold T_hold/2.
 
     Random (uniform) unless given: peak 0.8-1.5 mm (displacement drive) or 150-300 N (force
-    drive), T_load in [0.5, 2] s, T_hold in [1, 3] s.  t_out: samples k/rate up to the end."""
+    drive), T_load in [0.5, 2] s, T_hold in [1, 3] s.  t_out: samples k/rate up to the end.
+    Without ``hold`` no phase holds still (the ramps meet at the peak, the test ends at zero); without
+    ``unload`` the test ends at the peak (after its hold, if any).  The random draws are the same
+    whatever the options, so one seed gives the same case under every protocol."""
     if drive not in DRIVES:
         raise ValueError(f"drive must be one of {DRIVES}")
     if peak is None:
@@ -376,12 +379,18 @@ def make_protocol(drive: str, rng: np.random.Generator, *, peak: float | None = 
         T_load = rng.uniform(0.5, 2.0)
     if T_hold is None:
         T_hold = rng.uniform(1.0, 3.0)
-    t1 = T_load
-    t2 = t1 + T_hold
-    t3 = t2 + T_load
-    t4 = t3 + T_hold / 2.0
-    knots_t = np.array([0.0, t1, t2, t3, t4])
-    knots_u = np.array([0.0, peak, peak, 0.0, 0.0])
+    knots_t, knots_u = [0.0, T_load], [0.0, peak]
+    if hold:
+        knots_t.append(knots_t[-1] + T_hold)
+        knots_u.append(peak)
+    if unload:
+        knots_t.append(knots_t[-1] + T_load)
+        knots_u.append(0.0)
+        if hold:
+            knots_t.append(knots_t[-1] + T_hold / 2.0)
+            knots_u.append(0.0)
+    knots_t, knots_u = np.array(knots_t), np.array(knots_u)
+    t4 = float(knots_t[-1])
     n = int(math.floor(t4 * rate + 1e-9))
     t_out = np.arange(n + 1) / rate
     return Protocol(drive, float(peak), float(T_load), float(T_hold), knots_t, knots_u, t_out)
@@ -391,11 +400,11 @@ def _u(rng, lo, hi):
     return float(rng.uniform(lo, hi))
 
 
-def draw_case(effect: str, drive: str, rng: np.random.Generator):
+def draw_case(effect: str, drive: str, rng: np.random.Generator, *, hold: bool = True, unload: bool = True):
     """(params, protocol, main_parameter_name) of one random case with the given hidden effect."""
     if effect not in EFFECTS:
         raise ValueError(f"effect must be one of {EFFECTS}")
-    proto = make_protocol(drive, rng)
+    proto = make_protocol(drive, rng, hold=hold, unload=unload)
     c = float(math.exp(rng.uniform(math.log(1e5), math.log(4e5))))
     d = _u(rng, 50.0, 500.0)
     params = {"c_y": c, "d_y": d, "m": DEFAULTS["m"]}
@@ -449,3 +458,51 @@ def synthesize(effect: str, drive: str, seed: int, noise_rel: float = 0.005):
              "knots_t": proto.knots_t, "knots_u": proto.knots_u,
              "T_load": proto.T_load, "T_hold": proto.T_hold, "peak": proto.peak}
     return df, truth
+
+
+#: Protocol options of real tests: (several rates, hold, unloading), by name.
+PROTOCOLS = {
+    "ramp": (False, False, False),
+    "ramp-hold": (False, True, False),
+    "load-unload": (False, False, True),
+    "load-hold-unload": (False, True, True),
+    "ramps, 2 rates": (True, False, False),
+    "ramp-hold, 2 rates": (True, True, False),
+    "load-unload, 2 rates": (True, False, True),
+    "load-hold-unload, 2 rates": (True, True, True),
+}
+
+#: the second rate of a several-rate protocol: its ramps take T_load / RATE_FACTOR
+RATE_FACTOR = 5.0
+
+
+def synthesize_protocol(effect: str, drive: str, seed: int, protocol: str = "load-hold-unload",
+                        noise_rel: float = 0.005):
+    """Synthetic tests of one specimen (one hidden effect, one parameter set) under a named protocol
+    of ``PROTOCOLS``: one test, or two at rates RATE_FACTOR apart.  The case is the one ``synthesize``
+    draws for the same seed (same parameters, peak, T_load, T_hold); only the protocol changes.
+
+    Returns (list of DataFrame[time, displacement, force], truth dict as ``synthesize``, with
+    ``protocol``)."""
+    several, hold, unload = PROTOCOLS[protocol]
+    rng = np.random.default_rng(seed)
+    params, proto, main = draw_case(effect, drive, rng, hold=hold, unload=unload)
+    protos = [proto]
+    if several:
+        protos.append(make_protocol(drive, rng, peak=proto.peak, T_load=proto.T_load / RATE_FACTOR,
+                                    T_hold=proto.T_hold, hold=hold, unload=unload))
+    cleans = [simulate(params, drive, p.knots_t, p.knots_u, p.t_out) for p in protos]
+    sigma = noise_rel * max(float(np.max(np.abs(c))) for c in cleans)
+    frames = []
+    for p, clean in zip(protos, cleans):
+        noisy = clean + rng.normal(0.0, sigma, clean.size)
+        u = p.drive_at(p.t_out)
+        if drive == "displacement":
+            frames.append(pd.DataFrame({"time": p.t_out, "displacement": u, "force": noisy}))
+        else:
+            frames.append(pd.DataFrame({"time": p.t_out, "displacement": noisy, "force": u}))
+    truth = {"effect": effect, "drive": drive, "seed": seed, "protocol": protocol, "params": params,
+             "main_parameter": main, "main_value": params.get(main) if main else None,
+             "noise_rel": noise_rel, "noise_sigma": sigma, "T_load": proto.T_load, "T_hold": proto.T_hold,
+             "peak": proto.peak}
+    return frames, truth

@@ -16,7 +16,8 @@ import numpy as np
 from fmusa.errors import FmusaError
 
 __all__ = ["CANDIDATES", "SEPARATING_TESTS", "UNITS", "MAIN_PARAMETER", "DiagnoseError", "Param", "Scales",
-           "data_scales", "model_parameters", "main_parameter", "separating_test"]
+           "data_scales", "model_parameters", "main_parameter", "separating_test", "EQUIVALENT_BY_CONSTRUCTION",
+           "equivalent_by_construction", "equivalent_parameters", "BASELINE_LOOK_ALIKES"]
 
 CANDIDATES = ("nonlinear_stiffness", "viscoelastic_relaxation", "coulomb_friction", "yield_softening",
               "backlash_gap", "sensor_offset")
@@ -34,8 +35,9 @@ SEPARATING_TESTS = {
     frozenset({"viscoelastic_relaxation", "yield_softening"}):
         "hold the displacement and test at several rates: relaxation is rate dependent, yield is not",
     frozenset({"coulomb_friction", "yield_softening"}):
-        "unload and reload: friction opens a loop of constant width from the first motion, yield only past "
-        "the yield force",
+        "none on the axial force-displacement channel: the two are the same equations (see "
+        "EQUIVALENT_BY_CONSTRUCTION); only a look inside the interface (sliding marks on the thread against "
+        "crushed bone, e.g. by micro-CT after the test) tells them apart",
     frozenset({"coulomb_friction", "sensor_offset"}):
         "reverse the motion: friction changes sign with the velocity, a sensor offset does not",
     frozenset({"backlash_gap", "sensor_offset"}):
@@ -54,8 +56,74 @@ SEPARATING_TESTS = {
         "reverse the motion at a load well above zero: friction drops by twice its force, slack does not",
 }
 
+# ---------------------------------------------------------------------- equivalent effects
+
+# Two candidates that are the same equations under another parametrisation: no data of this channel can
+# tell them apart, whatever the protocol. Spring c' beside a Bouc-Wen friction (fric_F, fric_x) is a spring
+# c beside nothing that yields at yield_F with post-yield stiffness yield_ratio*c (MODEL.md, both with
+# n = 4): F = r c y + (1 - r) F_Y z, z' = v/(F_Y/c) (1 - H(zv) z^4) is F = c' y + F_f z, z' = v/x_f (...)
+# exactly when c' = r c, F_f = (1 - r) F_Y, x_f = F_Y / c (and back: c = c' + F_f/x_f,
+# r = c'/c, F_Y = F_f + c' x_f). Spring || Jenkins element (spring in series with a slider) is bilinear
+# kinematic hardening.
+EQUIVALENT_BY_CONSTRUCTION = {
+    frozenset({"coulomb_friction", "yield_softening"}): {
+        "mapping": "c_y' = yield_ratio*c_y, fric_F = (1 - yield_ratio)*yield_F, fric_x = yield_F/c_y "
+                   "(back: c_y = c_y' + fric_F/fric_x, yield_ratio = c_y'/c_y, yield_F = fric_F + c_y'*fric_x)",
+        "readings": {
+            "coulomb_friction": "the thread slides in the bone against a friction force fric_F after a "
+                                "pre-slip of fric_x, beside an elastic interface c_y that recovers fully",
+            "yield_softening": "the interface itself yields at yield_F (stiffness c_y before, yield_ratio*c_y "
+                               "after) with kinematic hardening: the yield surface moves with the load, so a "
+                               "reversal yields again after 2*yield_F*(1 - yield_ratio) of force",
+        },
+        "why": "spring beside a Jenkins element (spring in series with a slider) is bilinear kinematic "
+               "hardening: the same force for every displacement history, so for every protocol",
+    },
+}
+
+# Candidates the baseline (c_y, d_y) mimics under a protocol that lacks a feature, and what separates them.
+BASELINE_LOOK_ALIKES = {
+    "coulomb_friction": {
+        "missing": ("hold", "several_rates"), "drive": "displacement",
+        "why": "during a constant-rate ramp a rate-independent friction force fric_F equals a viscous one "
+               "d_y*v (d_y = fric_F/v), and at a reversal at the same rate both jump by twice their value",
+        "separating_test": "hold the displacement (friction keeps its force, damping drops to zero) or "
+                           "load at a second rate (damping scales with the rate, friction does not)",
+    },
+    "viscoelastic_relaxation": {
+        "missing": ("hold", "several_rates"), "drive": "displacement",
+        "why": "at one constant rate a Maxwell branch with a short time constant adds a constant force "
+               "ve_k*ve_tau*v, which a larger damping d_y reproduces",
+        "separating_test": "hold the displacement (the branch relaxes over ve_tau) or load at a second rate",
+    },
+    "sensor_offset": {
+        "missing": ("hold", "several_rates", "unloading"), "drive": "displacement",
+        "why": "on a single constant-rate ramp a constant force bias equals a damping force d_y*v",
+        "separating_test": "hold or unload (the damping force vanishes or reverses, a bias stays)",
+    },
+}
+
+
+def equivalent_by_construction(a: str, b: str) -> dict | None:
+    """The entry of EQUIVALENT_BY_CONSTRUCTION for the pair, or None when they are different models."""
+    return EQUIVALENT_BY_CONSTRUCTION.get(frozenset({a, b}))
+
+
+def equivalent_parameters(effect: str, params: dict, other: str) -> dict | None:
+    """The parameters of ``other`` that give exactly the same model as ``effect`` with ``params``."""
+    if {effect, other} != {"coulomb_friction", "yield_softening"}:
+        return None
+    c, d = params["c_y"], params["d_y"]
+    if effect == "yield_softening":
+        r, F_Y = params["yield_ratio"], params["yield_F"]
+        return {"c_y": r * c, "d_y": d, "fric_F": (1 - r) * F_Y, "fric_x": F_Y / c}
+    c1, F_f, x_f = c, params["fric_F"], params["fric_x"]
+    c_tot = c1 + F_f / x_f
+    return {"c_y": c_tot, "d_y": d, "yield_ratio": c1 / c_tot, "yield_F": F_f + c1 * x_f}
+
+
 UNITS = {"c_y": "N/m", "d_y": "N.s/m", "gap": "m", "nl_ratio": "1", "nl_y_b": "m", "yield_ratio": "1",
-         "yield_F": "N", "fric_F": "N", "ve_k": "N/m", "ve_tau": "s", "F_offset": "N", "y_offset": "m"}
+         "yield_F": "N", "fric_F": "N", "fric_x": "m", "ve_k": "N/m", "ve_tau": "s", "F_offset": "N", "y_offset": "m"}
 
 MAIN_PARAMETER = {"nonlinear_stiffness": "nl_ratio", "viscoelastic_relaxation": "ve_tau",
                   "coulomb_friction": "fric_F", "yield_softening": "yield_F", "backlash_gap": "gap",
@@ -137,7 +205,12 @@ def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
                        Param("yield_F", 0.05 * F_pk, 1.5 * F_pk, (0.3 * F_pk, 0.6 * F_pk, 0.9 * F_pk),
                              log=True)]
     if effect == "coulomb_friction":
-        return base + [Param("fric_F", 0.0, 0.5 * F_pk, (0.02 * F_pk, 0.1 * F_pk, 0.3 * F_pk))]
+        # the pre-slip is fitted too: with it fixed, friction is a subset of its equivalent
+        # (yield_softening, EQUIVALENT_BY_CONSTRUCTION) and fits worse than it for no physical reason
+        # bounds cover the image of yield_softening's (fric_F = (1 - yield_ratio)*yield_F, fric_x =
+        # yield_F/c_y), starts both a stiff pre-slip (Coulomb-like) and a long one (yield-like)
+        return base + [Param("fric_F", 0.0, 1.5 * F_pk, (0.05 * F_pk, 0.3 * F_pk)),
+                       Param("fric_x", 1e-4 * y_pk, 2.0 * y_pk, (0.01 * y_pk, 0.1 * y_pk, 0.4 * y_pk), log=True)]
     if effect == "viscoelastic_relaxation":
         tau_lo, tau_hi = max(sc.dt_min, 1e-4 * sc.t_max), 10.0 * sc.t_max
         taus = tuple(min(max(f * sc.t_max, tau_lo), tau_hi) for f in (0.03, 0.3))

@@ -401,7 +401,7 @@ def fig_ranking(diag: Mapping, path: Path) -> Path:
     fig, axes = plt.subplots(1, 3, figsize=(15, max(3.0, 1.4 + 0.5 * n)), sharey=True,
                              gridspec_kw={"width_ratios": [1.25, 1.2, 1]})
     ypos = np.arange(len(names))[::-1].astype(float)
-    cols = [EXT_COLOR if r["effect"] == eff else SIG_COLOR if r.get("significant") else OTHER_COLOR
+    cols = [EXT_COLOR if r["effect"] in eff.split(" ≡ ") else SIG_COLOR if r.get("significant") else OTHER_COLOR
             for r in ranking]
     _ranking_heldout_panel(axes[0], ranking, th, ypos, cols)
     _ranking_bic_panel(axes[1], ranking, th, ypos, cols)

@@ -38,7 +38,7 @@ def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
     """Identity of a diagnosis input: cached fits are reused only for the same data, drive, FMU and
     interface (the default interface adds nothing, so caches written before it existed stay valid)."""
     h = hashlib.sha256()
-    h.update(f"{drive}|{max_starts}|v1".encode())
+    h.update(f"{drive}|{max_starts}|v2".encode())   # v2: friction fits fric_x too
     if interface != SCREW_VERTEBRA:
         h.update(repr(interface).encode())
     h.update(Path(fmu).read_bytes() if Path(fmu).is_file() else str(fmu).encode())

@@ -14,10 +14,14 @@ import numpy as np
 from scipy import stats
 
 from fmusa.diagnose.calibrate import Fit
-from fmusa.diagnose.effects import separating_test
+from fmusa.diagnose.effects import BASELINE_LOOK_ALIKES, equivalent_by_construction, separating_test
 
 __all__ = ["Thresholds", "nested_p_value", "rank_candidates", "choose_effect", "PROTOCOL_FEATURES",
-           "protocol_features", "protocol_blind_spots", "indistinguishable"]
+           "protocol_features", "protocol_blind_spots", "indistinguishable", "equivalent_by_fit", "GROUP_SEP",
+           "group_members"]
+
+#: joins the names of candidates the data cannot decide between: "coulomb_friction ≡ yield_softening"
+GROUP_SEP = " ≡ "
 
 
 @dataclass(frozen=True)
@@ -29,6 +33,26 @@ class Thresholds:
     p_value: float = 1e-3
     tie_bic: float = 10.0
     tie_heldout: float = 1.1
+    same_prediction: float = 0.5   # two fits whose predictions differ by less than this x noise are one
+
+
+def group_members(effect: str) -> list[str]:
+    """The candidates a (possibly grouped) name stands for: "a ≡ b" -> [a, b]."""
+    return effect.split(GROUP_SEP)
+
+
+def equivalent_by_fit(a: Fit, b: Fit, th: Thresholds = Thresholds()) -> dict | None:
+    """Whether two fits predict the same data within the noise: the RMS of the difference of their
+    predictions against the noise estimated from the residuals (the smaller RMSE of the two). Returns
+    the numbers when they agree, else None."""
+    if not a.predictions or not b.predictions or len(a.predictions) != len(b.predictions):
+        return None
+    diff = np.concatenate([pa - pb for pa, pb in zip(a.predictions, b.predictions)])
+    rms = float(np.sqrt(np.mean(diff ** 2)))
+    noise = min(a.rmse, b.rmse)
+    if noise > 0 and rms < th.same_prediction * noise:
+        return {"prediction_rms_difference": rms, "noise": noise}
+    return None
 
 
 def nested_p_value(base: Fit, ext: Fit) -> float:
@@ -59,15 +83,29 @@ def rank_candidates(base: Fit, fits: dict[str, Fit], th: Thresholds = Thresholds
     return rows
 
 
-def choose_effect(ranking: list[dict], th: Thresholds = Thresholds()) -> tuple[str, list[str]]:
-    """The winner (or none) and the significant candidates the data cannot tell from it."""
+def choose_effect(ranking: list[dict], th: Thresholds = Thresholds(),
+                  fits: dict[str, Fit] | None = None) -> tuple[str, list[str]]:
+    """The winner (or none) and the significant candidates the data cannot tell from it.
+
+    The winner is a group "a ≡ b" when candidates are the same equations (equivalent by construction,
+    whatever their scores) or, given the ``fits``, significant ones whose best fits predict the same data
+    within the noise (equivalent by fit): the data cannot decide between them, so both are named."""
     sig = [r for r in ranking if r["significant"]]
     if not sig:
         return "none", []
     win = sig[0]
-    ties = [r["effect"] for r in sig[1:]
-            if r["heldout_rmse"] < th.tie_heldout * win["heldout_rmse"] and r["bic"] - win["bic"] < th.tie_bic]
-    return win["effect"], ties
+    group = [win["effect"]]
+    for r in ranking[1:] if ranking[0] is win else [x for x in ranking if x is not win]:
+        if equivalent_by_construction(win["effect"], r["effect"]):
+            group.append(r["effect"])
+        elif (fits and r["significant"] and win["effect"] in fits and r["effect"] in fits
+              and r["bic"] - win["bic"] < th.tie_bic     # BIC still prefers the winner: the data decide
+              and equivalent_by_fit(fits[win["effect"]], fits[r["effect"]], th)):
+            group.append(r["effect"])
+    ties = [r["effect"] for r in sig[1:] if r["effect"] not in group
+            and r["heldout_rmse"] < th.tie_heldout * win["heldout_rmse"] and r["bic"] - win["bic"] < th.tie_bic]
+    # a group is named in a fixed order (alphabetical), whichever member ranked first
+    return GROUP_SEP.join(sorted(group)), ties
 
 
 # ---------------------------------------------------------------------- what the protocol can show
@@ -75,11 +113,10 @@ def choose_effect(ranking: list[dict], th: Thresholds = Thresholds()) -> tuple[s
 # Features of a test protocol that separate look-alike effects, and the pairs each one separates.
 PROTOCOL_FEATURES = {
     "unloading": (frozenset({"nonlinear_stiffness", "yield_softening"}),
-                  frozenset({"coulomb_friction", "sensor_offset"}),
-                  frozenset({"coulomb_friction", "yield_softening"})),
-    "hold": (frozenset({"viscoelastic_relaxation", "coulomb_friction"}),),
+                  frozenset({"coulomb_friction", "sensor_offset"})),
     "several_rates_or_hold": (frozenset({"viscoelastic_relaxation", "nonlinear_stiffness"}),
-                              frozenset({"viscoelastic_relaxation", "yield_softening"})),
+                              frozenset({"viscoelastic_relaxation", "yield_softening"}),
+                              frozenset({"viscoelastic_relaxation", "coulomb_friction"})),
 }
 
 
@@ -118,17 +155,64 @@ def protocol_blind_spots(effect: str, features: dict) -> list[dict]:
     return out
 
 
-def indistinguishable(effect: str, ties: Sequence[str], ranking: list[dict], features: dict) -> list[dict]:
-    """The candidates the data cannot tell from ``effect``: ties on the scores, then look-alikes the
-    protocol cannot separate, each with the reason and the test that would separate them."""
-    out = [{"effect": t, "reason": "scores within the tie margins", "separating_test": separating_test(effect, t)}
-           for t in ties]
+def baseline_look_alikes(features: dict, candidates: Sequence[str], drive: str | None = None) -> list[dict]:
+    """Candidates that the baseline's damping mimics under this protocol (e.g. friction on constant-rate
+    ramps without a hold): a `none` here means "cannot tell", not "absent"."""
+    out = []
+    for name, la in BASELINE_LOOK_ALIKES.items():
+        if name not in candidates or any(features.get(m) for m in la["missing"]):
+            continue
+        if drive not in (None, la["drive"]):
+            continue
+        out.append({"effect": name, "reason": f"cannot tell, because {la['why']}",
+                    "separating_test": la["separating_test"]})
+    return out
+
+
+def indistinguishable(effect: str, ties: Sequence[str], ranking: list[dict], features: dict,
+                      fits: dict[str, Fit] | None = None, drive: str | None = None) -> list[dict]:
+    """The candidates the data cannot tell from ``effect``: equivalent ones named together in a group
+    (with the physical reading of each), ties on the scores, then look-alikes the protocol cannot
+    separate, each with the reason and the test that would separate them."""
+    out = []
+    members = group_members(effect)
+    lead = next((r["effect"] for r in ranking if r["effect"] in members), members[0])
+    for b in members:
+        if b == lead:
+            continue
+        same = [a for a in [lead] + members if a != b and equivalent_by_construction(a, b)]
+        if same:
+            eq = equivalent_by_construction(same[0], b)
+            out.append({"effect": b, "of": same[0], "equivalent": "by construction",
+                        "reason": f"cannot tell, because the two are the same equations ({eq['why']}; "
+                                  f"{eq['mapping']})",
+                        "readings": dict(eq["readings"]), "separating_test": separating_test(same[0], b)})
+            continue
+        num = equivalent_by_fit(fits[lead], fits[b]) if fits and lead in fits and b in fits else None
+        why = (f"their best fits predict the data within the noise (RMS difference "
+               f"{num['prediction_rms_difference']:.3g} against noise {num['noise']:.3g})"
+               if num else "their best fits predict the data within the noise")
+        out.append({"effect": b, "of": lead, "equivalent": "by fit", "reason": f"cannot tell, because {why}",
+                    "separating_test": separating_test(lead, b)})
+    out += [{"effect": t, "reason": "scores within the tie margins", "separating_test": separating_test(lead, t)}
+            for t in ties]
     if effect == "none":
-        return out
-    significant = {r["effect"] for r in ranking if r["significant"]}
-    for b in protocol_blind_spots(effect, features):
-        # only a look-alike that explains the data too: one that fails here was told apart after all
-        if b["effect"] not in ties and b["effect"] in significant:
-            out.append({"effect": b["effect"], "reason": f"the tests have no {b['missing'].replace('_', ' ')}",
-                        "separating_test": b["separating_test"]})
+        return out + baseline_look_alikes(features, [r["effect"] for r in ranking], drive)
+    # a look-alike counts when it explains the data too: significant, or as good in-sample (BIC) as the
+    # named one (its held-out score can suffer from what the protocol lacks: an extrapolation into a
+    # phase the training blocks did not show)
+    bic = {r["effect"]: r["bic"] for r in ranking}
+    th = Thresholds()
+    explains = {r["effect"] for r in ranking
+                if r["significant"] or (r["delta_bic"] < th.delta_bic and lead in bic
+                                        and r["bic"] - bic[lead] < th.tie_bic)}
+    seen = set(members) | set(ties)
+    for m in members:
+        for b in protocol_blind_spots(m, features):
+            # only a look-alike that explains the data too: one that fails here was told apart after all
+            if b["effect"] not in seen and b["effect"] in explains:
+                seen.add(b["effect"])
+                out.append({"effect": b["effect"], "reason": f"cannot tell, because the tests have no "
+                                                                f"{b['missing'].replace('_', ' ')}",
+                            "separating_test": b["separating_test"]})
     return out

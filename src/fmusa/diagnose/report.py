@@ -37,6 +37,7 @@ PARAM_MEANING = {
     "yield_ratio": "stiffness after yield / c",
     "yield_F": "yield force",
     "fric_F": "Coulomb friction force",
+    "fric_x": "pre-slip displacement of the friction (stiffness fric_F/fric_x before it slides)",
     "ve_k": "stiffness of the Maxwell branch",
     "ve_tau": "relaxation time of the Maxwell branch",
     "F_offset": "bias of the force channel",
@@ -150,7 +151,8 @@ def _named_text(diag: Mapping) -> str:
     eff, gain = diag["effect"], diag.get("gain") or {}
     resp, unit, f = response_channel(diag)
     base, ext = diag.get("baseline") or {}, diag.get("extended") or {}
-    out = (f"**Effect: `{eff}`**: {EFFECT_MEANING.get(eff, '')}.\n\n"
+    meaning = " — or, the same equations, ".join(EFFECT_MEANING.get(m, "") for m in eff.split(" ≡ "))
+    out = (f"**Effect: `{eff}`**: {meaning}.\n\n"
            f"Adding it to the baseline lowers the RMSE of the {resp} on the fitted data from "
            f"{fmt(base.get('rmse', float('nan')) * f)} {unit} to {fmt(ext.get('rmse', float('nan')) * f)} "
            f"{unit} (ratio {ratio_text(gain.get('rmse_ratio'))}) and on held-out data from "
@@ -251,7 +253,7 @@ def _ranking_section(diag: Mapping) -> str:
         eparams = [(k, v) for k, v in (r.get("params") or {}).items() if k not in ("c_y", "d_y")]
         ptxt = ", ".join(f"{k} = {fmt(natural(k, v)[0])}{(' ' + natural(k, v)[1]) if natural(k, v)[1] else ''}"
                          for k, v in eparams) or "–"
-        rows.append([i, f"`{r['effect']}`" + (" ★" if r["effect"] == diag["effect"] else ""),
+        rows.append([i, f"`{r['effect']}`" + (" ★" if r["effect"] in diag["effect"].split(" ≡ ") else ""),
                      "yes" if r.get("significant") else "no", r.get("k", "–"),
                      fmt(r.get("rmse", float("nan")) * f), fmt(r.get("heldout_rmse", float("nan")) * f),
                      ratio_text(r.get("rmse_ratio")), ratio_text(r.get("heldout_rmse_ratio")),
@@ -367,7 +369,12 @@ def _ties_section(diag: Mapping) -> str:
     for t in ties:
         r = ranking.get(t["effect"], {})
         out += (f"- `{t['effect']}` (held-out ratio {ratio_text(r.get('heldout_rmse_ratio'))}, ΔBIC "
-                f"{delta_text(r.get('delta_bic'))}): {t['separating_test']}.\n")
+                f"{delta_text(r.get('delta_bic'))}): {t['separating_test']}.")
+        if t.get("reason", "").startswith("cannot tell"):
+            out += f" {t['reason'][0].upper()}{t['reason'][1:]}."
+        for name, reading in (t.get("readings") or {}).items():
+            out += f"\n  - read as `{name}`: {reading}."
+        out += "\n"
     return out
 
 

@@ -21,11 +21,12 @@ import numpy as np
 
 from fmusa.diagnose import residuals as rs
 from fmusa.diagnose.calibrate import Fit
-from fmusa.diagnose.effects import CANDIDATES, UNITS, DiagnoseError, data_scales, main_parameter, model_parameters
+from fmusa.diagnose.effects import (CANDIDATES, UNITS, DiagnoseError, data_scales, equivalent_parameters,
+                                    main_parameter, model_parameters)
 from fmusa.diagnose.fitcache import data_key, run_fits
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
-from fmusa.diagnose.rank import (Thresholds, choose_effect, indistinguishable, nested_p_value, protocol_features,
-                                 rank_candidates)
+from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members, indistinguishable, nested_p_value,
+                                 protocol_features, rank_candidates)
 
 __all__ = ["diagnose", "write_json", "run_diagnosis"]
 
@@ -105,14 +106,22 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         raise FMURunError(f"the baseline could not be fitted: {base}")
     fits = {n: r for n, r in results.items() if n != "none" and isinstance(r, Fit)}
     ranking = rank_candidates(base, fits, thresholds)
-    effect, ties = choose_effect(ranking, thresholds)
-    ext = fits[effect] if effect != "none" else base
+    effect, ties = choose_effect(ranking, thresholds, fits)
+    members = group_members(effect)
+    # a group "a ≡ b" reports the parameters of its best-ranked member
+    lead = next((r["effect"] for r in ranking if r["effect"] in members), members[0])
+    ext = fits[lead] if effect != "none" else base
     res_base, res_ext = _structure(base, experiments, drive), _structure(ext, experiments, drive)
     features = protocol_features(experiments)
-    eff_names = [p.name for p in model_parameters(effect, drive, sc)][2:] if effect != "none" else []
+    eff_names = [p.name for p in model_parameters(lead, drive, sc)][2:] if effect != "none" else []
+    group = {m: {"params": dict(fits[m].params), "main_parameter": main_parameter(m, drive),
+                 "from_lead": equivalent_parameters(lead, ext.params, m) if m != lead else None}
+             for m in members if m in fits} if len(members) > 1 else {}
     return {
         "effect": effect,
-        "main_parameter": main_parameter(effect, drive) if effect != "none" else None,
+        "group": group,
+        "lead": lead if effect != "none" else None,
+        "main_parameter": main_parameter(lead, drive) if effect != "none" else None,
         "effect_params": {n: {"value": ext.params[n], "ci95": list(ext.ci95[n]), "unit": UNITS.get(n, "")}
                           for n in eff_names},
         "baseline": _fit_summary(base),
@@ -120,13 +129,13 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "gain": _gain(base, ext, effect),
         "ranking": ranking,
         "failed": {n: r for n, r in results.items() if not isinstance(r, Fit)},
-        "indistinguishable": indistinguishable(effect, ties, ranking, features),
+        "indistinguishable": indistinguishable(effect, ties, ranking, features, fits, drive),
         "protocol": features,
         "residuals": {"baseline": res_base, "extended": res_ext},
         "leftover": res_ext.get("description", "") if res_ext.get("structured") else "",
         "data": _data_summary(experiments, drive),
         "thresholds": _thresholds(thresholds),
-        "_fits": {"none": base, **fits},
+        "_fits": {"none": base, **fits, **({effect: ext} if len(members) > 1 else {})},
     }
 
 
