@@ -160,10 +160,9 @@ def bench_closed_form_c(repeats: int = 400) -> dict:
             "closed_form_loadavg_1min": [load, _load()]}
 
 
-def bench_six_dof_runs(samples: int = 200, fmu_path: Path | None = None, seed: int = 1) -> dict:
-    """Whole runs (reset, set, initialise, one doStep, read) of the 6-DOF study at the Sobol samples of
-    :func:`profile_six_dof` (same seed, same points): ``six_dof_run_ms_median`` and the solver's internal
-    steps ``six_dof_steps_median``."""
+def _six_dof_samples(samples: int, fmu_path: Path | None, seed: int):
+    """The 6-DOF study's first ``samples`` Sobol points (physical values), the in-process RunPlan that runs
+    them, and a reader of the solver's internal step count (``n_steps``) after a run."""
     import dataclasses
 
     from fmpy.fmi2 import fmi2Integer, fmi2ValueReference
@@ -176,11 +175,23 @@ def bench_six_dof_runs(samples: int = 200, fmu_path: Path | None = None, seed: i
     stage = dataclasses.replace(stage, seed=seed)
     spec = sensitivity_spec(study, stage, fmu_path=fmu_path)
     P = to_physical(stage, draw_samples(stage, "sobol", n=max(1, samples // (len(stage.parameters) + 2) + 1)))
-    P = P[:samples]
     plan = plan_for(spec)
-    r = plan.runner
-    vr = (fmi2ValueReference * 1)(r.variables["n_steps"].valueReference)
+    inst = plan.runner.instance
+    vr = (fmi2ValueReference * 1)(plan.runner.variables["n_steps"].valueReference)
     val = (fmi2Integer * 1)()
+
+    def n_steps() -> int:
+        inst.fmi2GetInteger(inst.component, vr, 1, val)
+        return int(val[0])
+
+    return spec, P[:samples], plan, n_steps
+
+
+def bench_six_dof_runs(samples: int = 200, fmu_path: Path | None = None, seed: int = 1) -> dict:
+    """Whole runs (reset, set, initialise, one doStep, read) of the 6-DOF study at the Sobol samples of
+    :func:`profile_six_dof` (same seed, same points): ``six_dof_run_ms_median`` and the solver's internal
+    steps ``six_dof_steps_median``."""
+    spec, P, plan, n_steps = _six_dof_samples(samples, fmu_path, seed)
     plan(list(P[0]))
     load_before = _load()
     times, steps = [], []
@@ -188,8 +199,7 @@ def bench_six_dof_runs(samples: int = 200, fmu_path: Path | None = None, seed: i
         t0 = time.perf_counter()
         plan(list(row))
         times.append(time.perf_counter() - t0)
-        r.instance.fmi2GetInteger(r.instance.component, vr, 1, val)
-        steps.append(val[0])
+        steps.append(n_steps())
     return {"six_dof_run_ms_median": statistics.median(times) * 1e3,
             "six_dof_run_ms_mean": float(np.mean(times) * 1e3),
             "six_dof_run_ms_p90": _percentile(times, 90) * 1e3,
@@ -331,23 +341,10 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
     reading outputs), the Python around it (run_chunk of the same run minus those parts) and the
     solver's internal steps. (What a pooled run costs on top, IPC and the parent's RunStore, comes from
     the pooled benchmark: ``pooled_overhead_ms_per_run``.)"""
-    import dataclasses
+    from fmusa.runs.spec import run_batch
 
-    from fmpy.fmi2 import fmi2Integer, fmi2ValueReference
-
-    from fmusa.runs.spec import plan_for, run_batch
-    from fmusa.analysis.sensitivity import draw_samples, to_physical
-    from fmusa.pipeline.sensitivity import sensitivity_spec
-
-    study, stage = _six_dof()
-    stage = dataclasses.replace(stage, seed=seed)
-    spec = sensitivity_spec(study, stage, fmu_path=fmu_path)
-    P = to_physical(stage, draw_samples(stage, "sobol", n=max(1, samples // (len(stage.parameters) + 2) + 1)))
-    P = P[:samples]
-    plan = plan_for(spec)
+    spec, P, plan, n_steps = _six_dof_samples(samples, fmu_path, seed)
     r = plan.runner
-    vr_steps = (fmi2ValueReference * 1)(r.variables["n_steps"].valueReference)
-    steps_val = (fmi2Integer * 1)()
     failed: list[str] = []
     t_setup, t_step, t_read, steps, cpu_step, t_full, cpu_full = [], [], [], [], [], [], []
     plan(list(P[0]))                                     # warm; leaves the instance ready for reset
@@ -363,8 +360,7 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
         t2 = time.perf_counter()
         plan.read()
         t3 = time.perf_counter()
-        s.fmi2GetInteger(s.component, vr_steps, 1, steps_val)
-        steps.append(steps_val[0])
+        steps.append(n_steps())
         t_setup.append(t1 - t0)
         t_step.append(t2 - t1)
         t_read.append(t3 - t2)
@@ -382,7 +378,7 @@ def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int 
     cores = os.cpu_count() or 1
     return {
         "samples": len(P),
-        "rtol": dict(study.fixed).get("rtol"),
+        "rtol": dict(spec.fixed).get("rtol"),
         "ms_per_run_in_process": full * 1e3,
         "cpu_ms_per_run_in_process": float(np.mean(cpu_full) * 1e3),
         "fmu_setup_ms": float(np.mean(t_setup) * 1e3),

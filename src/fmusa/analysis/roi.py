@@ -71,6 +71,10 @@ def automatic_region(grid: pd.DataFrame, inner: str, outer: str | None = None,
     """The region by the module's rules from the grid runs at ``at`` (the study parameters the search does
     not vary; None: every run); ``outer`` None gives the inner range alone (rule 1)."""
     grid = _at_point(grid, at)
+    if len(grid) and "status" in grid and (grid["status"] != "ok").all():
+        first = grid["message"].iloc[0] if "message" in grid else ""
+        raise StudyError(f"all {len(grid)} grid runs failed, so there is no region of interest; the first "
+                         f"says: {first} (every run's reason is in runs.csv, column message)")
     if outer is None:
         return _inner_only(grid, inner)
     xs, zs, feas = feasibility_matrix(grid, inner, outer)

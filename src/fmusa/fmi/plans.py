@@ -94,15 +94,7 @@ class RunPlan:
         """(setter name, vr array, value array) per type, built once."""
         from fmpy.fmi2 import fmi2Boolean, fmi2Integer, fmi2Real, fmi2ValueReference
 
-        groups: dict[str, tuple[list[int], list]] = {}
-        for name, value in values.items():
-            v = runner.lookup(name, allowed, role)
-            val = runner.coerce(v, value)
-            if v.type == "Real" and not math.isfinite(val):
-                raise FMUError(f"{name} must be finite, got {val!r}")
-            vrs, vals = groups.setdefault(v.type, ([], []))
-            vrs.append(v.valueReference)
-            vals.append(val)
+        groups = runner.by_type(values, allowed, role)
         ctype = {"Real": ("fmi2SetReal", fmi2Real), "Integer": ("fmi2SetInteger", fmi2Integer),
                  "Enumeration": ("fmi2SetInteger", fmi2Integer), "Boolean": ("fmi2SetBoolean", fmi2Boolean)}
         calls = []

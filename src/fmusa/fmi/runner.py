@@ -296,7 +296,10 @@ class FMURunner:
         """Convert a command-line string to the type of parameter or input ``name``."""
         return self.coerce(self.lookup(name, ("parameter", "input"), "parameter"), text)
 
-    def _set(self, values: Mapping[str, Value], allowed: tuple[str, ...], role: str) -> None:
+    def by_type(self, values: Mapping[str, Value], allowed: tuple[str, ...], role: str
+                ) -> dict[str, tuple[list[int], list]]:
+        """``values`` (name → value) checked and converted, grouped by FMI type: type → (value references,
+        values), the shape of the fmi2Set* calls. A Real must be finite."""
         groups: dict[str, tuple[list[int], list]] = {}
         for name, value in values.items():
             v = self.lookup(name, allowed, role)
@@ -306,8 +309,11 @@ class FMURunner:
             vrs, vals = groups.setdefault(v.type, ([], []))
             vrs.append(v.valueReference)
             vals.append(val)
+        return groups
+
+    def _set(self, values: Mapping[str, Value], allowed: tuple[str, ...], role: str) -> None:
         s = self._instance
-        for typ, (vrs, vals) in groups.items():
+        for typ, (vrs, vals) in self.by_type(values, allowed, role).items():
             if typ == "Real":
                 s.setReal(vrs, vals)
             elif typ == "Boolean":

@@ -14,10 +14,9 @@ import numpy as np
 import pandas as pd
 
 from fmusa.fmi.plans import RunPlan
-from fmusa.pipeline.direct import open_runner
 from fmusa.runs.metrics import SAMPLED_REDUCTIONS
 from fmusa.runs.refine import sampling_check
-from fmusa.runs.spec import PlanSpec
+from fmusa.runs.spec import PlanSpec, runner_for
 
 __all__ = ["sampling_summary", "check_points"]
 
@@ -67,7 +66,7 @@ def sampling_summary(study, runs: pd.DataFrame, optimum: Mapping | None, spec: P
     out = {"step": sc.step, "refine_factor": f if sc.refine_peaks else None, "interval_at_peaks": sc.step / f,
            "largest_relative_difference": math.nan, "checks": [], "notes": []}
     try:
-        runner = open_runner(spec)
+        runner = runner_for(spec)
     except Exception as exc:  # noqa: BLE001 - the study's results stand without the measurement
         out["notes"].append(f"The sampling check could not load the FMU: {type(exc).__name__}: {exc}")
         return out

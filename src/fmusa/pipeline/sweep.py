@@ -158,10 +158,6 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                                          f"before stages.roi (or give roi.manual)")
                     # the grid runs where the search will run: the other parameters at their defaults
                     at = {k: v for k, v in runner.defaults.items() if k not in (inner, outer)}
-                    if len(grid_df) and (grid_df["status"] != "ok").all():
-                        raise StudyError(f"{study.path}: all {len(grid_df)} grid runs failed, so there is no "
-                                         f"region of interest; the first says: {grid_df['message'].iloc[0]} "
-                                         f"(every run's reason is in runs.csv, column message)")
                     result.region = automatic_region(grid_df, inner, outer, at)
                 summary["roi"] = result.region.as_dict()
             elif name == "search":

@@ -50,12 +50,18 @@ class RunResult:
 _WORKER_PLANS: dict[PlanSpec, RunPlan] = {}
 
 
+def runner_for(spec: PlanSpec) -> FMURunner:
+    """A new FMURunner on ``spec``'s FMU with the study's ``fmu_options``: for the runs a plan makes, and for
+    runs outside the run store (a finer sampling, another scenario). Close it (or use ``with``)."""
+    return FMURunner(spec.fmu_path, interface=spec.interface, solver=spec.solver,
+                     relative_tolerance=spec.relative_tolerance, step_size=spec.step_size)
+
+
 def plan_for(spec: PlanSpec) -> RunPlan:
     """The calling process's RunPlan for ``spec``: one FMU instance per process and spec, reused."""
     plan = _WORKER_PLANS.get(spec)
     if plan is None:
-        runner = FMURunner(spec.fmu_path, interface=spec.interface, solver=spec.solver,
-                           relative_tolerance=spec.relative_tolerance, step_size=spec.step_size)
+        runner = runner_for(spec)
         plan = RunPlan(runner, spec.varied, dict(spec.fixed), spec.outputs, spec.stop_time, spec.step,
                        dict(spec.inputs))
         _WORKER_PLANS[spec] = plan

@@ -60,10 +60,14 @@ def _lock_folder(path: Path):
     fh.truncate()
     fh.write(f"pid {os.getpid()}")
     fh.flush()
-    # a forked worker must not keep the lock alive after this process dies: it closes its copy at once
-    ref = weakref.ref(fh)
-    os.register_at_fork(after_in_child=lambda: (ref() is not None and ref().close()))
+    _LOCKS.add(fh)
     return fh
+
+
+#: the lock files this process holds: a forked worker closes its copies at once, so that it cannot keep a
+#: lock alive after this process dies (one hook for all of them, registered once)
+_LOCKS: "weakref.WeakSet" = weakref.WeakSet()
+os.register_at_fork(after_in_child=lambda: [fh.close() for fh in list(_LOCKS)])
 
 
 def _numbers(path: Path, df: pd.DataFrame, columns: Sequence[str]) -> np.ndarray:

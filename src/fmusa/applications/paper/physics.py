@@ -16,9 +16,8 @@ import pandas as pd
 from fmusa.analysis.bisect import FEASIBLE_AT_LO, crossing, smallest_feasible
 from fmusa.analysis.roi import Region, automatic_region
 from fmusa.fmi.plans import RunPlan
-from fmusa.pipeline.direct import open_runner
 from fmusa.runs.metrics import metric_rules, reduce_series
-from fmusa.runs.spec import PlanSpec
+from fmusa.runs.spec import PlanSpec, runner_for
 
 __all__ = ["PaperScenario", "PaperPhysics", "ScenarioRunner", "compute_physics", "optimum_time_series"]
 
@@ -71,7 +70,7 @@ class ScenarioRunner:
     def __init__(self, study, spec: PlanSpec, inner: str, outer: str) -> None:
         self.study, self.spec = study, spec
         self.inner, self.outer = inner, outer
-        self.runner = open_runner(spec)
+        self.runner = runner_for(spec)
         self.outputs = list(dict.fromkeys(m.output for m in study.metrics.values()))
         self.rules = metric_rules(study.metrics.values(), self.outputs)
         self.names = [r.name for r in self.rules]
@@ -287,7 +286,7 @@ def optimum_time_series(study, spec: PlanSpec, optimum: Mapping[str, float], t_e
     0.5 ms (v_y, a_y): {"df", "zoom", "t_eq"}, or {"note"} when the FMU lacks these outputs."""
     params, stop = study.fmu_values(optimum), float(study.scenario.stop_time)
     inputs = dict(study.scenario.inputs) or None
-    with open_runner(spec) as r:
+    with runner_for(spec) as r:
         missing = [n for n in ("y", "v_y", "F_pull") if n not in r.variables]
         if missing:
             return {"note": f"No time-series figure: the FMU has no output {', '.join(missing)} (the figure "
