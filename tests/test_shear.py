@@ -20,10 +20,8 @@ from fmusa.applications.shear_c67.study import fit_bilinear_per_test, run_shear_
 from fmusa.diagnose.run import diagnose
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The repository's copy of the data (specimens H1–H3).
+#: The repository's copy of the data (specimens H1–H3 and H10–H21, copied unchanged; H4–H9 are never used).
 SHEAR = ROOT / "data" / "shear-c67"
-#: The project's shared copy with more specimens (H1–H3, H10–H21; H4–H9 are never used).
-SHARED = ROOT.parent / "shared" / "data" / "shear-c67"
 
 
 def test_two_phase_fit_matches_the_authors_breakpoint_analysis(fmu_path):
@@ -129,13 +127,13 @@ def test_monotonic_real_tests_name_a_stiffening_bend(fmu_path):
 
 
 def _copy_specimen(dst: Path, specimen: str, direction: str) -> None:
-    """One specimen's tests of one direction from the shared copy, with its rows of the two tables."""
+    """One specimen's tests of one direction from the repository's copy, with its rows of the two tables."""
     folder = f"H{int(specimen[1:]):02d}"
     (dst / folder).mkdir(parents=True, exist_ok=True)
-    for p in (SHARED / folder).glob(f"{specimen}_C67_{direction}_*_mm_s.csv"):
+    for p in (SHEAR / folder).glob(f"{specimen}_C67_{direction}_*_mm_s.csv"):
         shutil.copy(p, dst / folder / p.name)
     for table in ("test_info.csv", "specimen_info.csv"):
-        df = pd.read_csv(SHARED / table)
+        df = pd.read_csv(SHEAR / table)
         keep = df[df["ID"] == specimen]
         if "direction" in keep:
             keep = keep[keep["direction"] == direction]
@@ -143,10 +141,9 @@ def _copy_specimen(dst: Path, specimen: str, direction: str) -> None:
         keep.to_csv(out, mode="a" if out.exists() else "w", header=not out.exists(), index=False)
 
 
-@pytest.mark.skipif(not (SHARED / "H10").is_dir(), reason="the shared shear-c67 copy with H10 is not here")
 def test_report_on_other_specimens_names_them(fmu_path, tmp_path):
     """H10 anterior and H11 posterior (three rates each, few samples, two candidates): the report names
-    those specimens, directions, rates and counts, and nothing of H1–H3 or of the 18 tests of the
+    those specimens, directions, rates and counts, and nothing of H1–H3 or of the other tests of the
     repository's copy."""
     data = tmp_path / "shear"
     _copy_specimen(data, "H10", "Ant")
