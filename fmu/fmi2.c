@@ -132,6 +132,7 @@ void fmi2FreeInstance(fmi2Component comp)
 {
     Instance *c = comp;
     if (!c) return;
+    model_free(&c->model);
     free(c->name);
     free(c);
 }

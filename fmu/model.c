@@ -6,6 +6,7 @@
 
 #include <math.h>
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 
 #define V(name) (mi->v[VR_##name])
@@ -24,7 +25,9 @@ const VarInfo *model_variable(unsigned int vr)
 
 void model_set_start_values(ModelInstance *mi)
 {
+    void *work = mi->work;
     memset(mi, 0, sizeof(*mi));
+    mi->work = work;
     for (size_t i = 0; i < sizeof(VARS) / sizeof(VARS[0]); i++) mi->v[VARS[i].vr] = VARS[i].start;
     V(t_eq) = -1.0;
 }
@@ -93,6 +96,14 @@ int model_validate(const ModelInstance *mi, char *msg, size_t len)
         return 1;
     if (check(isfinite(V(h_max)) && V(h_max) >= 0.0, msg, len,
               "parameter %s = %g is invalid: use 0 (no limit) or a positive step in s", "h_max", V(h_max)))
+        return 1;
+    if (check(V(max_steps) >= 1.0 && V(max_steps) <= 1e12, msg, len,
+              "parameter %s = %g is invalid: the work budget must be between 1 and 1e12 internal steps per "
+              "doStep", "max_steps", V(max_steps)))
+        return 1;
+    if (check(isfinite(V(max_wall_s)) && V(max_wall_s) >= 0.0, msg, len,
+              "parameter %s = %g is invalid: use 0 (no limit) or a positive number of seconds", "max_wall_s",
+              V(max_wall_s)))
         return 1;
     if (check(V(mode) == 1.0 || V(mode) == 2.0, msg, len,
               "parameter %s = %g is invalid: use 1 (force-driven) or 2 (motion-driven)", "mode", V(mode)))
@@ -298,8 +309,13 @@ static int solve(int n, cplx *A, cplx *b)
 static void cos_sin(cplx x, cplx *c, cplx *s)
 {
     if (x == 0.0) { *c = 1.0; *s = 0.0; return; }   /* the common axial case: skip the complex trig */
-    *c = ccos(x);
-    *s = csin(x);
+    double a = creal(x), b = cimag(x), ca = cos(a), sa = sin(a);
+    if (b == 0.0) { *c = ca; *s = sa; return; }
+    /* cos(a + ib) = cos a cosh b - i sin a sinh b, sin(a + ib) = sin a cosh b + i cos a sinh b; for the
+     * complex step (|b| ~ 1e-100) cosh b = 1 and sinh b = b in double */
+    double ch = fabs(b) < 1e-30 ? 1.0 : cosh(b), sh = fabs(b) < 1e-30 ? b : sinh(b);
+    *c = ca * ch - I * (sa * sh);
+    *s = sa * ch + I * (ca * sh);
 }
 
 /* Accelerations (and, in motion-driven mode, the reaction of the drive) at (t, u); ax is the axial
@@ -431,6 +447,115 @@ singular:
     return 1;
 }
 
+/* ------------------------------------------------------------------ Jacobian columns in closed form */
+
+static void rmat3_vec(const double A[9], const double x[3], double y[3])
+{
+    for (int i = 0; i < 3; i++) y[i] = A[3 * i] * x[0] + A[3 * i + 1] * x[1] + A[3 * i + 2] * x[2];
+}
+
+static void rcross(const double a[3], const double b[3], double c[3])
+{
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+/* The force-driven dynamics are affine in the translations and their rates (the interface force) and depend
+ * on the Cardan rates only through omega = G theta', the Coriolis term G' theta' and the rotational damping:
+ * those nine columns of d(du)/du are written here in closed form, from the same intermediate quantities as
+ * dynamics(). A column is the mass matrix's inverse applied to the derivative of the generalised forces,
+ * (g_tr, g_rot) -> (r'' = g_tr / m + R (b x wd), theta'' = G^-1 wd), wd = I^-1 g_rot. The angles' columns
+ * and the time derivative stay with the complex step (tests/test_jacobian.py checks both agree). Only for the
+ * linear axial element (lin2): with a table or an effect the axial force has its own derivatives. */
+static int jacobian_columns(void *ctx, double t, const double *u, double *J, int *filled)
+{
+    const ModelInstance *mi = ctx;
+    (void)t;
+    if ((int)V(mode) != 1 || !mi->solver.lin2) return 0;
+    enum { N = NX };
+    const double *th = u + 3, *thd = u + NQ + 3;
+    double ca = cos(th[0]), sa = sin(th[0]), cb = cos(th[1]), sb = sin(th[1]), cg = cos(th[2]), sg = sin(th[2]);
+    if (fabs(cb) < 1e-6) return 0;   /* gimbal lock: dynamics() reports it */
+    double R[9];
+    {
+        double Rx[9] = {1, 0, 0, 0, ca, -sa, 0, sa, ca}, Ry[9] = {cb, 0, sb, 0, 1, 0, -sb, 0, cb};
+        double Rz[9] = {cg, -sg, 0, sg, cg, 0, 0, 0, 1}, Rxy[9];
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++) {
+                Rxy[3 * i + j] = Rx[3 * i] * Ry[j] + Rx[3 * i + 1] * Ry[3 + j] + Rx[3 * i + 2] * Ry[6 + j];
+            }
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++)
+                R[3 * i + j] = Rxy[3 * i] * Rz[j] + Rxy[3 * i + 1] * Rz[3 + j] + Rxy[3 * i + 2] * Rz[6 + j];
+    }
+    double G[9] = {cb * cg, sg, 0, -cb * sg, cg, 0, sb, 0, 1};
+    double icb = 1.0 / cb;
+    double Gi[9] = {cg * icb, -sg * icb, 0, sg, cg, 0, -sb * cg * icb, sb * sg * icb, 1};
+    /* dG/dbeta, dG/dgamma (dG/dalpha = 0), G' = thd_beta dG/dbeta + thd_gamma dG/dgamma */
+    double Gb[9] = {-sb * cg, 0, 0, sb * sg, 0, 0, cb, 0, 0};
+    double Gg[9] = {-cb * sg, cg, 0, -cb * cg, -sg, 0, 0, 0, 0};
+    double Gdot[9];
+    for (int i = 0; i < 9; i++) Gdot[i] = thd[1] * Gb[i] + thd[2] * Gg[i];
+    double w[3], Iw[3], wb[3];
+    rmat3_vec(G, thd, w);
+    double b[3] = {V(cg_x) - V(rI_x), V(cg_y) - V(rI_y), V(cg_z) - V(rI_z)};
+    rmat3_vec(mi->inertia, w, Iw);
+    rcross(w, b, wb);
+    double m = V(m);
+    const double C[3] = {V(c_x), V(c_y), V(c_z)}, D[3] = {V(d_x), V(d_y), V(d_z)};
+    const double Dth[3] = {V(d_alpha), V(d_beta), V(d_gamma)};
+    for (int col = 0; col < 9; col++) {
+        double dgt[3] = {0, 0, 0}, dgr[3] = {0, 0, 0};
+        int j = col % 3, state;
+        if (col < 6) {
+            /* a translation (col < 3) or its rate: dF_I = -C_j e_j or -D_j e_j; torque -b x R^T dF_I */
+            double k = col < 3 ? C[j] : D[j], RTe[3] = {R[3 * j], R[3 * j + 1], R[3 * j + 2]}, bx[3];
+            state = col < 3 ? j : NQ + j;
+            dgt[j] = -k;
+            rcross(b, RTe, bx);
+            for (int i = 0; i < 3; i++) dgr[i] = k * bx[i];
+        } else {
+            /* a Cardan rate: omega, G' theta', the damping torque G^-T (-D_j e_j), gyroscopic -w x I w */
+            state = NQ + 3 + j;
+            double dw[3] = {G[j], G[3 + j], G[6 + j]}, dGd[3];
+            const double *Gj = j == 1 ? Gb : j == 2 ? Gg : NULL;
+            for (int i = 0; i < 3; i++) {
+                dGd[i] = Gdot[3 * i + j];
+                if (Gj) dGd[i] += Gj[3 * i] * thd[0] + Gj[3 * i + 1] * thd[1] + Gj[3 * i + 2] * thd[2];
+            }
+            double t1[3], t2[3], t3[3], dwb[3], dcen[3], Rc[3];
+            rcross(dGd, b, t1);
+            rcross(dw, wb, t2);
+            rcross(dw, b, dwb);
+            rcross(w, dwb, t3);
+            for (int i = 0; i < 3; i++) dcen[i] = t1[i] + t2[i] + t3[i];
+            rmat3_vec(R, dcen, Rc);
+            for (int i = 0; i < 3; i++) dgt[i] = -m * Rc[i];
+            double Idw[3], g1[3], g2[3], IdGd[3];
+            rmat3_vec(mi->inertia, dw, Idw);
+            rcross(dw, Iw, g1);
+            rcross(w, Idw, g2);
+            rmat3_vec(mi->inertia, dGd, IdGd);
+            for (int i = 0; i < 3; i++) dgr[i] = -Dth[j] * Gi[3 * j + i] - g1[i] - g2[i] - IdGd[i];
+        }
+        /* the inverse of the mass matrix */
+        double wd[3], thdd[3], bw[3], Rbw[3];
+        rmat3_vec(mi->inertia_inv, dgr, wd);
+        rmat3_vec(Gi, wd, thdd);
+        rcross(b, wd, bw);
+        rmat3_vec(R, bw, Rbw);
+        for (int i = 0; i < N; i++) J[i * N + state] = 0.0;
+        if (state >= NQ) J[(state - NQ) * N + state] = 1.0;   /* dq/dt = qd */
+        for (int i = 0; i < 3; i++) {
+            J[(NQ + i) * N + state] = dgt[i] * (1.0 / m) + Rbw[i];
+            J[(NQ + 3 + i) * N + state] = thdd[i];
+        }
+        filled[state] = 1;
+    }
+    return 0;
+}
+
 static int rhs(void *ctx, cplx t, const cplx *u, cplx *du, char *msg, size_t len)
 {
     const ModelInstance *mi = ctx;
@@ -493,8 +618,19 @@ static void apply_drive(ModelInstance *mi)
     mi->solver.u[IX_VY] = mi->u[IX_VY];
 }
 
+void model_free(ModelInstance *mi)
+{
+    free(mi->work);
+    mi->work = NULL;
+}
+
 int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
 {
+    if (!mi->work && !(mi->work = calloc(1, solver_work_size()))) {
+        snprintf(msg, len, "out of memory: the solver's workspace (%lu bytes) could not be allocated",
+                 (unsigned long)solver_work_size());
+        return 1;
+    }
     double m = V(m), r = 0.5 * V(D_screw), L = V(L_screw);
     V(I_1) = V(I_3) = m * (3.0 * r * r + L * L) / 12.0;
     V(I_2) = 0.5 * m * r * r;
@@ -538,13 +674,17 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->atol = 1e-15;            /* SI units: 1e-15 m, rad, m/s, rad/s: far below anything the study reads */
     sv->h_max = V(h_max);
     sv->monitors = V(monitors) != 0.0;
+    sv->max_steps = (long)V(max_steps);
+    sv->max_wall_s = V(max_wall_s);
     sv->lin2 = (int)V(mode) == 1 && V(tab_n) < 2.0 && V(gap) == 0.0 && V(yield_ratio) == 1.0 &&
                V(nl_ratio) == 1.0 && V(fric_F) == 0.0 && V(ve_k) == 0.0;
     sv->eps_v = V(eps_v_eq);
     sv->eps_a = V(eps_a_eq);
     sv->rhs = rhs;
+    sv->columns = jacobian_columns;
     sv->breakpoint = next_breakpoint;
     sv->ctx = mi;
+    sv->work = mi->work;
     apply_drive(mi);
     if (solver_init(sv, t0, mi->u, msg, len)) return 1;
     return update_outputs(mi, msg, len);

@@ -35,9 +35,14 @@ typedef struct ModelInstance {
     double inertia[9];       /* I_B about the CG in the screw frame */
     double inertia_inv[9];
     Solver solver;
+    void *work;              /* the solver's workspace (solver_work_size bytes), made once, kept across resets */
 } ModelInstance;
 
+/* All variables to their start values (the workspace is kept). */
 void model_set_start_values(ModelInstance *mi);
+
+/* Free what the instance holds (its workspace). */
+void model_free(ModelInstance *mi);
 
 /* 0 when every parameter is valid; otherwise 1 with msg naming the parameter and the fix. */
 int model_validate(const ModelInstance *mi, char *msg, size_t msglen);

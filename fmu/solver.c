@@ -7,7 +7,8 @@
  * Rosenbrock method (exprb32, Hochbruck, Ostermann & Schweitzer 2009):
  *     U     = u + h phi1(hJ) F(u) + h^2 phi2(hJ) F_t
  *     u_new = U + 2h phi3(hJ) D,  D = F(U) - F(u) - J (U - u) - h F_t,
- * with J = dF/du and F_t = dF/dt taken exactly by the complex-step method. For a linear element with a
+ * with J = dF/du and F_t = dF/dt exact: columns the model writes in closed form (Solver.columns), the others
+ * and F_t by the complex-step method. For a linear element with a
  * piecewise-linear load (the paper's case) D vanishes and a step is exact to rounding whatever its length,
  * at any stiffness, without numerical damping; for the nonlinear 6-DOF dynamics (gyroscopic terms, finite
  * rotations, lever arms, a force table) the method is third order, A-stable through the exact exponential,
@@ -20,11 +21,19 @@
  * Only the active subspace is integrated: states that are zero, have zero derivative and are not driven by
  * any active state stay exactly zero. The axial pullout thus costs 2x2 algebra even in the 12-state model.
  *
- * The monitors need the solution between steps: each step is sampled at 8 sub-points by propagating the
- * linearised dynamics exactly (the same phi functions at h/8), and a step is accepted only when every odd
- * sample agrees with the cubic Hermite interpolant of its neighbours, so no oscillation hides between
- * samples. Peaks come from those cubics, and the start of the equilibrium (t_eq) is located by root
- * finding on the exact linearised solution, not rounded to a step.
+ * The monitors need the solution between steps. Where the model declares the (y, v_y) block linear
+ * (Solver.lin2) but other states move (the 6-DOF load case), that block is a damped oscillator forced by the
+ * load and by its (small) coupling to the rest: each step's monitors come from the oscillator's closed form
+ * with an affine forcing through both ends of the step, which must reproduce the integrator's end to the local
+ * tolerance rtol (fast_step), and the phi functions are applied to vectors by a squaring ladder: the step is
+ * set by the error estimate alone, no dense samples. Otherwise (a table, an effect, motion-driven) each step
+ * is sampled at 8 sub-points by propagating the linearised dynamics exactly (the same phi functions at h/8),
+ * and a step is accepted only when every odd sample agrees with the cubic Hermite interpolant of its
+ * neighbours to min(1e-7, 100 rtol), so no oscillation hides between samples. Peaks come from those cubics,
+ * and the start of the equilibrium (t_eq) is located by root finding on the exact linearised solution, not
+ * rounded to a step. With monitors = false neither is needed and the steps take the ladder.
+ *
+ * Work budget: one solver_advance stops with an error after max_steps step attempts or max_wall_s seconds.
  *
  * Exact pieces. When the model declares the (y, v_y) block exactly linear (Solver.lin2: force-driven, no
  * table, no effect) and the active set is that block alone (the axial pullout), a load piece (between two
@@ -34,12 +43,21 @@
  * and |v| exactly, and t_eq as the last crossing of |v| = eps_v or |a| = eps_a, found with the geometric
  * decay of the oscillation's extrema and a safeguarded Newton iteration on the closed form. A piece that
  * would need more than PIECE_MAX_ROOTS roots goes to the general stepper. */
+#if !defined(_WIN32) && !defined(_POSIX_C_SOURCE)
+#define _POSIX_C_SOURCE 199309L   /* clock_gettime */
+#endif
 #include "solver.h"
 
 #include <float.h>
 #include <math.h>
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
+#ifdef _WIN32
+#include <windows.h>
+#else
+#include <time.h>
+#endif
 
 #define NMAX SOLVER_NMAX
 #define NSUB 8                 /* dense samples per step */
@@ -49,7 +67,7 @@
 
 /* C = A B. The i-k-j order runs the inner loop over contiguous rows (vectorised) and adds the products
  * in the same order as the dot product k = 0..n-1, so the result is bit for bit that of the i-j-k loop. */
-static inline void matmul_n(int n, const double *restrict A, const double *restrict B, double *restrict C)
+static inline __attribute__((always_inline)) void matmul_n(int n, const double *restrict A, const double *restrict B, double *restrict C)
 {
     for (int i = 0; i < n; i++) {
         double *c = C + i * n;
@@ -63,7 +81,7 @@ static inline void matmul_n(int n, const double *restrict A, const double *restr
 }
 
 /* T1 = E P1, T2 = E P2, T3 = E P3, T0 = E E in one pass over E (same summation order as matmul). */
-static inline void matmul4_n(int n, const double *restrict E, const double *restrict P1,
+static inline __attribute__((always_inline)) void matmul4_n(int n, const double *restrict E, const double *restrict P1,
                              const double *restrict P2, const double *restrict P3, double *restrict T0,
                              double *restrict T1, double *restrict T2, double *restrict T3)
 {
@@ -84,20 +102,26 @@ static inline void matmul4_n(int n, const double *restrict E, const double *rest
 }
 
 /* Fixed-size kernels: the block sizes of the screw (2, 4, 6, 10, 12 states) get loops of constant
- * length that the compiler unrolls and vectorises. */
+ * length that the compiler unrolls and vectorises. With GCC on x86-64 Linux they are also built for AVX2 with
+ * FMA and chosen at load time (ifunc), falling back to the baseline SSE2 code elsewhere. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && !defined(SOLVER_NO_CLONES)
+#define KERNEL __attribute__((target_clones("fma", "default"), optimize("fp-contract=fast")))
+#else
+#define KERNEL
+#endif
 #define FIXED_SIZES(CALL) \
     switch (n) { \
     case 2: CALL(2); break; case 4: CALL(4); break; case 6: CALL(6); break; case 8: CALL(8); break; \
     case 10: CALL(10); break; case 12: CALL(12); break; default: CALL(n); break; }
 
-static void matmul(int n, const double *restrict A, const double *restrict B, double *restrict C)
+KERNEL static void matmul(int n, const double *restrict A, const double *restrict B, double *restrict C)
 {
 #define MM(N) matmul_n(N, A, B, C)
     FIXED_SIZES(MM)
 #undef MM
 }
 
-static void matmul4(int n, const double *restrict E, const double *restrict P1, const double *restrict P2,
+KERNEL static void matmul4(int n, const double *restrict E, const double *restrict P1, const double *restrict P2,
                     const double *restrict P3, double *restrict T0, double *restrict T1, double *restrict T2,
                     double *restrict T3)
 {
@@ -115,10 +139,45 @@ static void matvec(int n, const double *A, const double *x, double *y)
     }
 }
 
-/* Parlett-Reinsch balancing with powers of two (exact): B = D^-1 A D. */
+/* y = A x from the transpose AT = A^T: a sum of contiguous rows of AT, each lane its own sum (vectorises
+ * without reordering additions). */
+static inline __attribute__((always_inline)) void matvec_t_n(int n, const double *restrict AT, const double *restrict x, double *restrict y)
+{
+    for (int j = 0; j < n; j++) y[j] = 0.0;
+    for (int k = 0; k < n; k++) {
+        double a = x[k];
+        const double *r = AT + k * n;
+        for (int j = 0; j < n; j++) y[j] += a * r[j];
+    }
+}
+
+KERNEL static void matvec_t(int n, const double *restrict AT, const double *restrict x, double *restrict y)
+{
+#define MV(N) matvec_t_n(N, AT, x, y)
+    FIXED_SIZES(MV)
+#undef MV
+}
+
+/* Parlett-Reinsch balancing with powers of two (exact): B = D^-1 A D, from d = 1. */
+static void balance_sweeps(int n, double *B, double *d);
+
 static void balance(int n, double *B, double *d)
 {
     for (int i = 0; i < n; i++) d[i] = 1.0;
+    balance_sweeps(n, B, d);
+}
+
+/* The same from a guess d (powers of two, e.g. the balancing of the last step's Jacobian): B = D^-1 A D with
+ * A given in B; a guess close to the answer leaves one or two sweeps. */
+static void balance_from(int n, double *B, double *d)
+{
+    for (int i = 0; i < n; i++)
+        for (int j = 0; j < n; j++) B[i * n + j] = B[i * n + j] * (d[j] / d[i]);
+    balance_sweeps(n, B, d);
+}
+
+static void balance_sweeps(int n, double *B, double *d)
+{
     for (int sweep = 0; sweep < 64; sweep++) {
         int done = 1;
         for (int i = 0; i < n; i++) {
@@ -284,6 +343,208 @@ void solver_phi(int n, const double *A, double *P0, double *P1, double *P2, doub
     unbalance(n, d, P0); unbalance(n, d, P1); unbalance(n, d, P2); unbalance(n, d, P3);
 }
 
+/* ---------------------------------------------------------------- phi functions applied to vectors
+ *
+ * A step that needs no dense samples needs phi_k(A) only applied to three vectors (phi1 F0, phi2 Ft, phi3 D),
+ * not the matrices. The ladder keeps the matrices E_j = expm1(2^j Z), Z = B / 2^s, j = 0..s, of the balanced
+ * B = D^-1 A D: one squaring per level, E_{j+1} = 2 E_j + E_j^2 (a quarter of the work of doubling all four
+ * phi functions), and a vector climbs the ladder with the doubling formulas of phi_double applied to it:
+ *   p1' = p1 + E p1 / 2,  p2' = (2 p2 + E p2 + p1) / 4,  p3' = (2 p3 + E p3 + p1 / 2 + p2) / 8,
+ * from phi_k(Z) x by a Taylor series at the bottom; phi_0(A) x = x + E_s x at the top. The recurrences are
+ * those of the matrix doubling applied to one vector, so the accuracy is the same (tests/test_solver_phi.py).
+ * The ladder holds the transposes (E_j^T = expm1(2^j Z^T)), so that E_j x is a sum of contiguous rows
+ * (matvec_t) that vectorises without reordering any sum. Matrix functions of a block-diagonal matrix are
+ * block diagonal: each coupled component gets its own ladder. */
+
+#define LADDER_LEVELS 64          /* squarings a ladder can hold: ||B||_1 up to 2^63 */
+#define LADDER_BUF ((LADDER_LEVELS + 3) * NMAX * NMAX)
+
+typedef struct {
+    int n, s;
+    int idx[NMAX];                /* the component's rows in the block */
+    double d[NMAX];               /* balancing: Jb = D^-1 J D of the component */
+    double Jb[NMAX * NMAX];       /* the balanced block of J itself (h = 1): hJ balances to h Jb exactly */
+    const double *ZT;             /* (h Jb / 2^s)^T */
+    const double *P1T;            /* phi1(Z)^T, the bottom of the F0 pass */
+    const double *ET;             /* E_0^T .. E_s^T, n * n each */
+} Ladder;
+
+typedef struct {
+    int k, nc;
+    Ladder lad[NMAX];
+    double buf[LADDER_BUF];
+} PhiVec;
+
+/* Paterson-Stockmeyer for phi1(Z) = sum_{i=0}^{16} Z^i / (i+1)! (||Z||_1 <= 1/2: the next term < 1e-19),
+ * then E_0 = Z phi1(Z): 8 products instead of 17. */
+static void expm1_small(int n, const double *Z, double *P, double *E)
+{
+    double Z2[NMAX * NMAX], Z3[NMAX * NMAX], Z4[NMAX * NMAX], T[NMAX * NMAX];
+    double c[17];
+    double f = 1.0;
+    for (int i = 0; i < 17; i++) { f *= (double)(i + 1); c[i] = 1.0 / f; }
+    int nn = n * n;
+    matmul(n, Z, Z, Z2);
+    matmul(n, Z2, Z, Z3);
+    matmul(n, Z2, Z2, Z4);
+    /* phi1 = C0 + Z4 (C1 + Z4 (C2 + Z4 (C3 + Z4 c16))), C_j = sum_{i<4} c_{4j+i} Z^i */
+    for (int i = 0; i < nn; i++) P[i] = 0.0;
+    for (int i = 0; i < n; i++) P[i * n + i] = c[16];
+    for (int j = 3; j >= 0; j--) {
+        matmul(n, Z4, P, T);
+        for (int i = 0; i < nn; i++) P[i] = T[i] + c[4 * j + 1] * Z[i] + c[4 * j + 2] * Z2[i] + c[4 * j + 3] * Z3[i];
+        for (int i = 0; i < n; i++) P[i * n + i] += c[4 * j];
+    }
+    matmul(n, Z, P, E);
+}
+
+/* The components of J (k x k) and the balancing of each, once per linearisation: both are the same for hJ
+ * whatever h (balancing is invariant under scaling, and its powers of two commute with it exactly). */
+static void phivec_prepare(PhiVec *P, int k, const double *J, double *guess)
+{
+    int label[NMAX];
+    P->k = k;
+    P->nc = components(k, J, label);
+    for (int c = 0; c < P->nc; c++) {
+        Ladder *L = &P->lad[c];
+        int m = 0;
+        for (int i = 0; i < k; i++)
+            if (label[i] == c) L->idx[m++] = i;
+        L->n = m;
+        for (int a = 0; a < m; a++)
+            for (int b = 0; b < m; b++) L->Jb[a * m + b] = J[L->idx[a] * k + L->idx[b]];
+        if (!guess) { balance(m, L->Jb, L->d); continue; }
+        for (int a = 0; a < m; a++) L->d[a] = guess[L->idx[a]];
+        balance_from(m, L->Jb, L->d);
+        for (int a = 0; a < m; a++) guess[L->idx[a]] = L->d[a];
+    }
+}
+
+/* The ladder of one component for the step h into buf; 1 when it would need more than LADDER_LEVELS
+ * squarings. */
+static int ladder_build(Ladder *L, double h, double *buf)
+{
+    int n = L->n, nn = n * n;
+    double norm = 0.0;
+    for (int j = 0; j < n; j++) {
+        double c = 0.0;
+        for (int i = 0; i < n; i++) c += fabs(h * L->Jb[i * n + j]);
+        if (c > norm) norm = c;
+    }
+    if (!isfinite(norm)) return 1;
+    int s = norm > 0.5 ? (int)ceil(log2(norm / 0.5)) : 0;
+    if (s > LADDER_LEVELS) return 1;
+    L->s = s;
+    double scale = ldexp(1.0, -s), *ZT = buf, *P1T = buf + nn, *E = buf + 2 * nn;
+    for (int i = 0; i < n; i++)
+        for (int j = 0; j < n; j++) ZT[j * n + i] = (h * L->Jb[i * n + j]) * scale;
+    expm1_small(n, ZT, P1T, E);
+    for (int j = 0; j < s; j++) {
+        double *Ej = E + (size_t)j * nn, *En = Ej + nn;
+        matmul(n, Ej, Ej, En);
+        for (int i = 0; i < nn; i++) En[i] += 2.0 * Ej[i];
+    }
+    L->ZT = ZT;
+    L->P1T = P1T;
+    L->ET = E;
+    return 0;
+}
+
+/* p_k = phi_k(A) x for k = 0..kmax (p[k] may be NULL for k < kmax; p[kmax] must not be), x and p in the
+ * block's own coordinates. */
+static void ladder_apply(const Ladder *L, const double *x, int kmax, double *p[4])
+{
+    int n = L->n, nn = n * n;
+    double xb[NMAX], q[4][NMAX], t[NMAX];
+    for (int i = 0; i < n; i++) xb[i] = x[i] / L->d[i];
+    if (kmax == 1) {
+        matvec_t(n, L->P1T, xb, q[1]);   /* phi1(Z) xb from the matrix the ladder's bottom made */
+    } else {
+        /* bottom: phi_kmax(Z) xb by Horner over 17 - kmax terms, then phi_k = Z phi_{k+1} + xb / k! */
+        double fact[21];
+        fact[0] = 1.0;
+        for (int i = 1; i < 21; i++) fact[i] = fact[i - 1] * i;
+        int top = 17;                     /* the last term is Z^(17 - kmax) / 17!, as in expm1_small */
+        for (int i = 0; i < n; i++) q[kmax][i] = xb[i] / fact[top];
+        for (int e = top - 1; e >= kmax; e--) {
+            matvec_t(n, L->ZT, q[kmax], t);
+            for (int i = 0; i < n; i++) q[kmax][i] = t[i] + xb[i] / fact[e];
+        }
+        /* q[kmax] = sum_{i=0}^{top-kmax} Z^i xb / (i + kmax)! */
+        for (int k = kmax - 1; k >= 1; k--) {
+            matvec_t(n, L->ZT, q[k + 1], t);
+            for (int i = 0; i < n; i++) q[k][i] = t[i] + xb[i] / fact[k];
+        }
+    }
+    /* climb */
+    for (int j = 0; j < L->s; j++) {
+        const double *ET = L->ET + (size_t)j * nn;
+        double e1[NMAX], e2[NMAX], e3[NMAX];
+        if (kmax >= 1) matvec_t(n, ET, q[1], e1);
+        if (kmax >= 2) matvec_t(n, ET, q[2], e2);
+        if (kmax >= 3) matvec_t(n, ET, q[3], e3);
+        for (int i = 0; i < n; i++) {
+            double p1 = q[1][i], p2 = kmax >= 2 ? q[2][i] : 0.0;
+            if (kmax >= 3) q[3][i] = 0.125 * (2.0 * q[3][i] + e3[i] + 0.5 * p1 + p2);
+            if (kmax >= 2) q[2][i] = 0.25 * (2.0 * p2 + e2[i] + p1);
+            q[1][i] = p1 + 0.5 * e1[i];
+        }
+    }
+    if (p[0]) {
+        matvec_t(n, L->ET + (size_t)L->s * nn, xb, t);
+        for (int i = 0; i < n; i++) p[0][i] = (xb[i] + t[i]) * L->d[i];
+    }
+    for (int k = 1; k <= kmax; k++)
+        if (p[k])
+            for (int i = 0; i < n; i++) p[k][i] = q[k][i] * L->d[i];
+}
+
+/* The ladders of every component of P (prepared) for the step h; 1 when one would be too deep. */
+static int phivec_build(PhiVec *P, double h)
+{
+    size_t used = 0;
+    for (int c = 0; c < P->nc; c++) {
+        Ladder *L = &P->lad[c];
+        size_t mm = (size_t)L->n * L->n;
+        if (used + (size_t)(LADDER_LEVELS + 3) * mm > LADDER_BUF) return 1;
+        if (ladder_build(L, h, P->buf + used)) return 1;
+        used += (size_t)(L->s + 3) * mm;
+    }
+    return 0;
+}
+
+size_t solver_work_size(void)
+{
+    return sizeof(PhiVec);
+}
+
+/* p_k = phi_k(A) x, k = 0..kmax, for the whole block (p[k] NULL: not wanted, except p[kmax]). */
+static void phivec_apply(const PhiVec *P, const double *x, int kmax, double *p[4])
+{
+    for (int c = 0; c < P->nc; c++) {
+        const Ladder *L = &P->lad[c];
+        int m = L->n;
+        double xc[NMAX], pc[4][NMAX], *pp[4];
+        for (int a = 0; a < m; a++) xc[a] = x[L->idx[a]];
+        for (int k = 0; k < 4; k++) pp[k] = (k <= kmax && p[k]) ? pc[k] : NULL;
+        ladder_apply(L, xc, kmax, pp);
+        for (int k = 0; k <= kmax; k++)
+            if (p[k])
+                for (int a = 0; a < m; a++) p[k][L->idx[a]] = pc[k][a];
+    }
+}
+
+void solver_phi_apply(int n, const double *A, const double *x, double *P0, double *P1, double *P2, double *P3)
+{
+    PhiVec *P = malloc(sizeof(PhiVec));
+    if (!P) return;
+    double *p[4] = {P0, P1, P2, P3};
+    phivec_prepare(P, n, A, NULL);
+    if (phivec_build(P, 1.0) == 0) phivec_apply(P, x, 3, p);
+    else for (int i = 0; i < n; i++) P0[i] = P1[i] = P2[i] = P3[i] = NAN;
+    free(P);
+}
+
 /* ---------------------------------------------------------------- linearisation */
 
 typedef struct {
@@ -364,6 +625,11 @@ static int linearize(Solver *s, double t, const double *u, Linearization *L, cha
     }
     memset(L->J, 0, sizeof(double) * n * n);
     int filled[NMAX] = {0};
+    /* the model's closed-form columns pay off when many states move; two (the axial pullout) take the
+     * complex step */
+    int initially = 0;
+    for (int i = 0; i < n; i++) initially += L->active[i];
+    if (s->columns && initially > 2 && s->columns(s->ctx, t, u, L->J, filled)) return 1;
     if (close_active_set(s, L, filled, msg, len)) return 1;
     /* In the linear regime (same Jacobian as the last step) keep the carried derivative wherever it agrees
      * with the evaluated one within the evaluation's rounding error: there it is the more accurate. */
@@ -789,6 +1055,59 @@ static double last_exceed(const Osc *o, const Fn *f, double eps, double h)
     return -1.0;
 }
 
+/* The monitors of the (position, velocity) block over a piece of length h from the closed form of P, on top of
+ * the solver's monitors so far: the extrema of y at the roots of v, max |v| at the zeros of a, the integrals
+ * of y (yint) and |v|, and the start of the rest. (yH, vH, aH) is the piece's end. Returns 0, or -1 when the
+ * piece would need more than PIECE_MAX_ROOTS roots (nothing is written then). */
+typedef struct { double pos_max, vel_max, pint, vint, t_eq; } PieceMonitors;
+
+static int piece_monitors(const Solver *s, const Piece *P, double h, double yH, double vH, double aH, double yint,
+                          PieceMonitors *out)
+{
+    double k = P->k, g = P->g, y0 = P->y0, v0 = P->v0, a0 = P->a0;
+    Osc o;
+    osc_init(&o, k, g);
+    double B = P->f / k;
+    double h1 = v0 - B, h2 = a0;                 /* h0 = z0 - z_p */
+    double q1 = -(g * h1 + h2) / k, q2 = h1;     /* q = J^-1 h0 */
+    Fn Y = {y0 - q1, B, q1, q2, 0, P}, Vf = {B, 0.0, h1, h2, 1, P}, Af = fn_der(&o, &Vf);
+    double roots[PIECE_MAX_ROOTS];
+    long nr = v_roots(&o, &Vf, h, roots, PIECE_MAX_ROOTS);
+    if (nr < 0) return -1;
+    PieceMonitors m = {s->pos_max, s->vel_max, 0.0, 0.0, s->t_eq};
+    /* y at the roots of v: its extrema; the integral of |v| is the sum of |dy| between them */
+    double yl = y0;
+    m.pos_max = fmax(m.pos_max, fmax(fabs(y0), fabs(yH)));
+    for (long j = 0; j <= nr; j++) {
+        double sr = j < nr ? roots[j] : h, yr = j < nr ? fn_val(&o, &Y, sr) : yH;
+        m.pos_max = fmax(m.pos_max, fabs(yr));
+        m.vint += fabs(yr - yl);
+        yl = yr;
+    }
+    m.vel_max = fmax(m.vel_max, maxabs_flat(&o, &Vf, h));
+    m.pint = yint;
+    /* rest: the last time in the piece at which |v| >= eps_v or |a| >= eps_a */
+    if (!at_rest(s, vH, aH)) m.t_eq = -1.0;
+    else {
+        double lv = last_exceed(&o, &Vf, s->eps_v, h), la = last_exceed(&o, &Af, s->eps_a, h);
+        if (lv < -1.5 || la < -1.5) return -1;
+        double last = fmax(lv, la);
+        if (last >= 0.0) m.t_eq = s->t + last;
+        else if (m.t_eq < 0.0) m.t_eq = s->t;
+    }
+    *out = m;
+    return 0;
+}
+
+static void take_piece_monitors(Solver *s, const PieceMonitors *m)
+{
+    s->pos_max = m->pos_max;
+    s->vel_max = m->vel_max;
+    s->pos_int += m->pint;
+    s->absvel_int += m->vint;
+    s->t_eq = m->t_eq;
+}
+
 /* One exact step over the whole piece [t, t + h]. Returns 0 when taken, -1 when the general stepper must
  * take it (nothing changed), 1 on an error of the model. */
 static int linear_piece(Solver *s, const Linearization *L, double h, double t_next, char *msg, size_t len)
@@ -799,57 +1118,21 @@ static int linear_piece(Solver *s, const Linearization *L, double h, double t_ne
     if (L->J[ip * n + ip] != 0.0 || L->J[ip * n + iv] != 1.0 || L->Ft[ip] != 0.0) return -1;
     double k = -L->J[iv * n + ip], g = -L->J[iv * n + iv];
     if (!(k > 0.0) || !(g >= 0.0) || !isfinite(k) || !isfinite(g)) return -1;
-    Osc o;
-    osc_init(&o, k, g);
-    double y0 = s->u[ip], v0 = s->u[iv], a0 = L->F0[iv];
-    double B = L->Ft[iv] / k;
-    double h1 = v0 - B, h2 = a0;                 /* h0 = z0 - z_p */
-    double q1 = -(g * h1 + h2) / k, q2 = h1;     /* q = J^-1 h0 */
-    Piece P = {k, g, y0, v0, a0, L->Ft[iv]};
-    Fn Y = {y0 - q1, B, q1, q2, 0, &P}, Vf = {B, 0.0, h1, h2, 1, &P}, Af = fn_der(&o, &Vf);
+    Piece P = {k, g, s->u[ip], s->u[iv], L->F0[iv], L->Ft[iv]};
     double yH, vH, aH, yint;
     piece_exact(&P, h, &yH, &vH, &aH, &yint);
     double u1[NMAX];
     memcpy(u1, s->u, sizeof(double) * n);
     u1[ip] = yH;
     u1[iv] = vH;
-    double roots[PIECE_MAX_ROOTS];
-    long nr = 0;
-    double pos_max = s->pos_max, vel_max = s->vel_max, pint = 0.0, vint = 0.0, t_eq = s->t_eq;
-    if (s->monitors) {
-        nr = v_roots(&o, &Vf, h, roots, PIECE_MAX_ROOTS);
-        if (nr < 0) return -1;
-        /* y at the roots of v: its extrema; the integral of |v| is the sum of |dy| between them */
-        double yl = y0;
-        pos_max = fmax(pos_max, fmax(fabs(y0), fabs(yH)));
-        for (long j = 0; j <= nr; j++) {
-            double sr = j < nr ? roots[j] : h, yr = j < nr ? fn_val(&o, &Y, sr) : yH;
-            pos_max = fmax(pos_max, fabs(yr));
-            vint += fabs(yr - yl);
-            yl = yr;
-        }
-        vel_max = fmax(vel_max, maxabs_flat(&o, &Vf, h));
-        pint = yint;
-        /* rest: the last time in the piece at which |v| >= eps_v or |a| >= eps_a */
-        if (!at_rest(s, vH, aH)) t_eq = -1.0;
-        else {
-            double lv = last_exceed(&o, &Vf, s->eps_v, h), la = last_exceed(&o, &Af, s->eps_a, h);
-            if (lv < -1.5 || la < -1.5) return -1;
-            double last = fmax(lv, la);
-            if (last >= 0.0) t_eq = s->t + last;
-            else if (t_eq < 0.0) t_eq = s->t;
-        }
-    }
+    PieceMonitors mon = {s->pos_max, s->vel_max, 0.0, 0.0, s->t_eq};
+    if (s->monitors && piece_monitors(s, &P, h, yH, vH, aH, yint, &mon)) return -1;
     /* the inactive states must stay at rest: check the derivative at the end */
     double F1[NMAX];
     if (eval_real(s, t_next, u1, F1, msg, len)) return 1;
     for (int i = 0; i < n; i++)
         if (i != ip && i != iv && (F1[i] != 0.0 || u1[i] != 0.0)) return -1;
-    s->pos_max = pos_max;
-    s->vel_max = vel_max;
-    s->pos_int += pint;
-    s->absvel_int += vint;
-    s->t_eq = t_eq;
+    take_piece_monitors(s, &mon);
     for (int i = 0; i < n; i++) s->umax[i] = fmax(s->umax[i], fabs(u1[i]));
     memcpy(s->u, u1, sizeof(double) * n);
     s->t = t_next;
@@ -871,6 +1154,7 @@ int solver_init(Solver *s, double t0, const double *u0, char *msg, size_t msglen
     memcpy(s->u, u0, sizeof(double) * s->n);
     for (int i = 0; i < s->n; i++) s->umax[i] = fabs(u0[i]);
     s->n_steps = s->n_rejected = s->n_rhs = 0;
+    for (int i = 0; i < s->n; i++) s->bal_d[i] = 1.0;
     if (s->h <= 0.0) s->h = 1e-6;
     if (eval_real(s, t0, u0, F, msg, msglen)) return 1;
     s->acc = F[s->ivel];
@@ -880,8 +1164,285 @@ int solver_init(Solver *s, double t0, const double *u0, char *msg, size_t msglen
     return 0;
 }
 
+/* ---------------------------------------------------------------- work budget */
+
+static double wall_seconds(void)
+{
+#ifdef _WIN32
+    return (double)GetTickCount64() * 1e-3;
+#else
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+#endif
+}
+
+typedef struct {
+    long attempts;
+    double t_start, wall0;
+} Budget;
+
+/* 1 (msg filled) once this solver_advance has used up its steps or its seconds: a run the parameters make
+ * too fast or too stiff to follow ends in an error that says so, instead of spinning. */
+static int over_budget(const Solver *s, Budget *b, double t, double t_end, char *msg, size_t len)
+{
+    b->attempts++;
+    if (s->max_steps > 0 && b->attempts > s->max_steps) {
+        snprintf(msg, len, "work budget used up: %ld internal steps (max_steps) took the solution only from t = %.9g "
+                 "to %.9g s of the step to %.9g s (last step %.3g s); the parameters make the motion too fast to "
+                 "follow: check the stiffness, damping and mass, or raise max_steps", s->max_steps, b->t_start, t,
+                 t_end, s->h);
+        return 1;
+    }
+    if (s->max_wall_s > 0.0 && (b->attempts & 15) == 0 && wall_seconds() - b->wall0 > s->max_wall_s) {
+        snprintf(msg, len, "work budget used up: %.3g s of computing (max_wall_s) after %ld internal steps took the "
+                 "solution only from t = %.9g to %.9g s of the step to %.9g s; check the parameters, or raise "
+                 "max_wall_s", s->max_wall_s, b->attempts, b->t_start, t, t_end);
+        return 1;
+    }
+    return 0;
+}
+
+/* ---------------------------------------------------------------- parts of a step both steppers share */
+
+/* The step to try from t: the proposal, cut at the next kink (*at_bp), at h_max, at the end. 1 (msg) when it
+ * underflows. */
+static int step_size(const Solver *s, double t, double remaining, double bp, double *h, int *at_bp, char *msg,
+                     size_t len)
+{
+    *h = fmin(s->h, remaining);
+    *at_bp = 0;
+    if (bp > t && bp - t <= *h) { *h = bp - t; *at_bp = 1; }
+    if (s->h_max > 0.0 && *h > s->h_max) { *h = s->h_max; *at_bp = 0; }
+    if (*h < 1e-15 * fmax(1.0, fabs(t))) {
+        snprintf(msg, len, "step size underflow (h = %g) at t = %.17g: the solution changes too fast to follow; "
+                 "check the parameters", *h, t);
+        return 1;
+    }
+    return 0;
+}
+
+/* States the trial point U set moving join the active set (their columns filled). 1 when it grew, -1 on an
+ * error. */
+static int expand_active(Solver *s, Linearization *L, const double *FU, char *msg, size_t len)
+{
+    int n = s->n, expanded = 0;
+    for (int i = 0; i < n; i++)
+        if (!L->active[i] && FU[i] != 0.0) { L->active[i] = 1; expanded = 1; }
+    if (!expanded) return 0;
+    int filled[NMAX];
+    for (int i = 0; i < n; i++) filled[i] = 0;
+    for (int a = 0; a < L->k; a++) filled[L->idx[a]] = 1;
+    return close_active_set(s, L, filled, msg, len) ? -1 : 1;
+}
+
+/* D = F(U) - F0 - J (U - u) - h Ft on the active block; returns 1 when D vanished (the step was linear). The
+ * part of D within the rounding error of evaluating F is noise, not nonlinearity: without this the error
+ * estimate of a stiff linear element never lets the step grow. */
+static int defect(const Solver *s, const Linearization *L, double h, const double *U, const double *FU, double *D)
+{
+    int n = s->n, k = L->k, linear = 1;
+    for (int a = 0; a < k; a++) {
+        int i = L->idx[a];
+        double d = FU[i] - L->F0[i] - h * L->Ft[i];
+        double mag = fabs(FU[i]) + fabs(L->F0[i]) + fabs(h * L->Ft[i]);
+        for (int b = 0; b < k; b++) {
+            int j = L->idx[b];
+            d -= L->J[i * n + j] * (U[j] - s->u[j]);
+            mag += fabs(L->J[i * n + j]) * (fabs(U[j]) + fabs(s->u[j]));
+        }
+        double noise = 16.0 * DBL_EPSILON * mag;
+        D[a] = fabs(d) <= noise ? 0.0 : d - copysign(noise, d);
+        if (D[a] != 0.0) linear = 0;
+    }
+    return linear;
+}
+
+/* u1 = U + 2h corr on the active block; the error of the correction against the tolerance. */
+static double correct(const Solver *s, const Linearization *L, double h, const double *corr, double *u1)
+{
+    double err = 0.0;
+    for (int a = 0; a < L->k; a++) {
+        int i = L->idx[a];
+        double c = 2.0 * h * corr[a];
+        u1[i] += c;
+        double sc = s->rtol * fmax(fmax(fabs(s->u[i]), fabs(u1[i])), s->umax[i]) + s->atol;
+        err = fmax(err, fabs(c) / sc);
+    }
+    return err;
+}
+
+/* The derivative carried where it agrees with the evaluated one within rounding (as linearize does). */
+static double carried(double evaluated, double carried_value, double mag)
+{
+    return fabs(evaluated - carried_value) <= 8.0 * DBL_EPSILON * mag ? carried_value : evaluated;
+}
+
+/* After a linear step that reached no kink with the same active set, the Jacobian and F_t at its end point are
+ * those of its start: L moves to (s->t, u1) with the derivative from F(U) = F(u1), or the carried one where the
+ * two agree within rounding. */
+static void reuse_linearization(const Solver *s, Linearization *L, const double *u1, const double *FU)
+{
+    int n = s->n, k = L->k;
+    L->t = s->t;
+    memcpy(L->u, u1, sizeof(double) * n);
+    for (int a = 0; a < k; a++) {
+        int i = L->idx[a];
+        double mag = fabs(FU[i]);
+        for (int b = 0; b < k; b++) mag += fabs(L->J[i * n + L->idx[b]] * u1[L->idx[b]]);
+        L->F0[i] = carried(FU[i], s->z[i], mag);
+    }
+}
+
+/* ---------------------------------------------------------------- steps without dense samples
+ *
+ * When the model declares the (position, velocity) block linear (lin2: force-driven, no table, no effect) but
+ * other states move too (the 6-DOF load case), the monitored block is the damped oscillator
+ *     y' = v,  v' = -k y - g v + f(t),
+ * whose forcing f carries the load and the (small, smooth) coupling to the other states. Its monitors come
+ * from the closed form of that oscillator on each step with f affine, fitted to the step's two ends, exactly
+ * as the axial pullout's pieces (piece_monitors): no dense samples, so the step is set by the error estimate of
+ * the method alone. The closed form must reproduce the integrator's end of the step (y, v) to the dense-output
+ * tolerance, otherwise the step is rejected: where the coupling is strong (large rotations, an interaction
+ * point off the axis) the steps shrink until an affine forcing holds, and the monitors keep their accuracy.
+ * Without monitors (monitors = false) nothing between steps is needed at all. Either way the phi functions are
+ * applied to vectors by the squaring ladder (PhiVec). */
+
+/* One accepted step from (s->t, s->u) with the linearisation L. Returns 0 when a step was taken, 1 on an
+ * error, -1 when this step needs the dense stepper (nothing changed but the proposed step size). *reuse is set
+ * when the step was linear, as in the dense stepper. */
+static int fast_step(Solver *s, Linearization *L, double t_end, double bp, Budget *budget, int *reuse,
+                     char *msg, size_t msglen)
+{
+    int n = s->n, ip = s->ipos, iv = s->ivel;
+    double t = s->t, remaining = t_end - t;
+    int follow = s->monitors;
+    double kk = 0.0, gg = 0.0;
+    if (follow) {
+        if (!s->lin2 || L->J[ip * n + ip] != 0.0 || L->J[ip * n + iv] != 1.0) return -1;
+        kk = -L->J[iv * n + ip];
+        gg = -L->J[iv * n + iv];
+        if (!(kk > 0.0) || !(gg >= 0.0) || !isfinite(kk) || !isfinite(gg)) return -1;
+    }
+    if (!s->work) return -1;
+    PhiVec *PV = s->work;
+    double A[NMAX * NMAX];
+    int expanded_any = 0, prepared = 0;
+    for (int first = 1;; first = 0) {
+        if (!first && over_budget(s, budget, t, t_end, msg, msglen)) return 1;
+        double h;
+        int at_bp;
+        if (step_size(s, t, remaining, bp, &h, &at_bp, msg, msglen)) return 1;
+        int k = L->k;
+        if (!prepared) {
+            /* the balancing of the last step's Jacobian is the guess for this one's (by state) */
+            double guess[NMAX];
+            active_block(s, L, 1.0, A);
+            for (int a = 0; a < k; a++) guess[a] = s->bal_d[L->idx[a]];
+            phivec_prepare(PV, k, A, guess);
+            for (int a = 0; a < k; a++) s->bal_d[L->idx[a]] = guess[a];
+            prepared = 1;
+        }
+        if (phivec_build(PV, h)) return -1;
+        /* U = u + h phi1 F0 + h^2 phi2 Ft, and the derivative of the linearised solution zU = phi0 F0 + h phi1 Ft */
+        double F0a[NMAX], Fta[NMAX], p0F[NMAX], p1F[NMAX], p1T[NMAX], p2T[NMAX];
+        int has_ft = 0;
+        for (int a = 0; a < k; a++) {
+            F0a[a] = L->F0[L->idx[a]];
+            Fta[a] = L->Ft[L->idx[a]];
+            if (Fta[a] != 0.0) has_ft = 1;
+        }
+        double *pF[4] = {p0F, p1F, NULL, NULL};
+        phivec_apply(PV, F0a, 1, pF);
+        if (has_ft) {
+            double *pT[4] = {NULL, p1T, p2T, NULL};
+            phivec_apply(PV, Fta, 2, pT);
+        } else {
+            for (int a = 0; a < k; a++) p1T[a] = p2T[a] = 0.0;
+        }
+        double U[NMAX], FU[NMAX], zU[NMAX];
+        memcpy(U, s->u, sizeof(double) * n);
+        memcpy(zU, L->F0, sizeof(double) * n);
+        for (int a = 0; a < k; a++) {
+            int i = L->idx[a];
+            U[i] += h * p1F[a] + h * h * p2T[a];
+            zU[i] = p0F[a] + h * p1T[a];
+        }
+        if (eval_real(s, t + h, U, FU, msg, msglen)) return 1;
+        int grown = expand_active(s, L, FU, msg, msglen);
+        if (grown < 0) return 1;
+        if (grown) { expanded_any = 1; prepared = 0; continue; }
+        /* correction 2h phi3 D (as the dense stepper) */
+        double D[NMAX], p3D[NMAX], u1[NMAX];
+        int linear = defect(s, L, h, U, FU, D);
+        memcpy(u1, U, sizeof(double) * n);
+        double err = 0.0;
+        if (!linear) {
+            double *pD[4] = {NULL, NULL, NULL, p3D};
+            phivec_apply(PV, D, 3, pD);
+            err = correct(s, L, h, p3D, u1);
+        }
+        double fac_e = err > 0.0 ? 0.9 * pow(err, -1.0 / 3.0) : 10.0;
+        /* the monitored block: the oscillator with an affine forcing through both ends of the step */
+        double rd = 0.0, F1[NMAX], a1 = zU[iv];
+        Piece P;
+        double yH = 0.0, vH = 0.0, aH = 0.0, yint = 0.0;
+        PieceMonitors mon = {s->pos_max, s->vel_max, 0.0, 0.0, s->t_eq};
+        if (follow && err <= 1.0) {
+            if (linear) memcpy(F1, FU, sizeof(double) * n);
+            else if (eval_real(s, t + h, u1, F1, msg, msglen)) return 1;
+            double mag = fabs(F1[iv]);
+            for (int a = 0; a < k; a++) mag += fabs(L->J[iv * n + L->idx[a]] * u1[L->idx[a]]);
+            a1 = carried(F1[iv], zU[iv], mag);
+            double y0 = s->u[ip], v0 = s->u[iv], a0 = L->F0[iv], y1 = u1[ip], v1 = u1[iv];
+            double df = (a1 - a0) + gg * (v1 - v0) + kk * (y1 - y0);   /* f(t + h) - f(t) */
+            P = (Piece){kk, gg, y0, v0, a0, df / h};
+            piece_exact(&P, h, &yH, &vH, &aH, &yint);
+            double rtol_d = s->rtol;
+            double pscale = fmax(fmax(s->pos_max, s->eps_v * h), fmax(fabs(y0), fabs(y1)));
+            double vscale = fmax(fmax(s->vel_max, s->eps_v), fmax(fabs(v0), fabs(v1)));
+            rd = fmax(fabs(yH - y1) / (rtol_d * pscale), fabs(vH - v1) / (rtol_d * vscale));
+            if (!(rd <= 1.0)) rd = isfinite(rd) ? rd : 1e30;
+            else if (piece_monitors(s, &P, h, yH, vH, aH, yint, &mon)) rd = 8.0;   /* too many roots: halve */
+        }
+        double fac_d = rd > 0.0 ? 0.9 * pow(rd, -1.0 / 3.0) : 10.0;
+        double fac = fmin(fmin(fac_e, fac_d), 10.0);
+        if (!(err <= 1.0 && rd <= 1.0)) {
+            /* the closed form misses where the forcing is not affine over the step, a fast transient of the
+             * coupling (the first microseconds of a suddenly applied lateral load): its mismatch falls slowly
+             * with h until the step resolves the transient, so halve at least */
+            s->n_rejected++;
+            s->h = h * fmax(0.1, fmin(fac, rd > 1.0 ? 0.5 : 0.9));
+            continue;
+        }
+        /* accepted */
+        if (follow) {
+            take_piece_monitors(s, &mon);
+            /* the closed form's end is within the dense tolerance of u1; keep both extremes */
+            s->pos_max = fmax(s->pos_max, fabs(u1[ip]));
+            s->vel_max = fmax(s->vel_max, fabs(u1[iv]));
+            if (!at_rest(s, u1[iv], a1)) s->t_eq = -1.0;
+        }
+        for (int i = 0; i < n; i++) s->umax[i] = fmax(s->umax[i], fabs(u1[i]));
+        memcpy(s->u, u1, sizeof(double) * n);
+        s->t = (h == remaining) ? t_end : (at_bp ? bp : t + h);
+        s->acc = follow ? a1 : zU[iv];
+        memcpy(s->z, zU, sizeof(double) * n);
+        s->z[iv] = s->acc;
+        s->z_valid = 1;
+        s->n_steps++;
+        if (linear && !at_bp && !expanded_any) {
+            reuse_linearization(s, L, u1, FU);
+            *reuse = 1;
+        }
+        s->h = (h < s->h && fac >= 1.0) ? fmax(s->h, h * fac) : h * fac;
+        return 0;
+    }
+}
+
 int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
 {
+    Budget budget = {0, s->t, s->max_wall_s > 0.0 ? wall_seconds() : 0.0};
     int n = s->n;
     Linearization L;
     Phis P;
@@ -891,6 +1452,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
         double t = s->t;
         double remaining = t_end - t;
         if (remaining <= 1e-14 * fmax(1.0, fabs(t_end))) { s->t = t_end; break; }
+        if (over_budget(s, &budget, t, t_end, msg, msglen)) return 1;
         if (!reuse && linearize(s, t, s->u, &L, msg, msglen)) return 1;
         reuse = 0;
         if (L.k == 0) {              /* at rest with no load: nothing moves until the next kink */
@@ -917,17 +1479,17 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             if (r == 0) continue;
             if (skipped > t && linearize(s, t, s->u, &L, msg, msglen)) return 1;
         }
+        if (s->lin2 || !s->monitors) {   /* no dense samples needed: see fast_step */
+            int r = fast_step(s, &L, t_end, bp, &budget, &reuse, msg, msglen);
+            if (r > 0) return 1;
+            if (r == 0) continue;
+        }
         int expanded_any = 0;
-        for (;;) {
-            double h = fmin(s->h, remaining);
-            int at_bp = 0;
-            if (bp > t && bp - t <= h) { h = bp - t; at_bp = 1; }
-            if (s->h_max > 0.0 && h > s->h_max) { h = s->h_max; at_bp = 0; }
-            if (h < 1e-15 * fmax(1.0, fabs(t))) {
-                snprintf(msg, msglen, "step size underflow (h = %g) at t = %.17g: the solution changes too "
-                         "fast to follow; check the parameters", h, t);
-                return 1;
-            }
+        for (int first = 1;; first = 0) {
+            if (!first && over_budget(s, &budget, t, t_end, msg, msglen)) return 1;
+            double h;
+            int at_bp;
+            if (step_size(s, t, remaining, bp, &h, &at_bp, msg, msglen)) return 1;
             int k = L.k;
             active_block(s, &L, h, A);
             phi_pair(k, A, P.phs, P.phf);
@@ -936,43 +1498,15 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             double U[NMAX], FU[NMAX], zU[NMAX];
             propagate_linear(s, &L, s->u, L.F0, h, P.phf, U, zU);
             if (eval_real(s, t + h, U, FU, msg, msglen)) return 1;
-            int expanded = 0;
-            for (int i = 0; i < n; i++)
-                if (!L.active[i] && FU[i] != 0.0) { L.active[i] = 1; expanded = 1; }
-            if (expanded) {
-                expanded_any = 1;
-                int filled[NMAX];
-                for (int i = 0; i < n; i++) filled[i] = 0;
-                for (int a = 0; a < L.k; a++) filled[L.idx[a]] = 1;
-                if (close_active_set(s, &L, filled, msg, msglen)) return 1;
-                continue;
-            }
-            /* D = F(U) - F0 - J (U - u) - h Ft; correction 2h phi3 D */
+            int grown = expand_active(s, &L, FU, msg, msglen);
+            if (grown < 0) return 1;
+            if (grown) { expanded_any = 1; continue; }
+            /* correction 2h phi3 D */
             double D[NMAX], corr[NMAX], u1[NMAX];
-            for (int a = 0; a < k; a++) {
-                int i = L.idx[a];
-                double d = FU[i] - L.F0[i] - h * L.Ft[i];
-                double mag = fabs(FU[i]) + fabs(L.F0[i]) + fabs(h * L.Ft[i]);
-                for (int b = 0; b < k; b++) {
-                    int j = L.idx[b];
-                    d -= L.J[i * n + j] * (U[j] - s->u[j]);
-                    mag += fabs(L.J[i * n + j]) * (fabs(U[j]) + fabs(s->u[j]));
-                }
-                /* the part of D within the rounding error of evaluating F is noise, not nonlinearity:
-                 * without this the error estimate of a stiff linear element never lets the step grow */
-                double noise = 16.0 * DBL_EPSILON * mag;
-                D[a] = fabs(d) <= noise ? 0.0 : d - copysign(noise, d);
-            }
+            int linear = defect(s, &L, h, U, FU, D);
             matvec(k, P.phf[3], D, corr);
             memcpy(u1, U, sizeof(double) * n);
-            double err = 0.0;
-            for (int a = 0; a < k; a++) {
-                int i = L.idx[a];
-                double c = 2.0 * h * corr[a];
-                u1[i] += c;
-                double sc = s->rtol * fmax(fmax(fabs(s->u[i]), fabs(u1[i])), s->umax[i]) + s->atol;
-                err = fmax(err, fabs(c) / sc);
-            }
+            double err = correct(s, &L, h, corr, u1);
             /* dense samples of the linearised solution, blended to end at u1 */
             double w[NSUB + 1][NMAX], zs[NSUB + 1][NMAX], ac[NSUB + 1];
             double dt = h / NSUB;
@@ -1046,20 +1580,9 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             memcpy(s->z, zs[NSUB], sizeof(double) * n);
             s->z_valid = 1;
             s->n_steps++;
-            /* When D vanished (the step was linear to rounding), no kink was reached and the active set
-             * held, the Jacobian and F_t at the end point are those of the start: reuse them, with the
-             * derivative from F(U) = F(u1) and the carried one where they agree within rounding. */
-            int linear = !at_bp && !expanded_any;
-            for (int a = 0; a < k && linear; a++) linear = (D[a] == 0.0);
-            if (linear) {
-                L.t = s->t;
-                memcpy(L.u, u1, sizeof(double) * n);
-                for (int a = 0; a < k; a++) {
-                    int i = L.idx[a];
-                    double mag = fabs(FU[i]);
-                    for (int b = 0; b < k; b++) mag += fabs(L.J[i * n + L.idx[b]] * u1[L.idx[b]]);
-                    L.F0[i] = fabs(FU[i] - s->z[i]) <= 8.0 * DBL_EPSILON * mag ? s->z[i] : FU[i];
-                }
+            /* a linear step that reached no kink with the same active set: its linearisation holds at its end */
+            if (linear && !at_bp && !expanded_any) {
+                reuse_linearization(s, &L, u1, FU);
                 reuse = 1;
             }
             /* a step shortened by a kink or the end keeps the earlier proposal when it went well */

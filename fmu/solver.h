@@ -15,6 +15,11 @@ typedef double complex cplx;
  * Returns 0 on success, nonzero (with msg filled) when the state is outside the model's domain. */
 typedef int (*solver_rhs_fn)(void *ctx, cplx t, const cplx *u, cplx *du, char *msg, size_t msglen);
 
+/* Optional: columns of the Jacobian d(du)/du at (t, u) that the model knows in closed form. Writes column j of
+ * the n x n row-major J (every row) and sets filled[j] = 1 for each one; the solver takes the other columns
+ * by the complex step. Returns 0 (also when it fills none). */
+typedef int (*solver_columns_fn)(void *ctx, double t, const double *u, double *J, int *filled);
+
 /* Next time > t at which the right-hand side has a kink in time (a load ramp starts or ends). */
 typedef double (*solver_breakpoint_fn)(void *ctx, double t);
 
@@ -33,6 +38,8 @@ typedef struct {
                                   * affine between breakpoints: such pieces are taken in one exact step */
     int monitors;                /* 0: no dense-output checks and no monitors (outputs at step ends only) */
     double eps_v, eps_a;         /* equilibrium thresholds */
+    long max_steps;              /* work budget of one solver_advance: step attempts (taken or rejected) */
+    double max_wall_s;           /* and seconds of computing (0: none) */
     /* monitors */
     double pos_max, vel_max, t_eq;
     double pos_int, absvel_int;  /* integrals of y and |v_y| since t0 (for the time averages) */
@@ -44,11 +51,18 @@ typedef struct {
     double z[SOLVER_NMAX];
     double J_prev[SOLVER_NMAX * SOLVER_NMAX];
     int z_valid;
+    double bal_d[SOLVER_NMAX];   /* the balancing of the last Jacobian, by state: the next one's first guess */
     long n_steps, n_rejected, n_rhs;
     solver_rhs_fn rhs;
+    solver_columns_fn columns;   /* may be NULL */
+    void *work;                  /* workspace of solver_work_size() bytes, owned by the caller (NULL: the steps
+                                  * without dense samples are not taken) */
     solver_breakpoint_fn breakpoint;
     void *ctx;
 } Solver;
+
+/* Bytes of the workspace (Solver.work) the solver uses for the phi functions applied to vectors. */
+size_t solver_work_size(void);
 
 /* Set up at t0 with state u0; evaluates the acceleration and initialises the monitors. */
 int solver_init(Solver *s, double t0, const double *u0, char *msg, size_t msglen);
@@ -58,5 +72,9 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen);
 
 /* phi_k(A) for k = 0..3 (phi_0 = exp), n x n row-major; exported for the unit tests. */
 void solver_phi(int n, const double *A, double *P0, double *P1, double *P2, double *P3);
+
+/* phi_k(A) x for k = 0..3 by the squaring ladder the solver uses when it needs no dense samples; exported for
+ * the unit tests. */
+void solver_phi_apply(int n, const double *A, const double *x, double *P0, double *P1, double *P2, double *P3);
 
 #endif

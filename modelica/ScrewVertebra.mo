@@ -47,8 +47,8 @@
 //  As in the FMU, the states z_y and z_f keep a zero rate while their effect is off.
 //
 // Differences to the FMU that are inherent to a Modelica tool:
-//  - rtol, h_max and monitors are the FMU's solver settings; a Modelica tool ignores them (set the tolerance in
-//    the simulation setup, see the experiment annotation).
+//  - rtol, h_max, monitors, max_steps and max_wall_s are the FMU's solver settings; a Modelica tool ignores
+//    them (set the tolerance in the simulation setup, see the experiment annotation).
 //  - n_steps (the FMU's count of internal solver steps) stays 0 here.
 //  - Inputs are used as given; the FMU extrapolates them inside a communication step with the
 //    derivatives set by fmi2SetRealInputDerivatives. In motion-driven mode with use_y_in = true the
@@ -112,9 +112,11 @@ model ScrewVertebra
   parameter Real eps_a_eq(unit="m/s2") = 5e-09 "Equilibrium threshold on |a_y| (Table 2)";
 
   // Solver settings of the FMU: a Modelica tool ignores them
-  parameter Real rtol = 1e-06 "Relative local error tolerance for the nonlinear dynamics (the linear element is exact; dense output uses the smaller of 1e-7 and 100 rtol)";
+  parameter Real rtol = 1e-06 "Relative local error tolerance for the nonlinear dynamics (the linear element is exact); the monitors follow the closed form of the axial oscillator to rtol, or with a table, an effect or motion drive dense output to the smaller of 1e-7 and 100 rtol";
   parameter Real h_max(unit="s") = 0 "Largest internal step (0: no limit beyond the communication step)";
   parameter Boolean monitors = true "Follow the monitors (y_max, v_y_max, y_mean, v_y_mean, t_eq) between steps; false skips the dense-output checks: faster, and the monitors read NaN";
+  parameter Integer max_steps = 1000000 "Work budget: the most internal solver steps (taken or rejected) in one doStep; past it fmi2DoStep returns fmi2Error saying why";
+  parameter Real max_wall_s(unit="s") = 0 "Work budget: the most seconds of computing in one doStep (0: no limit); past it fmi2DoStep returns fmi2Error saying why";
 
   // Effects beyond eq. 1 (fmu/MODEL.md): the defaults switch them off
   parameter Real gap(unit="m") = 0 "Backlash: axial slack, no spring force while |y| < gap (0: off)";

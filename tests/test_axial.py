@@ -19,6 +19,7 @@ import math
 import numpy as np
 import pytest
 
+from accuracy import record, worst
 from fmu_run import FmuRunner, comm_grid
 from reference import DEFAULTS, Axial
 
@@ -113,11 +114,42 @@ def test_axial_pullout_vs_closed_form(runner, name, c, d):
         f"at t = {t[kv]:.3f}")
 
     _check_monitors(name, {k: out[k][-1] for k in ("y_max", "v_y_max", "t_eq")}, mon, ax, STOP)
+    _record(name, ey / mon["y_max"], ev / mon["v_y_max"], {k: out[k][-1] for k in ("y_max", "v_y_max", "t_eq")},
+            mon, ax, STOP)
     for tc in CHECK_TIMES:
         k = int(round(tc / STEP))
         ref_k = ax.monitors(t[k], EPS_V, EPS_A)
         got_k = {kk: out[kk][k] for kk in ("y_max", "v_y_max", "t_eq")}
         _check_monitors(f"{name} at t = {t[k]:g}", got_k, ref_k, ax, t[k])
+
+
+#: The worst errors of the exact axial path (issue 10 keeps them): the state at the communication points
+#: against its peak, the monitors relative, t_eq absolute where it is well conditioned.
+WORST = {"y/peak": 1e-12, "v_y/peak": 1e-10, "y_max rel": 1e-10, "v_y_max rel": 1e-10, "t_eq s": 1e-9}
+
+
+def _well_conditioned_t_eq(ax, T, t_eq):
+    lo = ax.monitors(T, EPS_V * (1 + DELTA_EPS), EPS_A * (1 + DELTA_EPS))["t_eq"]
+    hi = ax.monitors(T, EPS_V * (1 - DELTA_EPS), EPS_A * (1 - DELTA_EPS))["t_eq"]
+    return t_eq >= 0 and lo >= 0 and hi >= 0 and hi - lo <= T_EQ_ABS
+
+
+def _record(name, ey_rel, ev_rel, got, mon, ax, T):
+    errs = {"y/peak": ey_rel, "v_y/peak": ev_rel,
+            "y_max rel": abs(got["y_max"] / mon["y_max"] - 1.0),
+            "v_y_max rel": abs(got["v_y_max"] / mon["v_y_max"] - 1.0)}
+    if _well_conditioned_t_eq(ax, T, mon["t_eq"]):
+        errs["t_eq s"] = abs(got["t_eq"] - mon["t_eq"])
+    record("axial pullout vs closed form", name, unit="s", **errs)
+
+
+def test_axial_worst_errors_are_kept():
+    """The worst errors over the cases above (run first, in file order) stay at the exact path's level."""
+    w = worst("axial pullout vs closed form")
+    if not w:
+        pytest.skip("no axial case ran in this session (selected out)")
+    bad = {k: v for k, v in w.items() if v[0] > WORST[k]}
+    assert not bad, f"worst errors above {WORST}: {bad}"
 
 
 LONG_CASES = [("optimum", 823224.0, 488.0), ("grid-c25^7-d25^2", 25.0**7, 25.0**2),

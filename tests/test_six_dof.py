@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from accuracy import record
 from fmu_run import FmuRunner, comm_grid
 from reference import DEFAULTS, SIX_DOF_NAMES, make_params, six_dof_radau
 
@@ -76,7 +77,7 @@ def test_rest_stays_exactly_zero(runner):
     assert np.all(out["t_eq"][1:] == 0.0), out["t_eq"][:5]
 
 
-def _compare(name, out, ref):
+def _compare(name, out, ref, suite="6-DOF vs Radau (rtol 1e-8)"):
     errs = {}
     for k in SIX_DOF_NAMES:
         peak = np.max(np.abs(ref[k]))
@@ -84,6 +85,7 @@ def _compare(name, out, ref):
         err = np.abs(out[k] - ref[k])
         i = int(np.argmax(err))
         errs[k] = (err[i] / peak, ref["t"][i])
+    record(suite, name, **{f"{k}/peak": v[0] for k, v in errs.items()})
     bad = {k: v for k, v in errs.items() if v[0] > REL}
     summary = ", ".join(f"{k}: {e:.2e} (t={t:.4g})" for k, (e, t) in errs.items())
     assert not bad, f"{name}: error / peak above {REL:g}: {summary}"
@@ -105,7 +107,7 @@ def test_six_dof_vs_radau_default_rtol(runner, name):
     assert "rtol" in DEFAULTS
     ref = _reference(name)
     out = runner.simulate(dict(case["params"]), ref["t"], SIX_DOF_NAMES, inputs=case["inputs"])
-    _compare(name, out, ref)
+    _compare(name, out, ref, suite="6-DOF vs Radau (default rtol 1e-6)")
 
 
 def test_case_b_angles_are_large():

@@ -49,7 +49,7 @@ H_VALUES = (1e-9, 1e-4, 1.0, 12.0)
 # ---------------------------------------------------------------------------------------------- the library
 
 @pytest.fixture(scope="module")
-def solver_phi(tmp_path_factory):
+def libsolver(tmp_path_factory):
     out = tmp_path_factory.mktemp("libsolver") / "libsolver.so"
     subprocess.run(["gcc", "-std=c99", "-O2", "-fPIC", "-shared", "-I", str(ROOT / "fmu"), "-o", str(out),
                     str(SOLVER_C), "-lm"], check=True)
@@ -57,6 +57,18 @@ def solver_phi(tmp_path_factory):
     dp = ctypes.POINTER(ctypes.c_double)
     lib.solver_phi.argtypes = [ctypes.c_int, dp, dp, dp, dp, dp]
     lib.solver_phi.restype = None
+    lib.solver_phi_apply.argtypes = [ctypes.c_int, dp, dp, dp, dp, dp, dp]
+    lib.solver_phi_apply.restype = None
+    return lib
+
+
+@pytest.fixture(scope="module", params=["matrix", "ladder"])
+def solver_phi(request, libsolver):
+    """phi_0..3(A) as the solver computes them: "matrix" doubles all four matrices (solver_phi, the steps
+    with dense samples); "ladder" applies the squaring ladder to vectors (solver_phi_apply, the steps
+    without), here to every unit vector, so that the same criteria judge its columns."""
+    lib = libsolver
+    dp = ctypes.POINTER(ctypes.c_double)
 
     def phi(A: np.ndarray) -> list[np.ndarray]:
         A = np.ascontiguousarray(A, dtype=np.float64)
@@ -64,7 +76,16 @@ def solver_phi(tmp_path_factory):
         assert A.shape == (n, n) and 1 <= n <= NMAX
         # NaN-filled outputs: every entry must be written
         P = [np.full((n, n), np.nan) for _ in range(4)]
-        lib.solver_phi(n, A.ctypes.data_as(dp), *[p.ctypes.data_as(dp) for p in P])
+        if request.param == "matrix":
+            lib.solver_phi(n, A.ctypes.data_as(dp), *[p.ctypes.data_as(dp) for p in P])
+            return P
+        for j in range(n):
+            e = np.zeros(n)
+            e[j] = 1.0
+            cols = [np.full(n, np.nan) for _ in range(4)]
+            lib.solver_phi_apply(n, A.ctypes.data_as(dp), e.ctypes.data_as(dp), *[c.ctypes.data_as(dp) for c in cols])
+            for k in range(4):
+                P[k][:, j] = cols[k]
         return P
 
     return phi
