@@ -97,9 +97,9 @@ int model_validate(const ModelInstance *mi, char *msg, size_t len)
     if (check(isfinite(V(h_max)) && V(h_max) >= 0.0, msg, len,
               "parameter %s = %g is invalid: use 0 (no limit) or a positive step in s", "h_max", V(h_max)))
         return 1;
-    if (check(V(max_steps) >= 1.0 && V(max_steps) <= 1e12, msg, len,
-              "parameter %s = %g is invalid: the work budget must be between 1 and 1e12 internal steps per "
-              "doStep", "max_steps", V(max_steps)))
+    if (check(V(max_steps) >= 1.0 && V(max_steps) <= 2147483647.0, msg, len,
+              "parameter %s = %g is invalid: the work budget must be between 1 and 2147483647 internal steps "
+              "per doStep", "max_steps", V(max_steps)))
         return 1;
     if (check(isfinite(V(max_wall_s)) && V(max_wall_s) >= 0.0, msg, len,
               "parameter %s = %g is invalid: use 0 (no limit) or a positive number of seconds", "max_wall_s",

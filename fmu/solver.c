@@ -1188,10 +1188,11 @@ static int over_budget(const Solver *s, Budget *b, double t, double t_end, char 
 {
     b->attempts++;
     if (s->max_steps > 0 && b->attempts > s->max_steps) {
+        double h = s->h_max > 0.0 ? fmin(s->h, s->h_max) : s->h;
         snprintf(msg, len, "work budget used up: %ld internal steps (max_steps) took the solution only from t = %.9g "
-                 "to %.9g s of the step to %.9g s (last step %.3g s); the parameters make the motion too fast to "
-                 "follow: check the stiffness, damping and mass, or raise max_steps", s->max_steps, b->t_start, t,
-                 t_end, s->h);
+                 "to %.9g s of the step to %.9g s (steps of %.3g s); the parameters make the motion too fast to "
+                 "follow: check the stiffness, damping and mass (or h_max), or raise max_steps", s->max_steps,
+                 b->t_start, t, t_end, h);
         return 1;
     }
     if (s->max_wall_s > 0.0 && (b->attempts & 15) == 0 && wall_seconds() - b->wall0 > s->max_wall_s) {

@@ -1,4 +1,5 @@
-"""Fault matrix: input that must not hang, exhaust memory or fill the disk, and outputs that cannot be written.
+"""Fault matrix: input that must not hang, exhaust memory or fill the disk, outputs that cannot be written, runs
+that take too long, a study killed mid-run and a Dask scheduler that is not there.
 
 Each test reproduces one fault as a careless or hostile input would and asserts the behaviour: a clear error
 that names the input and the fix, within a bounded time, with what was on disk still there. The real FMU and
@@ -43,9 +44,10 @@ stages:
 """
 
 
-def fmusa_cli(*args: str, cwd: Path | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
+def fmusa_cli(*args: str, cwd: Path | None = None, timeout: float = 120,
+              env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "fmusa.cli", *args], capture_output=True, text=True,
-                          cwd=cwd, timeout=timeout)
+                          cwd=cwd, timeout=timeout, env=None if env is None else {**os.environ, **env})
 
 
 # ----------------------------------------------------------------------------------------------- study files
@@ -301,3 +303,252 @@ def test_a_damaged_cell_in_runs_csv_cannot_change_the_answer(tmp_path):
                                          r"delete that line"):
         run_study(study, out, resume=True, figures=False, progress=False)
     assert len(pd.read_csv(out / "runs.csv")) == len(lines) - 1          # nothing was lost
+
+
+# ----------------------------------------------------------------------------------------------- time limits
+#: The 6-DOF load case with h_max = 1e-9 s: about 1e8 internal steps over 0.1 s (minutes of computing), next
+#: to a fast run (h_max = 1e-5 s, ~0.1 s). max_steps is raised to nearly its Integer limit so that only the
+#: time limit can stop the slow run.
+SLOW = """\
+name: slow
+fmu: default
+parameters:
+  h: {variable: h_max, unit: s}
+fixed: {F_max: 411, t_ramp: 0.05, max_steps: 2000000000}
+scenario: {stop_time: 0.1, inputs: {F_ext_x: 20}}
+metrics:
+  max_y: {output: y_max, unit: m}
+stages:
+  grid: {values: {h: [1.0e-5, 1.0e-9]}}
+execution: {workers: 1, timeout_s: 1}
+"""
+
+
+def _read_runs(out: Path):
+    import pandas as pd
+    return pd.read_csv(out / "runs.csv", keep_default_na=False, na_values=[""]).set_index("h")
+
+
+def _extraction_folders(tmp: Path) -> list[str]:
+    return sorted(p.name for p in tmp.glob(PREFIX + "*"))
+
+
+def _sweep_with_tmp(tmp_path: Path, text: str, **env: str):
+    """``fmusa sweep`` of the study ``text`` with its temporary files in ``tmp_path/tmp``: (result, wall s,
+    out folder, tmp folder)."""
+    tmp = tmp_path / "tmp"
+    tmp.mkdir(exist_ok=True)
+    study = tmp_path / "s.yaml"
+    study.write_text(text)
+    out = tmp_path / "out"
+    t0 = time.monotonic()
+    r = fmusa_cli("sweep", str(study), "--out", str(out), "--quiet", "--no-figures", env={"TMPDIR": str(tmp), **env})
+    return r, time.monotonic() - t0, out, tmp
+
+
+@pytest.mark.parametrize("scenario", ["one doStep", "sampled"])
+def test_a_slow_run_in_process_stops_at_timeout_s(tmp_path, scenario):
+    """Our FMU in a small batch runs in this process (no worker start-up), yet every run keeps to timeout_s:
+    fmusa sets the FMU's max_wall_s to it, and a sampled run also stops at its first communication point
+    past it."""
+    text = SLOW
+    if scenario == "sampled":   # 500 doSteps of ~0.2 s each at h_max = 1e-8: no single one reaches 1 s
+        text = SLOW.replace("stop_time: 0.1,", "stop_time: 0.1, step: 0.0002,").replace("1.0e-9]", "1.0e-8]")
+    r, wall, out, tmp = _sweep_with_tmp(tmp_path, text)
+    assert r.returncode == 0, r.stderr
+    runs = _read_runs(out)
+    slow = runs.loc[1e-9 if scenario == "one doStep" else 1e-8]
+    assert slow["status"] == "failed"
+    assert slow["message"].startswith("timed out after 1 s (execution.timeout_s; ")
+    assert "raise execution.timeout_s and rerun without --resume" in slow["message"]
+    assert "worker process" not in slow["message"]                      # in this process, not in a worker
+    if scenario == "one doStep":
+        assert "through its parameter max_wall_s, which fmusa sets to execution.timeout_s" in slow["message"]
+        assert "work budget used up: 1 s of computing (max_wall_s)" in slow["message"]
+    assert 1.0 <= slow["seconds"] < 2.5, slow["seconds"]
+    assert runs.loc[1e-5, "status"] == "ok" and runs.loc[1e-5, "max_y"] > 0
+    assert wall < 10, f"the study took {wall:.1f} s"
+    assert _extraction_folders(tmp) == []
+
+
+@pytest.mark.parametrize("own, expect", [
+    (0.3, "work budget used up: 0.3 s of computing (max_wall_s)"),   # the study's budget, within timeout_s
+    (0, "timed out after 1 s (execution.timeout_s; its worker process was stopped)"),   # none: supervised
+])
+def test_a_budget_the_study_sets_itself_is_kept_and_never_outlasts_timeout_s(tmp_path, own, expect):
+    r, wall, out, tmp = _sweep_with_tmp(tmp_path, SLOW.replace("max_steps: 2000000000}",
+                                                               f"max_steps: 2000000000, max_wall_s: {own}}}"))
+    assert r.returncode == 0, r.stderr
+    slow = _read_runs(out).loc[1e-9]
+    assert slow["status"] == "failed" and expect in slow["message"], slow["message"]
+    if own:      # the FMU's own words: the study's max_wall_s is the one to raise, not timeout_s
+        assert "timed out" not in slow["message"] and slow["seconds"] < 1.0
+    assert wall < 10 and _extraction_folders(tmp) == []
+
+
+def test_an_fmu_without_a_time_budget_never_runs_unsupervised(tmp_path):
+    """`fmu: default` pointed ($FMUSA_FMU) at an FMU without max_wall_s (ours, with the parameter renamed):
+    even a batch of four runs goes to a supervised worker, which is stopped after timeout_s, run by run."""
+    fmu = tmp_path / "NoBudget.fmu"
+    with zipfile.ZipFile(default_fmu_path()) as zin, zipfile.ZipFile(fmu, "w", zipfile.ZIP_DEFLATED) as zout:
+        for info in zin.infolist():
+            data = zin.read(info.filename)
+            if info.filename == "modelDescription.xml":
+                assert b'name="max_wall_s"' in data
+                data = data.replace(b'name="max_wall_s"', b'name="wall_budget_s"')
+            zout.writestr(info.filename, data)
+    text = SLOW.replace("[1.0e-5, 1.0e-9]", "[1.0e-5, 1.0e-9, 2.0e-5, 2.0e-9]")
+    r, wall, out, tmp = _sweep_with_tmp(tmp_path, text, FMUSA_FMU=str(fmu))
+    assert r.returncode == 0, r.stderr
+    runs = _read_runs(out)
+    for h in (1e-9, 2e-9):          # each slow run its own 1 s, one worker after the other
+        row = runs.loc[h]
+        assert row["status"] == "failed", row.to_dict()
+        assert row["message"].startswith("timed out after 1 s (execution.timeout_s; its worker process was "
+                                         "stopped): the FMU hangs or is too slow"), row["message"]
+        assert 1.0 <= row["seconds"] < 2.0
+    assert (runs.loc[[1e-5, 2e-5], "status"] == "ok").all()
+    assert wall < 12, f"the study took {wall:.1f} s"
+    assert _extraction_folders(tmp) == []
+
+
+def test_a_budget_past_the_integer_range_is_refused_before_any_run(tmp_path):
+    """`raise max_steps`, taken literally: 1e12 does not fit an fmi2Integer, which would wrap it silently into a
+    negative number; the study is refused, naming the line and the range."""
+    study = parse_study(SLOW.replace("max_steps: 2000000000", "max_steps: 1.0e12"), tmp_path / "s.yaml")
+    with pytest.raises(StudyError, match=r"s.yaml:5: fixed 'max_steps': max_steps is an Integer \(32 bits\); "
+                                         r"1000000000000 is out of its range: give a value from -2147483648 to "
+                                         r"2147483647"):
+        run_study(study, tmp_path / "out", figures=False, progress=False)
+    assert not (tmp_path / "out" / "runs.csv").exists()
+
+
+# ----------------------------------------------------------------------------------------------- kill -9
+#: 500 runs of the 6-DOF case (~10 ms each): a batch large enough for the worker pool, over a few seconds.
+BIG = """\
+name: big
+fmu: default
+parameters:
+  c: {variable: c_y, unit: N/m}
+fixed: {F_max: 411, t_ramp: 0.05, rtol: 1.0e-3, h_max: 1.0e-4}
+scenario: {stop_time: 0.1, inputs: {F_ext_x: 20}}
+metrics:
+  max_y: {output: y_max, unit: m}
+stages:
+  grid: {base: 1.01, exponents: {c: [1200, 1699]}}
+"""
+
+
+def _data_lines(path: Path) -> list[str]:
+    """The complete data lines of a runs.csv (a line a kill cut short is not one)."""
+    text = path.read_bytes().decode() if path.exists() else ""      # as written: rows end in \r\n
+    lines = text.split("\r\n")
+    return [ln for ln in lines[1:-1] if ln]
+
+
+def _alive(procs) -> list:
+    import psutil
+    out = []
+    for p in procs:
+        try:       # is_running: not a process that took over the PID since
+            if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
+                out.append(p)
+        except psutil.NoSuchProcess:
+            pass
+    return out
+
+
+def test_kill_9_of_a_sweep_takes_its_workers_along_and_resume_completes(tmp_path):
+    psutil = pytest.importorskip("psutil")
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    study = tmp_path / "big.yaml"
+    study.write_text(BIG)
+    out = tmp_path / "out"
+    args = [sys.executable, "-m", "fmusa.cli", "sweep", str(study), "--out", str(out), "--quiet", "--no-figures",
+            "--workers", "2"]
+    fmu = shutil.copy(default_fmu_path(), tmp_path / "ScrewVertebra.fmu")   # the same FMU for the resume
+    env = {**os.environ, "TMPDIR": str(tmp), "FMUSA_FMU": str(fmu)}
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    workers: list = []
+    try:
+        sweep = psutil.Process(proc.pid)
+        t_end = time.monotonic() + 60
+        while True:      # mid-run: both workers started and the first results on disk
+            workers = sweep.children(recursive=True)
+            if len(workers) >= 2 and len(_data_lines(out / "runs.csv")) >= 10:
+                break
+            assert proc.poll() is None, f"the study ended before it could be killed: {proc.stderr.read()}"
+            assert time.monotonic() < t_end, "the study did not start its workers within 60 s"
+            time.sleep(0.02)
+        proc.kill()
+        proc.wait(10)
+        t_kill = time.monotonic()
+        while _alive(workers) and time.monotonic() - t_kill < 5:
+            time.sleep(0.05)
+        left = _alive(workers)
+        assert not left, f"workers {[p.pid for p in left]} outlived the killed study"
+        print(f"{len(workers)} workers gone {time.monotonic() - t_kill:.2f} s after kill -9")
+    finally:       # no stray process, whatever failed
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        for p in _alive(workers):
+            p.kill()
+        proc.stderr.close()
+    on_disk = _data_lines(out / "runs.csv")
+    assert 10 <= len(on_disk) < 500
+    assert _extraction_folders(tmp)          # the killed study could not remove its own
+
+    r = fmusa_cli("sweep", str(study), "--out", str(out), "--resume", "--quiet", "--no-figures", "--workers", "2",
+                  env={"TMPDIR": str(tmp), "FMUSA_FMU": str(fmu)})
+    assert r.returncode == 0, r.stderr
+    final = _data_lines(out / "runs.csv")
+    assert final[:len(on_disk)] == on_disk                 # the runs on disk are still there, unchanged
+    assert len(final) == 500 and all(",ok,," in ln for ln in final)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["runs"] == 500 and summary["simulated_this_session"] == 500 - len(on_disk)
+    assert _extraction_folders(tmp) == []                  # the resumed study removed the killed one's folder
+
+
+# ----------------------------------------------------------------------------------------------- Dask
+@pytest.mark.parametrize("address, message", [
+    ("tcp://127.0.0.1:1", r"cannot reach the Dask scheduler at tcp://127.0.0.1:1 \(--scheduler, or "
+                          r"execution.scheduler in the study file\): Connection refused; start it there "
+                          r"\(`dask scheduler`, .*\), correct the address, or leave the scheduler out"),
+    ("127.0.0.1", r"'127.0.0.1' \(--scheduler, or execution.scheduler in the study file\) is not a Dask "
+                  r"scheduler address \(.*port.*\); write it as tcp://HOST:PORT"),
+    ("web server", r"cannot reach the Dask scheduler at ADDRESS .*: it accepts connections but does not answer "
+                   r"as a Dask scheduler within 5 s; is it a Dask scheduler\? \(its port is 8786 by default; "
+                   r"8787 is its dashboard\); start it there"),
+])
+def test_an_unreachable_scheduler_is_one_clear_line_and_costs_nothing(tmp_path, address, message):
+    import http.server
+    import re
+    import threading
+
+    server = None
+    if address == "web server":     # a mistake: the dashboard's port (or any web server) for the scheduler's
+        server = http.server.HTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        address = f"tcp://127.0.0.1:{server.server_address[1]}"
+        message = message.replace("ADDRESS", address)
+    try:
+        study = tmp_path / "s.yaml"
+        study.write_text(SMALL)
+        out = tmp_path / "out"
+        assert fmusa_cli("sweep", str(study), "--out", str(out), "--quiet", "--no-figures").returncode == 0
+        before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+        t0 = time.monotonic()
+        r = fmusa_cli("sweep", str(study), "--out", str(out), "--quiet", "--no-figures", "--scheduler", address)
+        wall = time.monotonic() - t0
+    finally:
+        if server is not None:
+            server.shutdown()
+            server.server_close()
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    error = r.stderr.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith("fmusa sweep: ") and re.search(message, error[0]), r.stderr
+    assert wall < 10, f"the error took {wall:.1f} s"
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before    # byte for byte

@@ -151,8 +151,9 @@ def test_sobol_indices_of_runs_in_blocks_equal_those_of_runs_one_by_one(six_dof,
 
 @pytest.mark.parametrize("collide", [False, True])
 def test_keys_stay_apart_and_a_key_again_replaces_its_row(tmp_path, monkeypatch, collide):
-    if collide:
-        monkeypatch.setattr(RunStore, "_hashes", lambda self, U: [7] * len(U))     # every key: one hash
+    if collide:     # every key: one hash, in the batch path and the one-key path alike
+        monkeypatch.setattr(RunStore, "_hashes", lambda self, U: [7] * len(U))
+        monkeypatch.setattr(RunStore, "_key_hash", lambda self, raw: 7)
     b = _batch(12, seed=2)
     store = RunStore(tmp_path / "runs.csv", ["c", "d"], ["m0", "m1", "m2"])
     store.add_batch("grid", b)
@@ -168,6 +169,26 @@ def test_keys_stay_apart_and_a_key_again_replaces_its_row(tmp_path, monkeypatch,
     again = RunStore(tmp_path / "runs.csv", ["c", "d"], ["m0", "m1", "m2"], resume=True)
     assert again.get(b.values[4])["run_id"] == 100 and len(again) == 13
     again.close()
+
+
+def test_the_one_key_hash_is_the_batch_hash(tmp_path):
+    """A search looks keys up one at a time in plain Python (RunStore.row_of, _key_hash), a study's grid in
+    batches with numpy (rows_of, _hashes): the two must give every key the same hash and the same row."""
+    rng = np.random.default_rng(11)
+    P = rng.normal(size=(300, 3)) * 10.0 ** rng.integers(-300, 300, size=(300, 3))
+    P[:5] = [[0.0, -0.0, 1.0], [-0.0, 0.0, -0.0], [np.inf, -np.inf, 5e-324], [1.0, 2.0, 3.0], [1.0, 2.0, -3.0]]
+    store = RunStore(tmp_path / "runs.csv", ["a", "b", "c"], ["m"])
+    batch_hashes = store._hashes(store._bits(P))
+    one = [store._key_hash(store._pack.pack(*[float(v) + 0.0 for v in row])) for row in P.tolist()]
+    assert one == batch_hashes
+    n = len(P)
+    store.add_batch("grid", RunBatch(np.arange(150), P[:150], np.ones((150, 1)), np.ones(150, bool), np.zeros(150), {}))
+    for i, row in enumerate(P[150:].tolist()):       # one by one: the one-key path of _insert
+        store.add(150 + i, "search", row, np.array([1.0]), "ok", "", 0.0)
+    assert store.rows_of(P).tolist() == list(range(n))
+    assert [store.row_of(row) for row in P.tolist()] == list(range(n))
+    assert store.row_of([0.0, 0.0, 1.0]) == 0 and store.row_of([-0.0, -0.0, -0.0]) == 1   # -0.0 is 0.0
+    store.close()
 
 
 def test_reductions_over_a_batch_equal_those_run_by_run():

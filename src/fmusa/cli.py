@@ -203,14 +203,25 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from fmusa.api import load_study, run_study     # load_study: with the applications' blocks checked
 
     study = load_study(args.study)
-    if args.out.exists() and (args.out / "runs.csv").exists() and not args.resume:
-        print(f"note: {args.out / 'runs.csv'} exists: this study starts afresh and moves it to "
-              f"runs.previous-<n>.csv (use --resume to continue it instead)", file=sys.stderr)
-    result = run_study(study, args.out, resume=args.resume, workers=args.workers, scheduler=args.scheduler,
-                       figures=not args.no_figures, progress=not args.quiet)
+
+    def kept() -> set[Path]:
+        return set(args.out.glob("runs.previous-*.csv")) if args.out.is_dir() else set()
+
+    before = kept()
+    try:
+        result = run_study(study, args.out, resume=args.resume, workers=args.workers, scheduler=args.scheduler,
+                           figures=not args.no_figures, progress=not args.quiet)
+    finally:   # said once it has happened (a study that fails to start moves nothing)
+        for path in sorted(kept() - before):
+            print(f"note: this study started afresh; the earlier runs are kept in {path} (use --resume to "
+                  f"continue a study instead)", file=sys.stderr)
     s = result.summary
-    print(f"{study.name}: {s.get('runs', 0)} runs ({s.get('simulated_this_session', 0)} simulated now, "
-          f"{s.get('failed', 0)} failed) in {s.get('wall_s', 0.0):.2f} s")
+    # runs.csv's runs and the sensitivity stage's (sensitivity_runs.csv)
+    sens = s.get("sensitivity") or {}
+    runs = s.get("runs", 0) + int(sens.get("runs", 0) or 0)
+    failed = s.get("failed", 0) + int(sens.get("failed", 0) or 0)
+    print(f"{study.name}: {runs} runs ({s.get('simulated_this_session', 0)} simulated now, "
+          f"{failed} failed) in {s.get('wall_s', 0.0):.2f} s")
     if s.get("optimum"):
         opt = ", ".join(f"{k} = {v:.6g}" for k, v in s["optimum"].items())
         print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}")

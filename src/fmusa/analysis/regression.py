@@ -29,11 +29,15 @@ def fit_polynomial(x: np.ndarray, y: np.ndarray, degree: int = 3) -> dict:
 
 def fit_by_level(runs: pd.DataFrame, x: str, ys: list[str], by: str | None, degree: int = 3) -> dict:
     """{metric: {level: fit}} over the successful runs in ``runs``; level "all" when ``by`` is None."""
-    ok = runs[runs["status"] == "ok"]
+    ok = (runs["status"] == "ok").to_numpy()
+    X = runs[x].to_numpy(dtype=float)[ok]
+    if by is None:
+        groups = [("all", np.ones(len(X), dtype=bool))]
+    else:   # the levels in increasing order, as groupby's (a level that is NaN has no group)
+        B = runs[by].to_numpy(dtype=float)[ok]
+        groups = [(f"{float(level):.10g}", B == level) for level in np.unique(B[~np.isnan(B)])]
     out: dict = {}
     for y in ys:
-        out[y] = {}
-        groups = [("all", ok)] if by is None else sorted(ok.groupby(by), key=lambda g: g[0])
-        for level, g in groups:
-            out[y][str(level) if by is None else f"{float(level):.10g}"] = fit_polynomial(g[x], g[y], degree)
+        Y = runs[y].to_numpy(dtype=float)[ok]
+        out[y] = {level: fit_polynomial(X[sel], Y[sel], degree) for level, sel in groups}
     return out

@@ -17,7 +17,7 @@ import zipfile
 import zlib
 from pathlib import Path
 
-from fmusa.fmi.info import FMUError, member_problem
+from fmusa.fmi.info import FMUError, host_platform, member_problem
 
 #: Largest total of unpacked bytes (FMUSA_MAX_FMU_BYTES overrides it): models with large tables or
 #: resources stay far below it, and a runaway archive cannot fill the disk.
@@ -70,8 +70,13 @@ def remove_orphans(root: str | os.PathLike | None = None) -> list[Path]:
 
 
 def extract_fmu(fmu: str | os.PathLike, dest: str | os.PathLike | None = None,
-                max_bytes: int | None = None) -> Path:
+                max_bytes: int | None = None, to_run: bool = False) -> Path:
     """Unpack ``fmu`` into ``dest`` (a new ``fmusa-fmu-*`` temp folder when None) and return the folder.
+
+    ``to_run``: only what running it here needs (the model description, ``resources/``, this platform's
+    ``binaries/``, and ``sources/`` when that binary is missing): files and folders cost milliseconds each
+    on some disks, and the other platforms' binaries, the sources and the documentation are most of an
+    FMU's members.
 
     Raises :class:`FMUError` naming the archive, the member and the fix for: a file that is not a ZIP
     archive, a member whose path would leave the folder, more than ``max_bytes`` unpacked bytes, and a
@@ -87,7 +92,7 @@ def extract_fmu(fmu: str | os.PathLike, dest: str | os.PathLike | None = None,
         folder = Path(dest)
         folder.mkdir(parents=True, exist_ok=True)
     try:
-        _unpack(path, folder, limit)
+        _unpack(path, folder, limit, to_run)
     except BaseException:
         if made_here:
             shutil.rmtree(folder, ignore_errors=True)
@@ -95,7 +100,15 @@ def extract_fmu(fmu: str | os.PathLike, dest: str | os.PathLike | None = None,
     return folder
 
 
-def _unpack(path: Path, folder: Path, limit: int) -> None:
+def _needed_to_run(names: list[str]) -> set[str]:
+    """The members a run of the FMU on this machine needs (see :func:`extract_fmu`)."""
+    here = f"binaries/{host_platform()}/"
+    has_binary = any(n.startswith(here) and not n.endswith("/") for n in names)
+    keep = ("resources/", here) if has_binary else ("resources/", here, "sources/")
+    return {n for n in names if n == "modelDescription.xml" or n.startswith(keep)}
+
+
+def _unpack(path: Path, folder: Path, limit: int, to_run: bool = False) -> None:
     try:
         zf = zipfile.ZipFile(path)
     except zipfile.BadZipFile:
@@ -109,6 +122,9 @@ def _unpack(path: Path, folder: Path, limit: int) -> None:
             if problem:
                 raise FMUError(f"{path}: member '{info.filename}' {problem}; the archive is not a valid FMU "
                                f"(export it again)")
+        if to_run:
+            needed = _needed_to_run([i.filename for i in infos])
+            infos = [i for i in infos if i.filename in needed]
         declared = sum(i.file_size for i in infos)
         if declared > limit:
             raise FMUError(f"{path}: unpacks to {declared} bytes, more than the limit of {limit}; if the "

@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import difflib
+import hashlib
 import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Iterable
@@ -78,6 +80,11 @@ class FMURunError(FmusaError, RuntimeError):
     message names the phase of the run, the parameters set and the FMU's log."""
 
     exit_code = 1
+
+
+class FMUTimeLimitError(FMURunError):
+    """A run stopped at a communication point because it passed its runner's ``deadline``: the caller that
+    set the deadline words the reason (which limit, and how to raise it)."""
 
 
 def host_platform() -> str:
@@ -217,8 +224,46 @@ def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo
     return info
 
 
-def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
+#: Parsed model descriptions by the SHA-256 of their modelDescription.xml: an FMU unpacked for a study has
+#: the description of the archive read just before, and validating it again costs ~10 ms.
+_DESCRIPTIONS: dict[bytes, tuple] = {}
+
+
+def _description_bytes(path: Path) -> bytes | None:
+    try:
+        if path.is_dir():
+            return (path / "modelDescription.xml").read_bytes()
+        with zipfile.ZipFile(path) as zf:
+            return zf.read("modelDescription.xml")
+    except (OSError, KeyError, zipfile.BadZipFile):
+        return None      # fmpy says what is wrong
+
+
+def _parse_description(path: Path) -> tuple:
+    """(fmpy's model description of ``path``, the problems its validation found), parsed once per content."""
     import fmpy
+
+    raw = _description_bytes(path)
+    digest = hashlib.sha256(raw).digest() if raw is not None else None
+    if digest is not None and digest in _DESCRIPTIONS:
+        return _DESCRIPTIONS[digest]
+    warnings: list[str] = []
+    try:
+        md = fmpy.read_model_description(str(path), validate=True)
+    except Exception as exc:  # schema or consistency problems: read it anyway, keep the problems
+        try:
+            md = fmpy.read_model_description(str(path), validate=False)
+        except Exception as exc2:
+            raise FMUError(f"{path}: cannot read modelDescription.xml: {exc2}") from None
+        warnings.append(f"fmpy's validation of modelDescription.xml failed: {str(exc).strip()}")
+    if digest is not None:
+        if len(_DESCRIPTIONS) >= 16:
+            _DESCRIPTIONS.pop(next(iter(_DESCRIPTIONS)))
+        _DESCRIPTIONS[digest] = (md, warnings)
+    return md, warnings
+
+
+def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
 
     names = _archive_names(path)
     attrs = _root_attributes(path)
@@ -231,15 +276,7 @@ def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
                        f"2.0 co-simulation or model exchange FMU"
                        + (" (FMI 1.0 FMUs cannot be converted)" if major == "1" else
                           " (most tools that export FMI 3.0 can also export FMI 2.0)" if major == "3" else ""))
-    warnings: list[str] = []
-    try:
-        md = fmpy.read_model_description(str(path), validate=True)
-    except Exception as exc:  # schema or consistency problems: read it anyway, keep the problems
-        try:
-            md = fmpy.read_model_description(str(path), validate=False)
-        except Exception as exc2:
-            raise FMUError(f"{path}: cannot read modelDescription.xml: {exc2}") from None
-        warnings.append(f"fmpy's validation of modelDescription.xml failed: {str(exc).strip()}")
+    md, warnings = _parse_description(path)
     interfaces = {}
     if getattr(md, "coSimulation", None) is not None:
         interfaces["co-simulation"] = md.coSimulation.modelIdentifier

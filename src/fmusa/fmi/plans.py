@@ -7,11 +7,12 @@ change how it keeps its instance without breaking them.
 from __future__ import annotations
 
 import math
+import time
 from typing import Mapping, Sequence
 
 import numpy as np
 
-from fmusa.fmi.info import FMUError, Value
+from fmusa.fmi.info import FMUError, FMUTimeLimitError, Value
 from fmusa.fmi.runner import READABLE, FMURunner, communication_points
 
 #: Causalities a plan reads through ``fmi2GetReal`` (inputs are set, not read, by a co-simulation plan).
@@ -128,20 +129,28 @@ class RunPlan:
             return self._call_me(values)
         r.ready()
         s = r.instance
-        data = np.empty((len(self.times), len(self.outputs)))
+        n = len(self.times)
+        data = np.empty((n, len(self.outputs)))
         t = 0.0
+        deadline, late = r.deadline, False   # a time limit: stop at the first communication point past it
         try:
             _initialise(r, self._fixed_calls, self._vr_varied, self._val_varied, values, self._input_calls,
                         0.0, self.stop_time)
             data[0] = self._read()
-            for k in range(1, len(self.times)):
+            for k in range(1, n):
                 t_next = self.times[k]
                 r.phase = f"in the communication step from t = {t:.10g} s to {t_next:.10g} s"
                 s.fmi2DoStep(s.component, t, t_next - t, 1)
                 t = t_next
                 data[k] = self._read()
+                if deadline is not None and k < n - 1 and time.monotonic() > deadline:
+                    late = True
+                    break
         except Exception as exc:
             raise r.fail(exc, {**self.fixed, **dict(zip(self.varied, values))}) from exc
+        if late:
+            raise r.reject(f"stopped at t = {t:.10g} s of {self.stop_time:.10g} s: past its time limit",
+                           FMUTimeLimitError)
         r.mark_done()
         if not np.isfinite(data[-1]).all():
             params = dict(zip(self.varied, values))

@@ -47,6 +47,8 @@ from fmusa.fmi.info import (SOLVERS, FMUError, FMUNotFoundError, FMURunError, Va
 READABLE = ("output", "parameter", "calculatedParameter", "local", "input")
 
 _STATUS = ["OK", "Warning", "Discard", "Error", "Fatal", "Pending"]
+#: The range of an fmi2Integer (a C int).
+INT_MIN, INT_MAX = -2**31, 2**31 - 1
 
 
 def _label(status: int) -> str:
@@ -121,7 +123,7 @@ class FMURunner:
                 raise FMUError(f"{self.fmu_path}: {problem}")
         if self.fmu_path.is_file():
             self._owns_unzipdir = True
-            self.unzipdir = extract_fmu(self.fmu_path)
+            self.unzipdir = extract_fmu(self.fmu_path, to_run=True)
         elif needs_build:   # never write into the user's directory: build in a copy
             import tempfile
             self._owns_unzipdir = True
@@ -147,6 +149,9 @@ class FMURunner:
         self._state = "closed"
         #: Where the current run is (e.g. "during initialisation"): named by :meth:`fail`'s message.
         self.phase = ""
+        #: ``time.monotonic()`` after which a co-simulation RunPlan run stops at its next communication point
+        #: (FMUTimeLimitError); None: no limit. Set per run by whoever limits the run's time.
+        self.deadline: float | None = None
         try:
             self._instantiate()
         except BaseException:
@@ -275,6 +280,9 @@ class FMURunner:
                     if not value.is_integer():
                         raise FMUError(f"{v.name} is an Integer; got {value!r}")
                     value = int(value)
+                if not INT_MIN <= int(value) <= INT_MAX:    # fmi2Integer is 32 bits: ctypes would wrap it
+                    raise FMUError(f"{v.name} is an Integer (32 bits); {value!r} is out of its range: give a value "
+                                   f"from {INT_MIN} to {INT_MAX}")
                 return int(value)
             if v.type == "Boolean":
                 if isinstance(value, str):
@@ -373,11 +381,11 @@ class FMURunner:
                            f"parameters set: {changed}\n"
                            f"FMU log:\n{log if log else '  (no messages)'}")
 
-    def reject(self, message: str) -> FMURunError:
-        """The error to raise for a run whose result is unusable (e.g. non-finite outputs); the instance
-        is reset before the next run."""
+    def reject(self, message: str, error: type[FMURunError] = FMURunError) -> FMURunError:
+        """The error (an ``error``) to raise for a run whose result is unusable (e.g. non-finite outputs) or
+        that was stopped; the instance is reset before the next run."""
         self._state = "failed"
-        return FMURunError(f"{self.model_description.modelName}: {message}")
+        return error(f"{self.model_description.modelName}: {message}")
 
     def mark_done(self) -> None:
         """Record that the current run ended normally (the next :meth:`ready` resets the instance)."""

@@ -74,12 +74,17 @@ class StudyRunner:
         spec = self.spec = study_plan_spec(study, run_path)
         #: what besides the parameters decides a run: a resumed study reuses stored runs only while it holds
         self.fingerprint = run_fingerprint(study, fmu_path)
-        self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
-                              fingerprint=self.fingerprint)
         # any FMU but our own runs in supervised workers: a crash or hang then costs one run
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
                                    scheduler=scheduler or study.execution.scheduler,
                                    isolate=study.fmu is not None, timeout_s=study.execution.timeout_s)
+        try:   # a scheduler that cannot be reached fails here, before an earlier runs.csv is moved aside
+            self.evaluator.connect()
+            self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
+                                  fingerprint=self.fingerprint)
+        except BaseException:
+            self.evaluator.close()
+            raise
         self.progress = progress
         self.simulated = 0
         #: points asked for (a repeated point counts again; the store simulates it once)

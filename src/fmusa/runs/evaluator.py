@@ -7,20 +7,24 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
+from fmusa.errors import FmusaError
 from fmusa.fmi.archive import extract_fmu
 from fmusa.fmi.build import compile_sources
 from fmusa.fmi.info import read_fmu_info, select_interface
 from fmusa.runs.pool import WorkerPool, run_chunk_supervised
+from fmusa.runs.scheduler import connect_scheduler
 from fmusa.runs.spec import PlanSpec, RunBatch, RunResult, as_arrays, release_plan, run_batch
-
+from fmusa.runs.timelimit import in_process_fixed
 
 class Evaluator:
     """Runs batches of parameter sets in this process, on supervised local workers, or on a Dask
     cluster, and hands every result to ``on_result`` as soon as it is known (so it reaches disk early).
 
     Small batches of a trusted FMU (our own) run in-process: workers pay ~0.1 s to start and to load the
-    FMU, more than a few hundred runs of the built FMU cost. Any other FMU always runs in workers, so a
-    crash or a hang costs one run, never the study.
+    FMU, more than a few hundred runs of the built FMU cost. With a time limit (``timeout_s``) that holds
+    only for an FMU that can stop a run itself (:mod:`fmusa.runs.timelimit`: its ``max_wall_s``); any
+    other FMU runs in supervised workers, as an FMU not our own always does, so a crash or a hang costs
+    one run, never the study.
     """
 
     def __init__(self, spec: PlanSpec, workers: int | None = None, scheduler: str | None = None,
@@ -35,6 +39,8 @@ class Evaluator:
         self._client = None
         self._unzipdir: str | None = None
         self._local: PlanSpec | None = None     # the spec on the unpacked FMU, made once
+        #: (spec, budget parameter set by fmusa) of runs made in this process; False: supervised only
+        self._here: tuple[PlanSpec, str | None] | bool | None = None
 
     def _local_spec(self) -> PlanSpec:
         """The spec with the FMU unpacked once, here, for this process and its workers: workers that
@@ -42,9 +48,9 @@ class Evaluator:
         if self._local is not None:
             return self._local
         if self._unzipdir is None and Path(self.spec.fmu_path).is_file():
-            self._unzipdir = str(extract_fmu(self.spec.fmu_path))
+            self._unzipdir = str(extract_fmu(self.spec.fmu_path, to_run=True))
             try:   # sources but no binary for this machine: build once here, not in every worker
-                info = read_fmu_info(self._unzipdir)
+                info = read_fmu_info(self.spec.fmu_path)      # the archive's, read before (cached)
                 iface = select_interface(info, self.spec.interface)
                 if not info.has_binary(iface) and info.can_compile:
                     compile_sources(self._unzipdir, info, iface)
@@ -55,15 +61,41 @@ class Evaluator:
         self._local = self.spec if self._unzipdir is None else replace(self.spec, fmu_path=self._unzipdir)
         return self._local
 
+    def _in_process(self) -> tuple[PlanSpec, str | None] | None:
+        """(the spec runs in this process are made with, the FMU parameter fmusa set in it to keep each run
+        within ``timeout_s``, or None when the study sets it), or None when a run here could outlast
+        ``timeout_s``: then every run goes to supervised workers."""
+        if self._here is None:
+            local = self._local_spec()
+            self._here = (local, None)
+            if self.timeout_s is not None:
+                try:
+                    limited = in_process_fixed(read_fmu_info(self.spec.fmu_path), self.spec.interface,
+                                               local.fixed, local.varied, self.timeout_s)
+                except FmusaError:      # an FMU that cannot be read: the workers say why, run by run
+                    limited = None
+                self._here = False if limited is None else (replace(local, fixed=limited[0]), limited[1])
+        return self._here or None
+
+    def connect(self) -> None:
+        """Reach the Dask scheduler now (nothing to do for local runs), so that a wrong or dead address is
+        an error before anything is written rather than once the study runs."""
+        if self.scheduler and self._client is None:
+            self._client = connect_scheduler(self.scheduler)
+
     def close(self) -> None:
         if self._pool is not None:
             self._pool.close()
             self._pool = None
         if self._unzipdir is not None:
+            here = self._here if isinstance(self._here, tuple) else None
             release_plan(self._local_spec())
+            if here is not None and here[0] != self._local:
+                release_plan(here[0])
             shutil.rmtree(self._unzipdir, ignore_errors=True)
             self._unzipdir = None
             self._local = None
+            self._here = None
         if self._client is not None:
             self._client.close()
             self._client = None
@@ -111,10 +143,9 @@ class Evaluator:
                 progress.update(len(batch))
 
         if self.scheduler:
-            from dask.distributed import Client, as_completed
+            from dask.distributed import as_completed
 
-            if self._client is None:
-                self._client = Client(self.scheduler)
+            self.connect()
             n = max(1, sum(self._client.nthreads().values()))
             # each task runs its chunk in a supervised process on its Dask worker (crash, hang, error: a
             # failed run, never a dead worker); a task Dask itself loses fails its runs with the reason
@@ -132,12 +163,14 @@ class Evaluator:
                     reason = f"the Dask task failed: {type(exc).__name__}: {str(exc).strip()}"[:2000]
                     batch = RunBatch.failed(*chunks[fut.key], n_metrics, reason)
                 take(batch)
-        elif self.isolate or (self.workers > 1 and len(ids) >= self.pool_threshold):
+        elif (self.isolate or (self.workers > 1 and len(ids) >= self.pool_threshold)
+              or (here := self._in_process()) is None):
             if self._pool is None:
                 self._pool = WorkerPool(self._local_spec(), self.workers, self.timeout_s)
             self._pool.map((ids, values), take, max(self._chunk_size(len(ids), self.workers), 200))
-        else:
-            spec = self._local_spec()
+        else:      # unsupervised: each run kept to timeout_s by the FMU's own budget
+            spec, budget = here
             size = self._chunk_size(len(ids), 1)
             for i in range(0, len(ids), size):
-                take(run_batch(spec, ids[i:i + size], values[i:i + size]))
+                take(run_batch(spec, ids[i:i + size], values[i:i + size], timeout_s=self.timeout_s,
+                               budget=budget))

@@ -5,6 +5,8 @@ mean, … of the sampled output) and maps it to study units. Pure numpy: no FMU 
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, replace
 from typing import Iterable, Mapping, Sequence
 
@@ -112,6 +114,13 @@ def metric_rules(metrics: Iterable, outputs: list[str]) -> list[MetricRule]:
     index = {name: i for i, name in enumerate(outputs)}
     return [MetricRule(m.name, index[m.output], m.reduce, m.scale, m.offset, m.missing_below,
                        getattr(m, "settle_tol", None)) for m in metrics]
+
+
+def constraint_holds(c, x: float) -> bool:
+    """Whether one run's metric value ``x`` passes constraint ``c``: :func:`constraint_table` for one run."""
+    if math.isnan(x):
+        return not (c.required or c.max is not None or c.min is not None)
+    return (c.max is None or x <= c.max) and (c.min is None or x >= c.min)
 
 
 def constraint_table(values: Mapping[str, np.ndarray], constraints: Iterable) -> dict[str, np.ndarray]:

@@ -1,7 +1,9 @@
 """Supervised worker processes (local or on a Dask worker): a crash or a hang costs one run, never the study."""
 from __future__ import annotations
 
+import os
 import shutil
+import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -9,6 +11,9 @@ import numpy as np
 
 from fmusa.fmi.archive import extract_fmu
 from fmusa.runs.spec import PlanSpec, RunBatch, as_arrays, run_batch
+from fmusa.runs.timelimit import timeout_reason
+
+PR_SET_PDEATHSIG = 1          # linux/prctl.h
 
 
 def _signal_name(num: int) -> str:
@@ -19,12 +24,38 @@ def _signal_name(num: int) -> str:
         return f"signal {num}"
 
 
-def _worker_main(conn, spec: PlanSpec, started) -> None:
+def _die_with_parent(parent: int) -> None:
+    """End this worker as soon as its parent ``parent`` dies, however it dies (``kill -9`` too): a worker
+    blocked on its pipe (its siblings hold the other end open) or deep in an FMU call would otherwise live
+    on. On Linux the kernel sends SIGKILL (``prctl(PR_SET_PDEATHSIG)``); elsewhere, and as a backstop, a
+    thread checks twice a second that the parent is still there."""
+    import ctypes
+    import signal
+    import time
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):      # not Linux: the thread alone
+        pass
+    if os.getppid() != parent:             # the parent died before the request took effect
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="fmusa-parent-watch", daemon=True).start()
+
+
+def _worker_main(conn, spec: PlanSpec, started, parent: int) -> None:
     """A pool worker: receive chunks (run ids, study values), send back their results as RunBatches, one
     message per chunk (more for a chunk that takes longer than half a second). Before each run it counts
-    up ``started`` and stamps its start time, so the parent knows which run crashed or hangs."""
+    up ``started`` and stamps its start time, so the parent knows which run crashed or hangs. It dies with
+    its parent process ``parent``."""
     import faulthandler
     import signal
+    _die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # the parent decides when to stop
     faulthandler.disable()   # a crashing FMU is reported by the parent, not by a Python stack dump
     while True:
@@ -45,7 +76,7 @@ class _Worker:
         self.conn, child = ctx.Pipe()
         #: [runs started, time.monotonic() when the last one started], written by the worker
         self.started = ctx.RawArray("d", 2)
-        self.proc = ctx.Process(target=_worker_main, args=(child, spec, self.started), daemon=True)
+        self.proc = ctx.Process(target=_worker_main, args=(child, spec, self.started, os.getpid()), daemon=True)
         self.proc.start()
         child.close()
         self.ids = np.empty(0, dtype=np.int64)     # runs given, not answered (in the order they run)
@@ -123,8 +154,8 @@ class WorkerPool:
 
     def _start_worker(self) -> _Worker:
         """A new worker process. Inside a daemonic process (a Dask worker, by default) multiprocessing
-        refuses to start children; ours are daemonic themselves and exit on the closed pipe when their
-        parent dies, so the refusal is lifted while one starts."""
+        refuses to start children; ours are daemonic themselves and die with their parent
+        (:func:`_die_with_parent`), so the refusal is lifted while one starts."""
         import multiprocessing as mp
         config = mp.current_process()._config
         daemon = config.get("daemon")
@@ -160,6 +191,10 @@ class WorkerPool:
             return
         values = values.reshape(len(ids), len(self.spec.varied))
         queue = _Chunks(ids, values, chunk, 2 * self.n)
+        for j, w in enumerate(self.workers):
+            if not w.proc.is_alive():   # died while idle (killed from outside): it held no run, none is lost
+                w.kill()
+                self.workers[j] = self._start_worker()
         while len(self.workers) < min(self.n, len(ids)):
             self.workers.append(self._start_worker())
         for w in self.workers:
@@ -190,8 +225,7 @@ class WorkerPool:
                     if w.pending and now - w.current()[1] > self.timeout_s:
                         if w.conn.poll():      # an answer arrived after wait(): read it next round
                             continue
-                        self._replace(w, f"timed out after {self.timeout_s:g} s (the FMU hangs or is too slow; "
-                                         f"if only slow, raise execution.timeout_s and rerun without --resume)",
+                        self._replace(w, timeout_reason(self.timeout_s, "its worker process was stopped"),
                                       take, now)
             # workers replaced without a chunk left to finish pick up queued chunks
             for w in self.workers:
@@ -212,30 +246,55 @@ class WorkerPool:
             nw.give(rest_ids, rest_vals, now)
 
 
-_DASK_POOLS: dict = {}
+#: (spec, timeout_s, thread id) -> this Dask worker's supervised pools, the one used last at the end
+_DASK_POOLS: dict[tuple, WorkerPool] = {}
+#: spec -> (the spec on the FMU unpacked once in this Dask worker, that folder or None)
+_DASK_FMUS: dict[PlanSpec, tuple[PlanSpec, str | None]] = {}
+#: pools a Dask worker thread keeps: a long-lived Dask worker that runs study after study closes the oldest
+#: (its process and, once no pool uses it, its unpacked FMU) instead of keeping one per study forever
+DASK_KEEP = 4
+_DASK_EXIT: list[bool] = []        # the exit hook registered (once per process)
+_DASK_LOCK = threading.Lock()      # a Dask worker's threads share the pools and unpacked FMUs
+
+
+def _close_dask_pools() -> None:
+    """At the Dask worker's exit: every pool's process, every unpacked FMU."""
+    for pool in _DASK_POOLS.values():
+        pool.close()
+    _DASK_POOLS.clear()
+    for _, folder in _DASK_FMUS.values():
+        if folder:
+            shutil.rmtree(folder, ignore_errors=True)
+    _DASK_FMUS.clear()
 
 
 def _dask_pool(spec: PlanSpec, timeout_s: float | None) -> WorkerPool:
-    """This Dask worker thread's supervised pool (one worker process) for ``spec``, made once. The FMU is
-    unpacked once per Dask worker process, so that supervised processes that crash leave no copy behind."""
+    """This Dask worker thread's supervised pool (one worker process) for ``spec``, made once and kept among
+    the thread's last :data:`DASK_KEEP`. The FMU is unpacked once per Dask worker process, so that supervised
+    processes that crash leave no copy behind."""
     import atexit
-    import threading
 
-    key = (spec, timeout_s, threading.get_ident())
-    pool = _DASK_POOLS.get(key)
-    if pool is not None:
-        return pool
-    local = _DASK_POOLS.get(("unzipped", spec))
-    if local is None:
-        local = spec
-        if Path(spec.fmu_path).is_file():
-            unzipdir = str(extract_fmu(spec.fmu_path))
-            atexit.register(shutil.rmtree, unzipdir, ignore_errors=True)
-            local = replace(spec, fmu_path=unzipdir)
-        _DASK_POOLS[("unzipped", spec)] = local
-    pool = WorkerPool(local, 1, timeout_s)
-    atexit.register(pool.close)
-    _DASK_POOLS[key] = pool
+    thread = threading.get_ident()
+    key = (spec, timeout_s, thread)
+    with _DASK_LOCK:
+        if not _DASK_EXIT:
+            atexit.register(_close_dask_pools)
+            _DASK_EXIT.append(True)
+        pool = _DASK_POOLS.pop(key, None)
+        if pool is None:
+            if spec not in _DASK_FMUS:
+                folder = str(extract_fmu(spec.fmu_path)) if Path(spec.fmu_path).is_file() else None
+                _DASK_FMUS[spec] = (spec if folder is None else replace(spec, fmu_path=folder), folder)
+            pool = WorkerPool(_DASK_FMUS[spec][0], 1, timeout_s)
+        _DASK_POOLS[key] = pool
+        mine = [k for k in _DASK_POOLS if k[2] == thread]   # this thread uses none of them now but ``pool``
+        for old in mine[:-DASK_KEEP]:
+            _DASK_POOLS.pop(old).close()
+        used = {k[0] for k in _DASK_POOLS}
+        for other in [k for k in _DASK_FMUS if k not in used]:
+            folder = _DASK_FMUS.pop(other)[1]
+            if folder:
+                shutil.rmtree(folder, ignore_errors=True)
     return pool
 
 

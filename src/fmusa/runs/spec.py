@@ -57,20 +57,29 @@ def runner_for(spec: PlanSpec) -> FMURunner:
                      relative_tolerance=spec.relative_tolerance, step_size=spec.step_size)
 
 
+#: The last spec plan_for was asked for and its plan: hashing a spec (every field) costs more than a cheap run.
+_LAST_PLAN: list = [None, None]
+
+
 def plan_for(spec: PlanSpec) -> RunPlan:
     """The calling process's RunPlan for ``spec``: one FMU instance per process and spec, reused."""
+    if spec is _LAST_PLAN[0]:
+        return _LAST_PLAN[1]
     plan = _WORKER_PLANS.get(spec)
     if plan is None:
         runner = runner_for(spec)
         plan = RunPlan(runner, spec.varied, dict(spec.fixed), spec.outputs, spec.stop_time, spec.step,
                        dict(spec.inputs))
         _WORKER_PLANS[spec] = plan
+    _LAST_PLAN[:] = [spec, plan]
     return plan
 
 
 def release_plan(spec: PlanSpec) -> None:
     """Forget this process's RunPlan for ``spec`` and free its FMU instance (before its files are deleted)."""
     plan = _WORKER_PLANS.pop(spec, None)
+    if _LAST_PLAN[0] is not None and _LAST_PLAN[0] == spec:
+        _LAST_PLAN[:] = [None, None]
     if plan is not None:
         plan.runner.close()
 
@@ -155,7 +164,7 @@ def _message(exc: BaseException) -> str:
 
 
 def run_batch(spec: PlanSpec, ids: np.ndarray, values: np.ndarray, started=None, emit=None,
-              emit_every_s: float = 0.5) -> RunBatch:
+              emit_every_s: float = 0.5, timeout_s: float | None = None, budget: str | None = None) -> RunBatch:
     """Run many parameter sets (``ids``, study ``values`` one row each) in this process; a failing run is
     recorded with its reason and the rest go on. The metrics are reduced with numpy over the whole batch
     (:func:`~fmusa.runs.metrics.reduce_batch`, the same values as run by run).
@@ -163,9 +172,11 @@ def run_batch(spec: PlanSpec, ids: np.ndarray, values: np.ndarray, started=None,
     ``started`` (a shared ``[count, time]`` array, for the supervising parent): before each run its count
     goes up by one and its time is set to ``time.monotonic()``, so the parent can tell which run crashed
     or hangs. ``emit``: called with the runs done so far every ``emit_every_s`` seconds (their results
-    reach the parent and disk early); the runs after the last emit are returned."""
-    import time
+    reach the parent and disk early); the runs after the last emit are returned.
 
+    ``timeout_s``: the time limit of a run made here, unsupervised (:mod:`fmusa.runs.timelimit`): each run
+    stops at its first communication point past it, and a run stopped that way or by the FMU parameter
+    ``budget`` (which the caller set to ``timeout_s``) fails with the reason naming execution.timeout_s."""
     try:
         plan = plan_for(spec)
     except Exception as exc:    # an FMU that does not load or instantiate: every run says why, no dead worker
@@ -176,10 +187,27 @@ def run_batch(spec: PlanSpec, ids: np.ndarray, values: np.ndarray, started=None,
     values = np.asarray(values, dtype=float).reshape(n, len(spec.varied))
     # FMU value = scale * study value + offset, elementwise as run by run
     fmu = (values * np.asarray(spec.scale, dtype=float) + np.asarray(spec.offset, dtype=float)).tolist()
-    perf, mono = time.perf_counter, time.monotonic
     refine = bool(spec.refine_factor) and type(plan) is RunPlan
+    limited = timeout_s is not None and type(plan) is RunPlan
+    try:
+        return _run_rows(spec, plan, ids, values, fmu, refine, started, emit, emit_every_s,
+                         timeout_s if limited else None, budget)
+    finally:
+        if limited:
+            plan.runner.deadline = None
+
+
+def _run_rows(spec: PlanSpec, plan, ids, values, fmu, refine: bool, started, emit, emit_every_s: float,
+              timeout_s: float | None, budget: str | None) -> RunBatch:
+    """The loop of :func:`run_batch` over prepared FMU values ``fmu``, one row per run."""
+    import time
+
+    perf, mono = time.perf_counter, time.monotonic
+    n = len(ids)
     if refine:
         from fmusa.runs.refine import refine_run
+    if timeout_s is not None:
+        from fmusa.runs.timelimit import in_process_reason
     lo = 0
     while True:
         deadline = perf() + emit_every_s if emit is not None else None
@@ -193,6 +221,8 @@ def run_batch(spec: PlanSpec, ids: np.ndarray, values: np.ndarray, started=None,
                 started[1] = mono()
                 started[0] += 1
             t0 = perf()
+            if timeout_s is not None:
+                plan.runner.deadline = mono() + timeout_s
             try:
                 data = plan(fmu[i])
                 if refine:   # re-runs finer around the peaks: run by run, timed and supervised as the run;
@@ -203,6 +233,9 @@ def run_batch(spec: PlanSpec, ids: np.ndarray, values: np.ndarray, started=None,
                 okl.append(i - lo)
             except Exception as exc:  # the FMU's own error: record it, keep going
                 msgs[i - lo] = _message(exc)
+                if timeout_s is not None:
+                    late = in_process_reason(exc, perf() - t0, timeout_s, budget, msgs[i - lo])
+                    msgs[i - lo] = late[:2000] if late else msgs[i - lo]
             t1 = perf()
             secs.append(t1 - t0)
             i += 1
@@ -215,6 +248,8 @@ def run_batch(spec: PlanSpec, ids: np.ndarray, values: np.ndarray, started=None,
             ok[okl] = True
             if refine:      # the metrics themselves, already
                 metrics[okl] = datas
+            elif len(datas) == 1:   # one run (a search's): the same values without numpy's cost per rule
+                metrics[okl] = reduce_series(plan.times, datas[0], spec.rules)
             elif len({d.shape for d in datas}) == 1:
                 metrics[okl] = reduce_batch(plan.times, np.stack(datas), spec.rules)
             else:  # pragma: no cover - a plan samples every run at the same times

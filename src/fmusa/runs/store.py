@@ -14,6 +14,7 @@ import csv
 import json
 import math
 import os
+import struct
 import weakref
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -22,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from fmusa.errors import UsageError
-from fmusa.runs.metrics import constraint_table
+from fmusa.runs.metrics import constraint_holds, constraint_table
 
 FLOAT = "%.17g"   # round-trips a double exactly, so reloaded keys match new ones
 
@@ -123,6 +124,9 @@ def _keep_previous(path: Path) -> Path:
     return target
 
 
+_M64 = (1 << 64) - 1
+
+
 class RunStore:
     def __init__(self, path: str | os.PathLike, params: Sequence[str], metrics: Sequence[str],
                  constraints: Iterable = (), resume: bool = False, fingerprint: dict | None = None) -> None:
@@ -139,6 +143,9 @@ class RunStore:
         self._spill: dict[bytes, int] = {}
         self._mix = np.random.default_rng(0x5EED).integers(1, 2**63, size=max(1, len(self.params)),
                                                             dtype=np.uint64) | np.uint64(1)
+        self._mix_py = self._mix.tolist()          # the same hash in plain Python, for one key at a time
+        self._pack = struct.Struct(f"={len(self.params)}d")
+        self._unpack = struct.Struct(f"={len(self.params)}Q")
         self._n = 0
         self._alloc(1024)
         self._stages: list[str] = []
@@ -220,7 +227,33 @@ class RunStore:
         h ^= h >> np.uint64(29)
         return h.tolist()
 
+    def _key_hash(self, raw: bytes) -> int:
+        """:meth:`_hashes` of one key's bytes (``self._pack`` of its values + 0.0), in plain Python."""
+        h = 0
+        for b, m in zip(self._unpack.unpack(raw), self._mix_py):
+            h += b * m
+        h &= _M64
+        h ^= h >> 31
+        h = (h * 0x9E3779B97F4A7C15) & _M64
+        return h ^ (h >> 29)
+
     def _insert(self, start: int, n: int) -> None:
+        if n == 1:   # one run (a search's): the same index entry without numpy's fixed costs
+            raw = self._pack.pack(*[v + 0.0 for v in self._P[start].tolist()])
+            h = self._key_hash(raw)
+            old = self._index.get(h)
+            if old is None:
+                self._index[h] = start
+            elif (self._P[old] + 0.0).tobytes() == raw:
+                self._live[old] = False
+                self._index[h] = start
+            else:
+                prev = self._spill.get(raw)
+                if prev is not None:
+                    self._live[prev] = False
+                self._spill[raw] = start
+            self._live[start] = True
+            return
         U = self._bits(self._P[start:start + n])
         index = self._index
         for j, h in enumerate(self._hashes(U)):
@@ -306,8 +339,17 @@ class RunStore:
             out[a:a + 4096] = rows
         return out
 
+    def row_of(self, values: Sequence[float]) -> int:
+        """:meth:`rows_of` for one parameter set, in plain Python: a search asks for one point at a time, and
+        numpy's fixed cost per call would be most of a cheap run's."""
+        raw = self._pack.pack(*[float(v) + 0.0 for v in values])     # + 0.0: -0.0 is the key 0.0
+        row = self._index.get(self._key_hash(raw), -1)
+        if row >= 0 and (self._P[row] + 0.0).tobytes() == raw:
+            return row
+        return self._spill.get(raw, -1) if self._spill else -1
+
     def __contains__(self, values) -> bool:
-        return int(self.rows_of(values)[0]) >= 0
+        return self.row_of(values) >= 0
 
     def __len__(self) -> int:
         return len(self._index) + len(self._spill)
@@ -322,7 +364,7 @@ class RunStore:
         return rec
 
     def get(self, values: Sequence[float]) -> dict | None:
-        i = int(self.rows_of(values)[0])
+        i = self.row_of(values)
         return None if i < 0 else self._record(i)
 
     def metric_matrix(self, rows: np.ndarray) -> np.ndarray:
@@ -350,6 +392,10 @@ class RunStore:
 
     # ------------------------------------------------------------------ adding rows
     def _flag_rows(self, M: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        if len(M) == 1 and self.constraints:   # one run: the flags of constraint_table, in plain Python
+            row = dict(zip(self.metrics, M[0].tolist()))
+            flags = [bool(ok[0]) and constraint_holds(c, row[c.metric]) for c in self.constraints]
+            return np.array([flags + [all(flags)]], dtype=bool)
         table = constraint_table({k: M[:, j] for j, k in enumerate(self.metrics)}, self.constraints)
         F = np.empty((len(M), len(self.flags)), bool)
         for j, name in enumerate(self.flags):

@@ -17,10 +17,12 @@ def check_fmu(study: Study, fmu_path: Path) -> list[str]:
 
     FMI version 2.0; the interface ``fmu_options`` asks for (and a binary for this machine, or sources to
     build one); every study, fixed and sensitivity parameter a settable parameter (causality parameter,
-    variability fixed or tunable; study parameters Real); every scenario input an input; every metric's
+    variability fixed or tunable; study parameters Real; a fixed value of the variable's type); every
+    scenario input an input; every metric's
     output a variable that can be read. Returns all problems, each ``file:line: what; closest names``.
     """
     from fmusa.fmi.info import FMUError, binary_problem, read_fmu_info, select_interface, variable_problem
+    from fmusa.fmi.runner import FMURunner
 
     try:
         info = read_fmu_info(fmu_path)
@@ -53,8 +55,14 @@ def check_fmu(study: Study, fmu_path: Path) -> list[str]:
     for p in study.parameters.values():
         check(f"parameters.{p.name}.variable", f"parameter '{p.name}' (variable: {p.variable})", p.variable,
               "varied")
-    for name in study.fixed:
+    for name, value in study.fixed.items():
         check(f"fixed.{name}", f"fixed '{name}'", name, "parameter")
+        v = info.variable(name)
+        if v is not None and not variable_problem(info, name, "parameter"):
+            try:     # the value fits the variable's type (an Integer: whole, 32 bits), before any run
+                FMURunner.coerce(v, value)
+            except FMUError as exc:
+                errors.append(f"{study.line(f'fixed.{name}')}: fixed '{name}': {exc}")
     for name in study.scenario.inputs:
         check(f"scenario.inputs.{name}", f"scenario.inputs '{name}'", name, "input")
     for m in study.metrics.values():
