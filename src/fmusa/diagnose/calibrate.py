@@ -3,22 +3,25 @@
 The FMU is run only through :class:`fmusa.fmi.plans.DrivenPlan`, driven by the experiments' measured drive
 through the variables a :class:`~fmusa.diagnose.interface.ModelInterface` names. :func:`calibrate` is a
 multi-start bounded least squares of the response channel on all experiments jointly; :func:`heldout_rmse`
-scores a fit on data it did not see; :func:`fit_candidate` does both for one candidate (a worker's job).
+scores a fit on data it did not see; :func:`fit_candidate` does both for one candidate (a worker's job);
+:func:`unify_equivalent` scores candidates that are the same equations as one model.
 """
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
 from scipy import optimize, stats
 
-from fmusa.diagnose.effects import Param, Scales, data_scales, model_parameters
+from fmusa.diagnose.effects import (EQUIVALENT_BY_CONSTRUCTION, Param, Scales, data_scales, equivalent_intervals,
+                                    equivalent_parameters, model_parameters)
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
 
-__all__ = ["Fit", "ModelRunner", "calibrate", "heldout_masks", "heldout_rmse", "fit_candidate"]
+__all__ = ["Fit", "ModelRunner", "calibrate", "MIN_EXPERIMENTS_LEFT_OUT", "heldout_masks", "heldout_folds",
+           "pooled_heldout", "heldout_rmse", "unify_equivalent", "fit_candidate"]
 
 
 @dataclass
@@ -35,6 +38,12 @@ class Fit:
     predictions: list[np.ndarray] = field(default_factory=list)
     starts_tried: int = 0
     nfev: int = 0
+    #: per held-out fold: the training cost of the refit, the held-out squared error and point count
+    heldout_folds: list[dict] = field(default_factory=list)
+    #: set when this fit is another candidate's, mapped (EQUIVALENT_BY_CONSTRUCTION): that candidate's name
+    mapped_from: str | None = None
+    #: with mapped_from: what this candidate's own optimiser found (params, rmse, heldout_rmse)
+    own: dict | None = None
 
     @property
     def aic(self) -> float:
@@ -163,41 +172,103 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
                predictions=preds, starts_tried=len(starts), nfev=nfev)
 
 
+#: whole experiments are left out in turn only when every training set still holds at least two of them
+MIN_EXPERIMENTS_LEFT_OUT = 3
+
+
 def heldout_masks(experiments: Sequence, blocks: int = 4) -> list[list[np.ndarray]]:
-    """Folds of held-out points: whole experiments when there are several, else contiguous blocks."""
-    if len(experiments) > 1:
+    """Folds of held-out points: whole experiments (leave one out) when there are three or more, else
+    ``blocks`` contiguous blocks in time of every experiment (fold b leaves out block b of each).
+
+    With two experiments, leaving one out would fit a single one: the contrast the second adds (a second
+    rate: damping scales with it, friction does not) would be missing from every training set, so no
+    held-out score could show an effect that only the contrast identifies."""
+    if len(experiments) >= MIN_EXPERIMENTS_LEFT_OUT:
         return [[np.full(len(e.t), i == j) for j, e in enumerate(experiments)] for i in range(len(experiments))]
-    n = len(experiments[0].t)
-    edges = np.linspace(0, n, blocks + 1).astype(int)
     folds = []
     for b in range(blocks):
-        m = np.zeros(n, bool)
-        m[edges[b]:edges[b + 1]] = True
-        folds.append([m])
+        fold = []
+        for e in experiments:
+            n = len(e.t)
+            edges = np.linspace(0, n, blocks + 1).astype(int)
+            m = np.zeros(n, bool)
+            m[edges[b]:edges[b + 1]] = True
+            fold.append(m)
+        folds.append(fold)
     return folds
 
 
-def heldout_rmse(model: ModelRunner, fit: Fit, drive: str, experiments: Sequence, sc: Scales,
-                 max_nfev: int = 40) -> float:
-    """Prediction error on data the fit did not see: refit without each fold, predict the fold.
+def heldout_folds(model: ModelRunner, fit: Fit, drive: str, experiments: Sequence, sc: Scales,
+                  max_nfev: int = 40) -> list[dict]:
+    """Refit without each fold and predict it: per fold, the training cost of the refit (the least-squares
+    cost on the scaled residuals of the training points), the squared error on the held-out points and
+    their count.
 
-    Each refit starts from the all-data optimum (one start, to keep the cost at a few fits); the
-    score is the prediction error of the training-only optimum on the held-out points."""
+    Each refit starts from the all-data optimum (one start, to keep the cost at a few fits)."""
     params = model_parameters(fit.effect, drive, sc)
     scale = _response_scale(drive, sc)
     lo, hi = _bounds(params)
     x_full = np.array([p.to_x(min(max(fit.params[p.name], p.lower), p.upper)) for p in params])
-    sq, count = 0.0, 0
+    folds = []
     for held in heldout_masks(experiments):
         train = [~m for m in held]
         fn = _residual_fn(model, params, experiments, train, scale)
         res = _least_squares(fn, x_full, lo, hi, max_nfev)
         values = [p.from_x(x) for p, x in zip(params, res.x)]
         preds = model.predict(values, experiments)
+        sq, count = 0.0, 0
         for pr, e, m in zip(preds, experiments, held):
             sq += float(np.sum((pr - e.response_signal)[m] ** 2))
             count += int(m.sum())
-    return math.sqrt(sq / count)
+        folds.append({"train_cost": float(res.cost), "sq": sq, "count": count})
+    return folds
+
+
+def pooled_heldout(folds: Sequence[dict]) -> float:
+    """The held-out RMSE of the folds: the squared errors of all folds pooled."""
+    count = sum(f["count"] for f in folds)
+    return math.sqrt(sum(f["sq"] for f in folds) / count) if count else float("nan")
+
+
+def heldout_rmse(model: ModelRunner, fit: Fit, drive: str, experiments: Sequence, sc: Scales,
+                 max_nfev: int = 40) -> float:
+    """Prediction error on data the fit did not see: refit without each fold, predict the fold; the
+    score is the prediction error of the training-only optimum on the held-out points."""
+    return pooled_heldout(heldout_folds(model, fit, drive, experiments, sc, max_nfev))
+
+
+def unify_equivalent(fits: dict[str, Fit]) -> dict[str, Fit]:
+    """Score candidates that are the same equations (EQUIVALENT_BY_CONSTRUCTION) as one model.
+
+    Each member's optimiser finds its own optimum, and the two drift apart (a local minimum in one
+    parametrisation, a held-out refit that stalls in the other), though the model is the same. So the member
+    with the lower all-data cost keeps its fit, the other gets it mapped into its own parameters
+    (:func:`effects.equivalent_parameters`, intervals by :func:`effects.equivalent_intervals`), with the same
+    predictions and residuals; and in each held-out fold the refit with the lower *training* cost (never the
+    held-out error) gives the held-out error of both. What the other's own optimiser found stays in ``own``."""
+    out = dict(fits)
+    for pair in EQUIVALENT_BY_CONSTRUCTION:
+        a, b = sorted(pair)
+        if not (isinstance(fits.get(a), Fit) and isinstance(fits.get(b), Fit)):
+            continue
+        fa, fb = fits[a], fits[b]
+        best, other = (fa, fb) if fa.rss <= fb.rss else (fb, fa)
+        folds = list(best.heldout_folds)
+        if len(best.heldout_folds) == len(other.heldout_folds) and folds:
+            folds = [x if x["train_cost"] <= y["train_cost"] else y
+                     for x, y in zip(best.heldout_folds, other.heldout_folds)]
+        held = pooled_heldout(folds) if folds else min(best.heldout_rmse, other.heldout_rmse)
+        out[best.effect] = replace(best, heldout_rmse=held, heldout_folds=folds,
+                                   own={"params": dict(best.params), "rmse": best.rmse,
+                                        "heldout_rmse": best.heldout_rmse, "heldout_folds": list(best.heldout_folds)})
+        out[other.effect] = replace(
+            best, effect=other.effect, k=other.k, heldout_rmse=held, heldout_folds=folds,
+            params=equivalent_parameters(best.effect, best.params, other.effect),
+            ci95=equivalent_intervals(best.effect, best.params, best.ci95, other.effect),
+            mapped_from=best.effect,
+            own={"params": dict(other.params), "rmse": other.rmse, "heldout_rmse": other.heldout_rmse,
+                 "heldout_folds": list(other.heldout_folds)})
+    return out
 
 
 def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
@@ -208,7 +279,8 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
     model = ModelRunner(fmu_path, drive, names, interface=interface)
     try:
         fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts)
-        fit.heldout_rmse = heldout_rmse(model, fit, drive, experiments, sc)
+        fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc)
+        fit.heldout_rmse = pooled_heldout(fit.heldout_folds)
     finally:
         model.close()
     return fit

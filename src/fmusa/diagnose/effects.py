@@ -17,7 +17,7 @@ from fmusa.errors import FmusaError
 
 __all__ = ["CANDIDATES", "SEPARATING_TESTS", "UNITS", "MAIN_PARAMETER", "DiagnoseError", "Param", "Scales",
            "data_scales", "model_parameters", "main_parameter", "separating_test", "EQUIVALENT_BY_CONSTRUCTION",
-           "equivalent_by_construction", "equivalent_parameters", "BASELINE_LOOK_ALIKES"]
+           "equivalent_by_construction", "equivalent_parameters", "equivalent_intervals", "BASELINE_LOOK_ALIKES"]
 
 CANDIDATES = ("nonlinear_stiffness", "viscoelastic_relaxation", "coulomb_friction", "yield_softening",
               "backlash_gap", "sensor_offset")
@@ -26,6 +26,9 @@ CANDIDATES = ("nonlinear_stiffness", "viscoelastic_relaxation", "coulomb_frictio
 SEPARATING_TESTS = {
     frozenset({"nonlinear_stiffness", "yield_softening"}):
         "unload after the peak: an elastic curve retraces loading, yielding leaves a permanent set",
+    frozenset({"nonlinear_stiffness", "coulomb_friction"}):
+        "unload after the peak: an elastic curve retraces loading, friction opens a loop (on loading alone, "
+        "friction after its pre-slip is a bend of the curve)",
     frozenset({"nonlinear_stiffness", "backlash_gap"}):
         "load through zero in both directions: slack gives a zero-force band, a toe region does not",
     frozenset({"nonlinear_stiffness", "viscoelastic_relaxation"}):
@@ -120,6 +123,22 @@ def equivalent_parameters(effect: str, params: dict, other: str) -> dict | None:
     c1, F_f, x_f = c, params["fric_F"], params["fric_x"]
     c_tot = c1 + F_f / x_f
     return {"c_y": c_tot, "d_y": d, "yield_ratio": c1 / c_tot, "yield_F": F_f + c1 * x_f}
+
+
+def equivalent_intervals(effect: str, params: dict, ci95: dict, other: str) -> dict | None:
+    """The 95 % intervals of ``other``'s parameters, mapped from ``effect``'s: the mapping of
+    EQUIVALENT_BY_CONSTRUCTION is monotone in each parameter over positive values, so the image of the box
+    of intervals lies within the box spanned by the images of its corners (a conservative interval)."""
+    if equivalent_parameters(effect, params, other) is None:
+        return None
+    names = [n for n in params if n in ci95]
+    corners = []
+    for bits in range(2 ** len(names)):
+        p = dict(params)
+        for i, n in enumerate(names):
+            p[n] = ci95[n][(bits >> i) & 1]
+        corners.append(equivalent_parameters(effect, p, other))
+    return {k: (min(c[k] for c in corners), max(c[k] for c in corners)) for k in corners[0]}
 
 
 UNITS = {"c_y": "N/m", "d_y": "N.s/m", "gap": "m", "nl_ratio": "1", "nl_y_b": "m", "yield_ratio": "1",

@@ -32,7 +32,9 @@ class ModelInterface:
     drive (e.g. a built-in load ramp switched off), ``tolerance_parameter`` receives the solver's
     relative tolerance, ``fixed_parameters`` are set in every run, and ``parameter_names`` maps a
     fitted parameter (``c_y``, ``gap``, …, see :mod:`fmusa.diagnose.effects`) to its FMU variable
-    where the two differ.
+    where the two differ. ``scale_variables`` names the parameters whose start values give the FMU's
+    scale for the units check (:mod:`fmusa.diagnose.units`: ``stiffness`` [N/m], ``length`` [m],
+    ``resolution`` [m], ``force`` [N]); a quantity left out is not checked.
     """
     mode_variable: str
     mode_values: Mapping[str, int]
@@ -45,6 +47,7 @@ class ModelInterface:
     tolerance_parameter: str | None = None
     fixed_parameters: Mapping[str, Value] = field(default_factory=dict)
     parameter_names: Mapping[str, str] = field(default_factory=dict)
+    scale_variables: Mapping[str, str] = field(default_factory=dict)
 
     def check_drive(self, drive: str) -> None:
         """Refuse a drive this interface cannot impose, naming the ones it can."""
@@ -89,4 +92,5 @@ SCREW_VERTEBRA = ModelInterface(
     drive_parameters={"force": {"F_max": 0.0}},
     tolerance_parameter="rtol",
     fixed_parameters={"monitors": False},
+    scale_variables={"stiffness": "c_y", "length": "L_screw", "resolution": "smooth_w", "force": "F_max"},
 )

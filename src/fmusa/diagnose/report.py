@@ -177,7 +177,20 @@ def _none_text(diag: Mapping) -> str:
     base = diag.get("baseline") or {}
     ranking = diag.get("ranking") or []
     base_st = (diag.get("residuals") or {}).get("baseline") or {}
-    if base_st.get("structured"):
+    th = diag.get("thresholds") or {}
+    small = [r for r in ranking if r.get("statistically_significant") and not r.get("significant")]
+    if small:
+        def one(r):
+            es = r["effect_size"]
+            return (f"`{r['effect']}` changes the prediction by {fmt(es['size'] * f)} {unit} (on at least "
+                    f"{th.get('effect_points', 3)} samples), below the floor of {fmt(es['floor'] * f)} {unit}")
+        out = ("**Effect: `none`**: what the candidates add is too small to matter. Passing the statistical "
+               "tests is not enough: " + "; ".join(one(r) for r in small)
+               + f" (the larger of {fmt(th.get('effect_noise', 3))} × the noise and "
+                 f"{fmt(100 * th.get('effect_range', 0.01))} % of the measured range of the {resp}), so "
+               + ("it does not matter physically and is not named" if len(small) == 1 else
+                  "they do not matter physically and are not named") + ".\n\n")
+    elif base_st.get("structured"):
         out = ("**Effect: `none`**: no candidate's gain passes all three tests. This does not mean the "
                "baseline explains the data: its residuals are structured (see below), but no single "
                "candidate effect removes that structure convincingly enough on held-out data.\n\n")
@@ -194,8 +207,9 @@ def _none_text(diag: Mapping) -> str:
                   f"and {fmt(base.get('heldout_rmse', float('nan')) * f)} {unit} on held-out data.\n\n")
 
 
-def _criteria_text(eff: str, crit: Mapping, th: Mapping) -> str:
-    """The three significance tests of the named (or best-ranked) candidate, and the tie margins."""
+def _criteria_text(eff: str, crit: Mapping, th: Mapping, unit: str = "N", f: float = 1.0) -> str:
+    """The three significance tests and the effect size of the named (or best-ranked) candidate, and the
+    tie margins."""
     checks = [
         ("held-out RMSE ratio", ratio_text(crit.get("heldout_rmse_ratio")), f"< {fmt(th['heldout_ratio'])}",
          crit.get("heldout_rmse_ratio", float("nan")) < th["heldout_ratio"]),
@@ -204,8 +218,18 @@ def _criteria_text(eff: str, crit: Mapping, th: Mapping) -> str:
         ("p (nested F test)", p_text(crit.get("p_value")), f"< {fmt(th['p_value'])}",
          crit.get("p_value", float("nan")) < th["p_value"]),
     ]
+    size = crit.get("effect_size") or {}
+    if size:
+        checks.append((f"change of the prediction (on ≥ {th.get('effect_points', 3)} samples) [{unit}]",
+                       fmt(size.get("size", float("nan")) * f),
+                       f"> {fmt(size.get('floor', float('nan')) * f)} (the larger of {fmt(th.get('effect_noise'))} × "
+                       f"noise {fmt(size.get('noise', float('nan')) * f)} and {fmt(100 * th.get('effect_range', 0))} % "
+                       f"of the range {fmt(size.get('response_range', float('nan')) * f)})",
+                       bool(size.get("matters"))))
     who = f"`{eff}`" if eff != "none" else f"`{crit.get('effect', '–')}` (best-ranked)"
-    out = f"An effect is named only when its gain is significant on all three counts; for {who}:\n\n"
+    out = (f"An effect is named only when its gain is significant on all three statistical counts and it "
+           f"matters: the extended model must change the prediction by more than the noise and a physical "
+           f"floor somewhere on the data; for {who}:\n\n")
     out += _table(["criterion", "value", "required", "met"],
                   [[a, b, c, "yes" if d else "no"] for a, b, c, d in checks]) + "\n\n"
     return out + (f"ΔAIC = {delta_text(crit.get('delta_aic'))} is reported for comparison; it does not decide. "
@@ -219,11 +243,13 @@ def _verdict_section(diag: Mapping) -> str:
     th = diag.get("thresholds") or {}
     ranking = diag.get("ranking") or []
     if eff != "none":
-        out, crit = _named_text(diag), diag.get("gain") or {}
+        row = next((r for r in ranking if r["effect"] == diag.get("lead")), {})
+        out, crit = _named_text(diag), {**(diag.get("gain") or {}), "effect_size": row.get("effect_size")}
     else:
         out, crit = _none_text(diag), (ranking[0] if ranking else {})
     out = "## The effect\n\n" + out
-    return out + _criteria_text(eff, crit, th) if th and crit else out
+    _, unit, f = response_channel(diag)
+    return out + _criteria_text(eff, crit, th, unit, f) if th and crit else out
 
 
 def _params_section(diag: Mapping) -> str:
@@ -246,6 +272,14 @@ def _params_section(diag: Mapping) -> str:
     return out
 
 
+def _change_text(r: Mapping, f: float) -> str:
+    """A ranking row's effect size against its floor."""
+    es = r.get("effect_size") or {}
+    if not es:
+        return "–"
+    return f"{fmt(es.get('size', float('nan')) * f)} ({fmt(es.get('floor', float('nan')) * f)})"
+
+
 def _ranking_section(diag: Mapping) -> str:
     resp, unit, f = response_channel(diag)
     rows = []
@@ -257,15 +291,20 @@ def _ranking_section(diag: Mapping) -> str:
                      "yes" if r.get("significant") else "no", r.get("k", "–"),
                      fmt(r.get("rmse", float("nan")) * f), fmt(r.get("heldout_rmse", float("nan")) * f),
                      ratio_text(r.get("rmse_ratio")), ratio_text(r.get("heldout_rmse_ratio")),
-                     delta_text(r.get("delta_aic")), delta_text(r.get("delta_bic")), p_text(r.get("p_value")), ptxt])
+                     delta_text(r.get("delta_aic")), delta_text(r.get("delta_bic")), p_text(r.get("p_value")), ptxt,
+                     _change_text(r, f)])
     out = "## Ranking\n\n"
     out += ("Every candidate fitted as the baseline plus that one effect, best first (significant candidates "
             "first, then by held-out RMSE). Ratios and differences are against the baseline "
             f"(RMSE {fmt((diag.get('baseline') or {}).get('rmse', float('nan')) * f)} {unit}, held-out "
             f"{fmt((diag.get('baseline') or {}).get('heldout_rmse', float('nan')) * f)} {unit}); "
-            "k counts the fitted parameters; ★ marks the named effect.\n\n")
+            "k counts the fitted parameters; ★ marks the named effect. The change of the prediction is how "
+            "much the candidate moves the prediction away from the baseline's (on at least "
+            f"{(diag.get('thresholds') or {}).get('effect_points', 3)} samples), against the floor it must exceed "
+            "to matter.\n\n")
     out += _table(["#", "candidate", "significant", "k", f"RMSE [{unit}]", f"held-out RMSE [{unit}]",
-                   "RMSE ratio", "held-out ratio", "ΔAIC", "ΔBIC", "p", "effect parameters"], rows) + "\n"
+                   "RMSE ratio", "held-out ratio", "ΔAIC", "ΔBIC", "p", "effect parameters",
+                   f"change of the prediction [{unit}] (floor)"], rows) + "\n"
     return out
 
 
@@ -372,6 +411,15 @@ def _ties_section(diag: Mapping) -> str:
                 f"{delta_text(r.get('delta_bic'))}): {t['separating_test']}.")
         if t.get("reason", "").startswith("cannot tell"):
             out += f" {t['reason'][0].upper()}{t['reason'][1:]}."
+        g = (diag.get("group") or {}).get(t["effect"]) or {}
+        if g.get("mapped_from"):
+            own = g.get("own") or {}
+            _, unit, f = response_channel(diag)
+            out += (f" Scored as one model with `{g['mapped_from']}`: its parameters are the ones of "
+                    f"`{g['mapped_from']}`'s better fit, mapped; in each held-out fold the refit with the lower "
+                    f"training cost counts for both (its own optimiser reached RMSE "
+                    f"{fmt(own.get('rmse', float('nan')) * f)} {unit}, held-out "
+                    f"{fmt(own.get('heldout_rmse', float('nan')) * f)} {unit}).")
         for name, reading in (t.get("readings") or {}).items():
             out += f"\n  - read as `{name}`: {reading}."
         out += "\n"
@@ -406,13 +454,25 @@ def _caveats_section(diag: Mapping) -> str:
             "independent of the held-out points: the held-out error is, if anything, optimistic, equally for "
             "every candidate.\n")
     if diag["data"].get("heldout", "").startswith("4 contiguous"):
-        out += ("- With one experiment, held-out blocks are stretches of the same test: a prediction into a "
+        out += ("- Held-out blocks are stretches of the tests the fit saw the rest of: a prediction into a "
                 "stretch the fit did not see, not a new test.\n")
     out += ("- Every candidate is one effect added to the baseline; two effects at once are not fitted, and "
             "the named effect is the single one that explains most.\n")
     if structured and "extended" not in structured:
         out += "- The baseline's residuals were structured; the extension removed that structure.\n"
     return out
+
+
+def _warnings_section(diag: Mapping) -> str:
+    """What may be wrong with the input itself (e.g. a unit), before any result is read ('' when nothing)."""
+    ws = diag.get("warnings") or []
+    if not ws:
+        return ""
+    out = "## Warnings\n\n"
+    for w in ws:
+        out += f"- {w['message']}\n"
+    return out + ("\nThe fit adapts its bounds to the data, so it cannot notice a wrong unit: the results below are "
+                  "for the data as read.\n")
 
 
 def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) -> Path:
@@ -427,6 +487,7 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
              f"baseline spring–damper (eq. 1: stiffness c, damping d) and against the baseline plus each "
              f"candidate effect ({len(diag.get('ranking') or [])} candidates); the effect is named only when "
              f"its gain is significant.\n",
+             _warnings_section(diag),
              _data_section(diag, experiments), _verdict_section(diag), _params_section(diag),
              _ranking_section(diag), _residual_section(diag, experiments), _ties_section(diag),
              _caveats_section(diag)]
@@ -442,5 +503,5 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
         parts.append(fig_txt)
     parts.append("## Files\n\n- `diagnosis.json`: every number of this report\n- `figures/`: the figures above\n")
     path = out_dir / "report.md"
-    path.write_text("\n".join(p.rstrip() + "\n" for p in parts))
+    path.write_text("\n".join(p.rstrip() + "\n" for p in parts if p))
     return path

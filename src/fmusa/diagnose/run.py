@@ -20,15 +20,16 @@ from typing import Any, Sequence
 import numpy as np
 
 from fmusa.diagnose import residuals as rs
-from fmusa.diagnose.calibrate import Fit
+from fmusa.diagnose.calibrate import MIN_EXPERIMENTS_LEFT_OUT, Fit, unify_equivalent
 from fmusa.diagnose.effects import (CANDIDATES, UNITS, DiagnoseError, data_scales, equivalent_parameters,
                                     main_parameter, model_parameters)
 from fmusa.diagnose.fitcache import data_key, run_fits
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
-from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members, indistinguishable, nested_p_value,
-                                 protocol_features, rank_candidates)
+from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members,
+                                 indistinguishable, nested_p_value, protocol_features, rank_candidates)
+from fmusa.diagnose.units import check_units, model_scale
 
-__all__ = ["diagnose", "write_json", "run_diagnosis"]
+__all__ = ["diagnose", "response_range", "write_json", "run_diagnosis"]
 
 
 def _check_input(experiments: Sequence, drive: str, candidates: Sequence[str], interface: ModelInterface) -> None:
@@ -54,9 +55,18 @@ def _structure(fit: Fit, experiments: Sequence, drive: str) -> dict:
 
 def _fit_summary(f: Fit) -> dict:
     """A fit as diagnosis.json states it (no predictions)."""
-    return {"params": dict(f.params), "ci95": {k: list(v) for k, v in f.ci95.items()},
-            "units": {k: UNITS.get(k, "") for k in f.params}, "rmse": f.rmse, "heldout_rmse": f.heldout_rmse,
-            "aic": f.aic, "bic": f.bic, "k": f.k, "n": f.n}
+    out = {"params": dict(f.params), "ci95": {k: list(v) for k, v in f.ci95.items()},
+           "units": {k: UNITS.get(k, "") for k in f.params}, "rmse": f.rmse, "heldout_rmse": f.heldout_rmse,
+           "aic": f.aic, "bic": f.bic, "k": f.k, "n": f.n}
+    if f.mapped_from:
+        out.update(mapped_from=f.mapped_from, own=f.own)
+    return out
+
+
+def response_range(experiments: Sequence) -> float:
+    """The range of the measured response over all experiments (the scale of the physical floor)."""
+    r = np.concatenate([np.asarray(e.response_signal, float) for e in experiments])
+    return float(np.max(r) - np.min(r))
 
 
 def _data_summary(experiments: Sequence, drive: str) -> dict:
@@ -65,8 +75,10 @@ def _data_summary(experiments: Sequence, drive: str) -> dict:
             "experiments": [{"name": e.name, "points": len(e.t), "duration_s": float(e.t[-1] - e.t[0])}
                             for e in experiments],
             "points": int(sum(len(e.t) for e in experiments)),
-            "heldout": "whole experiments (leave one out)" if len(experiments) > 1
-                       else "4 contiguous blocks in time (leave one out)"}
+            "heldout": "whole experiments (leave one out)" if len(experiments) >= MIN_EXPERIMENTS_LEFT_OUT
+                       else "4 contiguous blocks in time (leave one out)" if len(experiments) == 1
+                       else f"4 contiguous blocks in time of each of the {len(experiments)} experiments (leave one "
+                            f"out: every training set keeps all experiments)"}
 
 
 def _gain(base: Fit, ext: Fit, effect: str) -> dict:
@@ -78,7 +90,8 @@ def _gain(base: Fit, ext: Fit, effect: str) -> dict:
 
 def _thresholds(th: Thresholds) -> dict:
     return {"delta_bic": th.delta_bic, "heldout_ratio": th.heldout_ratio, "p_value": th.p_value,
-            "tie_bic": th.tie_bic, "tie_heldout": th.tie_heldout}
+            "tie_bic": th.tie_bic, "tie_heldout": th.tie_heldout, "effect_noise": th.effect_noise,
+            "effect_range": th.effect_range, "effect_points": th.effect_points}
 
 
 def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | None = None,
@@ -97,6 +110,10 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     sc = data_scales(experiments)
     if not Path(fmu).exists():
         raise DiagnoseError(f"FMU not found: {fmu}; build it with `make fmu` or pass --fmu")
+    units = check_units(experiments, model_scale(fmu, interface))
+    if progress:   # before the fits, which take minutes: a wrong unit is worth stopping for
+        for w in units["warnings"]:
+            print(f"warning: {w['message']}", flush=True)
     jobs = [(fmu, name, drive, list(experiments), max_starts, interface) for name in ("none", *candidates)]
     workers = workers or min(len(jobs), os.cpu_count() or 1)
     key = data_key(experiments, drive, max_starts, fmu, interface)
@@ -104,18 +121,24 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     base = results["none"]
     if not isinstance(base, Fit):
         raise FMURunError(f"the baseline could not be fitted: {base}")
-    fits = {n: r for n, r in results.items() if n != "none" and isinstance(r, Fit)}
-    ranking = rank_candidates(base, fits, thresholds)
+    # the same equations under two parametrisations are scored as one model
+    fits = unify_equivalent({n: r for n, r in results.items() if n != "none" and isinstance(r, Fit)})
+    ranking = rank_candidates(base, fits, thresholds, response_range(experiments))
     effect, ties = choose_effect(ranking, thresholds, fits)
     members = group_members(effect)
-    # a group "a ≡ b" reports the parameters of its best-ranked member
+    # a group "a ≡ b" reports the parameters of its best-ranked member; of members that are the same
+    # equations, the one whose own fit the others were mapped from
     lead = next((r["effect"] for r in ranking if r["effect"] in members), members[0])
+    if lead in fits and fits[lead].mapped_from in members:
+        lead = fits[lead].mapped_from
     ext = fits[lead] if effect != "none" else base
     res_base, res_ext = _structure(base, experiments, drive), _structure(ext, experiments, drive)
     features = protocol_features(experiments)
     eff_names = [p.name for p in model_parameters(lead, drive, sc)][2:] if effect != "none" else []
     group = {m: {"params": dict(fits[m].params), "main_parameter": main_parameter(m, drive),
-                 "from_lead": equivalent_parameters(lead, ext.params, m) if m != lead else None}
+                 "from_lead": equivalent_parameters(lead, ext.params, m) if m != lead else None,
+                 **({"mapped_from": fits[m].mapped_from} if fits[m].mapped_from else {}),
+                 **({"own": fits[m].own} if fits[m].own else {})}
              for m in members if m in fits} if len(members) > 1 else {}
     return {
         "effect": effect,
@@ -135,6 +158,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "leftover": res_ext.get("description", "") if res_ext.get("structured") else "",
         "data": _data_summary(experiments, drive),
         "thresholds": _thresholds(thresholds),
+        "units": units,
+        "warnings": [dict(w) for w in units["warnings"]],
         "_fits": {"none": base, **fits, **({effect: ext} if len(members) > 1 else {})},
     }
 

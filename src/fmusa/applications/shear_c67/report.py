@@ -201,6 +201,10 @@ def _units_heading(k: int | None) -> list[str]:
         return ["## What the tool finds per specimen and direction (one test per unit)\n",
                 "Held-out score: 4 contiguous blocks in time of each test, each predicted by the model fitted "
                 "to the rest.\n"]
+    if k == 2:   # diagnose keeps both rates in every training set (calibrate.heldout_masks)
+        return ["## What the tool finds per specimen and direction (two rates fitted jointly)\n",
+                "Held-out score: 4 contiguous blocks in time of both tests, each predicted by the model fitted "
+                "to the rest of both.\n"]
     return [f"## What the tool finds per specimen and direction ({_word(k)} rates fitted jointly)\n",
             f"Held-out score: each rate predicted by the model fitted to the other {_word(k - 1)}.\n"]
 
