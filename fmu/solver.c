@@ -934,7 +934,10 @@ static void hom_zeros(const Osc *o, double x1, double x2, double h, double *s0, 
         while (base > PIECE_PI) base -= PIECE_PI;
         *s0 = base / o->mu;
         *p = PIECE_PI / o->mu;
-        if (*s0 < h) *n = (long)floor((h - *s0) / *p) + 1;
+        if (*s0 < h) {   /* capped: a long is 32 bits on Windows, and callers compare with far smaller caps */
+            double c = floor((h - *s0) / *p) + 1.0;
+            *n = c > 1e9 ? 1000000000L : (long)c;
+        }
         while (*n > 0 && *s0 + (*n - 1) * *p >= h) (*n)--;
         return;
     }
@@ -994,6 +997,11 @@ static long v_roots(const Osc *o, const Fn *v, double h, double *roots, long cap
     long m;
     hom_zeros(o, a.x1, a.x2, h, &s0, &p, &m);
     double amp = o->under ? hypot(v->x1, (v->x2 - o->sigma * v->x1) / o->mu) : INFINITY;
+    if (o->under && m > 2 * cap) {   /* more intervals above |B| than roots allowed: say so before solving any */
+        double B = fabs(v->a);
+        double s_stop = amp <= B ? 0.0 : o->sigma < 0.0 ? log(B / amp) / o->sigma : h;
+        if (fmin(s_stop, h) > s0 + 2.0 * cap * p) return -1;
+    }
     double l = 0.0, vl = fn_val(o, v, 0.0);
     for (long j = 0; j <= m; j++) {
         if (o->under && amp * exp(o->sigma * l) < fabs(v->a)) break;   /* v keeps the sign of B */
@@ -1055,12 +1063,37 @@ static double last_exceed(const Osc *o, const Fn *f, double eps, double h)
     return -1.0;
 }
 
+/* The monitors of a piece (piece_monitors) on top of the solver's so far. */
+typedef struct { double pos_max, vel_max, pint, vint, t_eq; } PieceMonitors;
+
+/* A piece under constant forcing whose damped oscillation rings for more than PIECE_MAX_ROOTS half-periods (a
+ * stiff element held after a ramp: c = 1e16 N/m rings at 1 GHz for microseconds, a piece lasts seconds): v is
+ * homogeneous, its zeros are s0 + j p, and y at them departs from its centre y_c by d0 (-r)^j, r = e^(sigma p),
+ * exactly. The extrema are the first two, and the integral of |v|, the sum of |dy| between them, is a
+ * geometric series. Adds both to m; 0 when the piece is not of that kind. */
+static int ringing_extrema(const Osc *o, const Fn *Y, const Fn *V, double h, double y0, double yH,
+                           PieceMonitors *m)
+{
+    if (V->a != 0.0 || V->b != 0.0 || Y->b != 0.0 || !o->under || !(o->sigma < 0.0)) return 0;
+    double s0, p;
+    long count;
+    hom_zeros(o, V->x1, V->x2, h, &s0, &p, &count);
+    if (count < 2) return 0;
+    double md = floor((h - s0) / p) + 1.0;        /* the count, beyond what a long holds */
+    while (md > 1.0 && s0 + (md - 1.0) * p >= h) md -= 1.0;
+    double yc = Y->a, y1 = fn_val(o, Y, s0), d0 = y1 - yc, sp = o->sigma * p, r = exp(sp);
+    double decay = exp(sp * (md - 1.0));                                   /* r^(md - 1) */
+    double sum = fabs(d0) * (1.0 + r) * (-expm1(sp * (md - 1.0))) / (-expm1(sp));
+    double y_last = yc + d0 * decay * (fmod(md - 1.0, 2.0) == 0.0 ? 1.0 : -1.0);
+    m->pos_max = fmax(m->pos_max, fmax(fabs(y1), fabs(yc - r * d0)));
+    m->vint += fabs(y1 - y0) + sum + fabs(yH - y_last);
+    return 1;
+}
+
 /* The monitors of the (position, velocity) block over a piece of length h from the closed form of P, on top of
  * the solver's monitors so far: the extrema of y at the roots of v, max |v| at the zeros of a, the integrals
  * of y (yint) and |v|, and the start of the rest. (yH, vH, aH) is the piece's end. Returns 0, or -1 when the
  * piece would need more than PIECE_MAX_ROOTS roots (nothing is written then). */
-typedef struct { double pos_max, vel_max, pint, vint, t_eq; } PieceMonitors;
-
 static int piece_monitors(const Solver *s, const Piece *P, double h, double yH, double vH, double aH, double yint,
                           PieceMonitors *out)
 {
@@ -1073,11 +1106,11 @@ static int piece_monitors(const Solver *s, const Piece *P, double h, double yH, 
     Fn Y = {y0 - q1, B, q1, q2, 0, P}, Vf = {B, 0.0, h1, h2, 1, P}, Af = fn_der(&o, &Vf);
     double roots[PIECE_MAX_ROOTS];
     long nr = v_roots(&o, &Vf, h, roots, PIECE_MAX_ROOTS);
-    if (nr < 0) return -1;
     PieceMonitors m = {s->pos_max, s->vel_max, 0.0, 0.0, s->t_eq};
+    m.pos_max = fmax(m.pos_max, fmax(fabs(y0), fabs(yH)));
+    if (nr < 0 && !ringing_extrema(&o, &Y, &Vf, h, y0, yH, &m)) return -1;
     /* y at the roots of v: its extrema; the integral of |v| is the sum of |dy| between them */
     double yl = y0;
-    m.pos_max = fmax(m.pos_max, fmax(fabs(y0), fabs(yH)));
     for (long j = 0; j <= nr; j++) {
         double sr = j < nr ? roots[j] : h, yr = j < nr ? fn_val(&o, &Y, sr) : yH;
         m.pos_max = fmax(m.pos_max, fabs(yr));
@@ -1154,6 +1187,7 @@ int solver_init(Solver *s, double t0, const double *u0, char *msg, size_t msglen
     memcpy(s->u, u0, sizeof(double) * s->n);
     for (int i = 0; i < s->n; i++) s->umax[i] = fabs(u0[i]);
     s->n_steps = s->n_rejected = s->n_rhs = 0;
+    s->fast_off_until = -INFINITY;
     for (int i = 0; i < s->n; i++) s->bal_d[i] = 1.0;
     if (s->h <= 0.0) s->h = 1e-6;
     if (eval_real(s, t0, u0, F, msg, msglen)) return 1;
@@ -1404,7 +1438,12 @@ static int fast_step(Solver *s, Linearization *L, double t_end, double bp, Budge
             double vscale = fmax(fmax(s->vel_max, s->eps_v), fmax(fabs(v0), fabs(v1)));
             rd = fmax(fabs(yH - y1) / (rtol_d * pscale), fabs(vH - v1) / (rtol_d * vscale));
             if (!(rd <= 1.0)) rd = isfinite(rd) ? rd : 1e30;
-            else if (piece_monitors(s, &P, h, yH, vH, aH, yint, &mon)) rd = 8.0;   /* too many roots: halve */
+            else if (piece_monitors(s, &P, h, yH, vH, aH, yint, &mon)) {
+                /* too many roots (a ringing the closed form cannot enumerate): the dense stepper takes the rest
+                 * of this load piece */
+                s->fast_off_until = bp > t ? bp : t_end;
+                return -1;
+            }
         }
         double fac_d = rd > 0.0 ? 0.9 * pow(rd, -1.0 / 3.0) : 10.0;
         double fac = fmin(fmin(fac_e, fac_d), 10.0);
@@ -1480,7 +1519,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             if (r == 0) continue;
             if (skipped > t && linearize(s, t, s->u, &L, msg, msglen)) return 1;
         }
-        if (s->lin2 || !s->monitors) {   /* no dense samples needed: see fast_step */
+        if ((s->lin2 || !s->monitors) && !(t < s->fast_off_until)) {   /* no dense samples needed: fast_step */
             int r = fast_step(s, &L, t_end, bp, &budget, &reuse, msg, msglen);
             if (r > 0) return 1;
             if (r == 0) continue;

@@ -52,6 +52,7 @@ typedef struct {
     double J_prev[SOLVER_NMAX * SOLVER_NMAX];
     int z_valid;
     double bal_d[SOLVER_NMAX];   /* the balancing of the last Jacobian, by state: the next one's first guess */
+    double fast_off_until;       /* the steps without dense samples are not tried before this time */
     long n_steps, n_rejected, n_rhs;
     solver_rhs_fn rhs;
     solver_columns_fn columns;   /* may be NULL */

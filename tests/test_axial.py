@@ -153,7 +153,10 @@ def test_axial_worst_errors_are_kept():
 
 
 LONG_CASES = [("optimum", 823224.0, 488.0), ("grid-c25^7-d25^2", 25.0**7, 25.0**2),
-              ("grid-c25^4-d25^3", 25.0**4, 25.0**3)]
+              ("grid-c25^4-d25^3", 25.0**4, 25.0**3),
+              # far past the paper's range: the hold rings at 1e9-1e11 rad/s for 1e9-1e11 half-periods, taken in
+              # closed form (once: 20 s for one doStep and a velocity peak 4000x too high at c = 1e20)
+              ("stiff-c1e16", 1e16, 488.0), ("stiff-c1e20", 1e20, 488.0)]
 
 
 @pytest.mark.parametrize("name,c,d", LONG_CASES, ids=[c[0] for c in LONG_CASES])

@@ -324,6 +324,48 @@ execution: {workers: 1, timeout_s: 1}
 """
 
 
+@pytest.mark.parametrize("params,inputs", [
+    ({"c_y": 1e28, "d_y": 488}, {}),                                   # the axial pullout, 12 s: 9 s once
+    ({"c_y": 1e40, "d_y": 488}, {}),                                   # more than 300 s once
+    ({"c_y": 1e40, "F_max": 411, "t_ramp": 0.05, "rI_y": -0.009}, {"F_ext_x": 20.0}),   # 6-DOF, stiff axis
+    ({"c_x": 1e40, "rI_y": -0.009}, {"F_ext_x": 20.0}),                # 6-DOF, stiff lateral element
+    ({"c_y": 1e300, "d_y": 488}, {}),                                  # beyond what doubles can integrate
+])
+def test_the_fmu_never_spins_on_extreme_stiffness(fmu_path, params, inputs):
+    """What once made one fmi2DoStep spin for minutes either finishes within seconds or ends in a clear error."""
+    from fmusa.fmi.info import FMURunError
+    from fmusa.fmi.runner import FMURunner
+
+    stop = 12.0 if not inputs else 0.1
+    with FMURunner(fmu_path) as fmu:
+        t0 = time.monotonic()
+        try:
+            out = fmu.run_final(params, stop_time=stop, inputs=inputs, outputs=["y_max", "n_steps"])
+            assert out["n_steps"] < 1e6
+        except FMURunError as exc:
+            assert "not finite" in str(exc) or "work budget" in str(exc), str(exc)
+        assert time.monotonic() - t0 < 10.0
+
+
+def test_the_fmus_step_budget_ends_a_run_with_the_reason(fmu_path):
+    """max_steps: a run that needs more internal steps than allowed stops with fmi2Error naming the budget."""
+    from fmusa.fmi.info import FMURunError
+    from fmusa.fmi.runner import FMURunner
+
+    with FMURunner(fmu_path) as fmu:
+        params = {"F_max": 411, "t_ramp": 0.05, "h_max": 1e-6, "max_steps": 1000}
+        t0 = time.monotonic()
+        with pytest.raises(FMURunError, match=r"work budget used up: 1000 internal steps \(max_steps\) took the "
+                                              r"solution only from t = 0 to [0-9.e-]+ s of the step to 0\.1 s "
+                                              r".*raise max_steps"):
+            fmu.run_final(params, stop_time=0.1, inputs={"F_ext_x": 20.0}, outputs=["y_max"])
+        assert time.monotonic() - t0 < 5.0
+        # the same run within its budget
+        ok = fmu.run_final({**params, "max_steps": 200000}, stop_time=0.1, inputs={"F_ext_x": 20.0},
+                           outputs=["y_max", "n_steps"])
+        assert 1e5 <= ok["n_steps"] <= 200000
+
+
 def _read_runs(out: Path):
     import pandas as pd
     return pd.read_csv(out / "runs.csv", keep_default_na=False, na_values=[""]).set_index("h")
