@@ -48,10 +48,9 @@ H_VALUES = (1e-9, 1e-4, 1.0, 12.0)
 
 # ---------------------------------------------------------------------------------------------- the library
 
-@pytest.fixture(scope="module")
-def libsolver(tmp_path_factory):
+def _build(tmp_path_factory, *flags: str):
     out = tmp_path_factory.mktemp("libsolver") / "libsolver.so"
-    subprocess.run(["gcc", "-std=c99", "-O2", "-fPIC", "-shared", "-I", str(ROOT / "fmu"), "-o", str(out),
+    subprocess.run(["gcc", "-std=c99", "-O2", "-fPIC", "-shared", *flags, "-I", str(ROOT / "fmu"), "-o", str(out),
                     str(SOLVER_C), "-lm"], check=True)
     lib = ctypes.CDLL(str(out))
     dp = ctypes.POINTER(ctypes.c_double)
@@ -62,12 +61,25 @@ def libsolver(tmp_path_factory):
     return lib
 
 
-@pytest.fixture(scope="module", params=["matrix", "ladder"])
-def solver_phi(request, libsolver):
+@pytest.fixture(scope="module")
+def libsolver(tmp_path_factory):
+    """solver.c as the FMU builds it: on x86-64 Linux its matrix kernels in an AVX/FMA clone chosen at load."""
+    return _build(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def libsolver_baseline(tmp_path_factory):
+    """The same without the clones: the baseline code every x86-64 machine runs (and win64, macOS)."""
+    return _build(tmp_path_factory, "-DSOLVER_NO_CLONES")
+
+
+@pytest.fixture(scope="module", params=["matrix", "ladder", "ladder-baseline"])
+def solver_phi(request, libsolver, libsolver_baseline):
     """phi_0..3(A) as the solver computes them: "matrix" doubles all four matrices (solver_phi, the steps
     with dense samples); "ladder" applies the squaring ladder to vectors (solver_phi_apply, the steps
-    without), here to every unit vector, so that the same criteria judge its columns."""
-    lib = libsolver
+    without), here to every unit vector, so that the same criteria judge its columns; "ladder-baseline" the
+    same with the kernels every x86-64 machine has (no AVX/FMA clone)."""
+    lib = libsolver_baseline if request.param == "ladder-baseline" else libsolver
     dp = ctypes.POINTER(ctypes.c_double)
 
     def phi(A: np.ndarray) -> list[np.ndarray]:
