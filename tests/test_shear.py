@@ -77,6 +77,51 @@ def test_through_the_unloaded_start_the_first_stiffness_is_off():
     assert abs(through[0] / 100.0 - 1) > 0.05
 
 
+def test_at_100_mm_s_the_damping_takes_the_first_phase_so_the_model_holds_it_at_0(fmu_path):
+    """Issue 11, item 2. At 100 mm/s the drive is still accelerating through the first phase (H1 and H3
+    anterior pass it at 0.43 and 0.49 of the record's mean rate), so a damping d_y fitted per test makes
+    d_y*v rise like a spring force and takes the first phase: c_y 14–15 N/mm against the authors' 94–102.
+    fmusa's two-phase model is compared with d_y held at 0; its k1 is then the continuous two-line least
+    squares through the unloaded start (recomputed here without the FMU) and near the authors' (measured
+    138.7 vs 102.2 and 95.8 vs 93.6 N/mm). At 10 mm/s the drive is steady and the damping takes nothing.
+    The report says so."""
+    from fmusa.applications.shear_c67.report import _bilinear_section
+    from fmusa.applications.shear_c67.study import summarize
+
+    tests = shear_c67.list_tests(SHEAR)
+    pick = tests[tests.specimen.isin(["H1", "H3"]) & (tests.direction == "Ant") & tests.rate_mm_s.isin([10.0, 100.0])]
+    assert len(pick) == 4
+    ours = fit_bilinear_per_test(pick, str(fmu_path), max_points=300)
+    cmp_ = ours.merge(shear_c67.authors_bilinear(SHEAR), on=["specimen", "direction", "rate_mm_s"])
+    for (_, r), (_, row) in zip(cmp_.iterrows(), pick.iterrows()):
+        exp = shear_c67.load_test(row, max_points=300)
+        u, f = 1000.0 * exp.displacement, exp.force          # anterior: loading is positive
+
+        def through(b: float) -> tuple[float, np.ndarray]:
+            X = np.c_[u, np.maximum(u - b, 0.0)]
+            beta, *_ = np.linalg.lstsq(X, f, rcond=None)
+            e = f - X @ beta
+            return float(e @ e), beta
+        b = min(np.linspace(0.02, 0.98, 961) * u.max(), key=lambda bb: through(bb)[0])
+        assert r.model_k1_N_mm == pytest.approx(through(b)[1][0], rel=0.02), r.to_dict()
+        if r.rate_mm_s == 100:
+            assert r.phase1_rate_ratio < 0.6, r.to_dict()
+            assert r.damped_share > 0.5 and r.damped_k1_N_mm < 0.25 * r.stiffness_1, r.to_dict()
+            assert r.damped_rmse_N < r.model_rmse_N                    # the least squares prefer it
+            assert abs(r.model_k1_N_mm / r.stiffness_1 - 1) < 0.4, r.to_dict()
+        else:
+            assert r.phase1_rate_ratio > 0.75, r.to_dict()
+            assert r.damped_share < 0.1, r.to_dict()
+            assert r.damped_k1_N_mm == pytest.approx(r.model_k1_N_mm, rel=0.05), r.to_dict()
+    text = "\n".join(_bilinear_section(summarize({}, cmp_, {}), cmp_))
+    assert "interface damping d_y held at 0" in text
+    assert ("At 100 mm/s the damping force d_y·v then carries more than half of the model's force at its "
+            "breakpoint in 2 of 2 tests") in text
+    assert "in those tests the drive is still accelerating through the first phase" in text
+    assert "At 10 mm/s the damping force" not in text
+    assert "| H1 Ant | 100 | tuning |" in text and "(k1 with d_y fitted)" in text
+
+
 def test_split_of_specimens_is_fixed():
     assert bilinear.TUNING == ("H1", "H2", "H3", "H10", "H11", "H12", "H13", "H14")
     assert bilinear.split(["H21", "H2", "H15", "H10"]) == {"tuning": ["H2", "H10"], "held_out": ["H21", "H15"]}

@@ -150,9 +150,12 @@ def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, floa
 
 
 def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence, sc: Scales,
-              max_starts: int = 6, max_nfev: int = 60) -> Fit:
-    """Multi-start bounded least squares of the response channel on all experiments jointly."""
-    params = model_parameters(effect, drive, sc)
+              max_starts: int = 6, max_nfev: int = 60, held: Sequence[str] = ()) -> Fit:
+    """Multi-start bounded least squares of the response channel on all experiments jointly.
+
+    ``held``: parameters of the model that are not fitted; ``model`` must have been built without them
+    (their values in its ``fixed``), and the fit's params, intervals and k leave them out."""
+    params = [p for p in model_parameters(effect, drive, sc) if p.name not in held]
     scale = _response_scale(drive, sc)
     masks = [np.ones(len(e.t), bool) for e in experiments]
     fn = _residual_fn(model, params, experiments, masks, scale)
