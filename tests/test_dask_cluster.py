@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from slow_study import SLOW as SLOW_STUDY
+
 pytest.importorskip("dask")
 distributed = pytest.importorskip("distributed")
 psutil = pytest.importorskip("psutil")
@@ -167,20 +169,9 @@ def test_the_paper_study_on_dask_gives_the_local_result(cluster, fmu, tmp_path):
     print(f"paper study on Dask: {b['runs']} runs in {wall:.1f} s")
 
 
-#: As in test_faults.py: h_max = 1e-9 s makes a run of minutes (~1e8 internal steps), h_max = 1e-5 s one of 0.1 s.
-SLOW = """\
-name: slow
-fmu: default
-parameters:
-  h: {variable: h_max, unit: s}
-fixed: {F_max: 411, t_ramp: 0.05, max_steps: 2000000000}
-scenario: {stop_time: 0.1, inputs: {F_ext_x: 20}}
-metrics:
-  max_y: {output: y_max, unit: m}
-stages:
-  grid: {values: {h: [1.0e-5, 1.0e-9, 2.0e-5, 2.0e-9]}}
-execution: {timeout_s: 1}
-"""
+#: The time-limit study of test_faults.py (slow_study.py) with two slow runs and two fast ones, on the
+#: cluster's workers.
+SLOW = SLOW_STUDY.replace("[1.0e-5, 1.0e-9]", "[1.0e-5, 1.0e-9, 2.0e-5, 2.0e-9]").replace("workers: 1, ", "")
 
 
 def test_on_dask_each_run_keeps_to_timeout_s(cluster, fmu, tmp_path):

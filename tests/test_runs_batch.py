@@ -191,6 +191,23 @@ def test_the_one_key_hash_is_the_batch_hash(tmp_path):
     store.close()
 
 
+def test_the_flags_of_one_run_are_the_table_s():
+    """A search's run gets its constraint flags in plain Python (constraint_holds), a grid's from the batch
+    table (constraint_table): the same verdict on values at, inside and outside the bounds, NaN and inf."""
+    from fmusa.runs.metrics import constraint_holds, constraint_table
+
+    C = SimpleNamespace
+    constraints = [C(name="hi", metric="m", max=1.0, min=None, required=False),
+                   C(name="lo", metric="m", max=None, min=-1.0, required=False),
+                   C(name="band", metric="m", max=1.0, min=-1.0, required=False),
+                   C(name="req", metric="m", max=None, min=None, required=True),
+                   C(name="free", metric="m", max=None, min=None, required=False)]
+    x = np.array([-np.inf, -2.0, -1.0, 0.0, 1.0, np.nextafter(1.0, 2.0), np.inf, np.nan])
+    table = constraint_table({"m": x}, constraints)
+    for c in constraints:
+        assert table[f"ok_{c.name}"].tolist() == [constraint_holds(c, v) for v in x.tolist()], c.name
+
+
 def test_reductions_over_a_batch_equal_those_run_by_run():
     from fmusa.runs.metrics import REDUCTIONS, MetricRule, reduce_batch, reduce_series
 

@@ -113,7 +113,6 @@ def _archive_names(path: Path) -> list[str]:
     here, when the FMU is first read, not halfway through a study."""
     if path.is_dir():
         return [p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file()]
-    import zipfile
     try:
         with zipfile.ZipFile(path) as zf:
             names = zf.namelist()
@@ -126,19 +125,21 @@ def _archive_names(path: Path) -> list[str]:
     return [n for n in names if not n.endswith("/")]
 
 
-def _root_attributes(path: Path) -> dict[str, str]:
+def _description_bytes(path: Path) -> bytes:
+    """The bytes of the FMU's modelDescription.xml (read once: the root check and the parse both use them)."""
+    try:
+        if path.is_dir():
+            return (path / "modelDescription.xml").read_bytes()
+        with zipfile.ZipFile(path) as zf:
+            return zf.read("modelDescription.xml")
+    except (OSError, KeyError):
+        raise FMUError(f"{path}: not an FMU (no modelDescription.xml)") from None
+
+
+def _root_attributes(path: Path, data: bytes) -> dict[str, str]:
     """Attributes of <fmiModelDescription> (fmiVersion, modelName…), read without fmpy, so that an
     FMI 1 or FMI 3 FMU is recognised before anything tries to parse it as FMI 2."""
     import xml.etree.ElementTree as ET
-    import zipfile
-    try:
-        if path.is_dir():
-            data = (path / "modelDescription.xml").read_bytes()
-        else:
-            with zipfile.ZipFile(path) as zf:
-                data = zf.read("modelDescription.xml")
-    except (OSError, KeyError):
-        raise FMUError(f"{path}: not an FMU (no modelDescription.xml)") from None
     try:
         root = ET.fromstring(data)
     except ET.ParseError as exc:
@@ -229,23 +230,13 @@ def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo
 _DESCRIPTIONS: dict[bytes, tuple] = {}
 
 
-def _description_bytes(path: Path) -> bytes | None:
-    try:
-        if path.is_dir():
-            return (path / "modelDescription.xml").read_bytes()
-        with zipfile.ZipFile(path) as zf:
-            return zf.read("modelDescription.xml")
-    except (OSError, KeyError, zipfile.BadZipFile):
-        return None      # fmpy says what is wrong
-
-
-def _parse_description(path: Path) -> tuple:
-    """(fmpy's model description of ``path``, the problems its validation found), parsed once per content."""
+def _parse_description(path: Path, raw: bytes) -> tuple:
+    """(fmpy's model description of ``path``, the problems its validation found), parsed once per content
+    ``raw`` (the bytes of its modelDescription.xml)."""
     import fmpy
 
-    raw = _description_bytes(path)
-    digest = hashlib.sha256(raw).digest() if raw is not None else None
-    if digest is not None and digest in _DESCRIPTIONS:
+    digest = hashlib.sha256(raw).digest()
+    if digest in _DESCRIPTIONS:
         return _DESCRIPTIONS[digest]
     warnings: list[str] = []
     try:
@@ -256,17 +247,17 @@ def _parse_description(path: Path) -> tuple:
         except Exception as exc2:
             raise FMUError(f"{path}: cannot read modelDescription.xml: {exc2}") from None
         warnings.append(f"fmpy's validation of modelDescription.xml failed: {str(exc).strip()}")
-    if digest is not None:
-        if len(_DESCRIPTIONS) >= 16:
-            _DESCRIPTIONS.pop(next(iter(_DESCRIPTIONS)))
-        _DESCRIPTIONS[digest] = (md, warnings)
+    if len(_DESCRIPTIONS) >= 16:
+        _DESCRIPTIONS.pop(next(iter(_DESCRIPTIONS)))
+    _DESCRIPTIONS[digest] = (md, warnings)
     return md, warnings
 
 
 def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
 
     names = _archive_names(path)
-    attrs = _root_attributes(path)
+    raw = _description_bytes(path)
+    attrs = _root_attributes(path, raw)
     version = attrs.get("fmiVersion", "?")
     model = attrs.get("modelName", path.stem)
     if require_fmi2 and version != "2.0":
@@ -276,7 +267,7 @@ def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
                        f"2.0 co-simulation or model exchange FMU"
                        + (" (FMI 1.0 FMUs cannot be converted)" if major == "1" else
                           " (most tools that export FMI 3.0 can also export FMI 2.0)" if major == "3" else ""))
-    md, warnings = _parse_description(path)
+    md, warnings = _parse_description(path, raw)
     interfaces = {}
     if getattr(md, "coSimulation", None) is not None:
         interfaces["co-simulation"] = md.coSimulation.modelIdentifier

@@ -283,7 +283,7 @@ def _dask_pool(spec: PlanSpec, timeout_s: float | None) -> WorkerPool:
         pool = _DASK_POOLS.pop(key, None)
         if pool is None:
             if spec not in _DASK_FMUS:
-                folder = str(extract_fmu(spec.fmu_path)) if Path(spec.fmu_path).is_file() else None
+                folder = str(extract_fmu(spec.fmu_path, to_run=True)) if Path(spec.fmu_path).is_file() else None
                 _DASK_FMUS[spec] = (spec if folder is None else replace(spec, fmu_path=folder), folder)
             pool = WorkerPool(_DASK_FMUS[spec][0], 1, timeout_s)
         _DASK_POOLS[key] = pool
