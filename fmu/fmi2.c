@@ -32,6 +32,9 @@ typedef struct {
     fmi2Boolean logging_on;
     double start_time, stop_time;
     fmi2Boolean stop_time_defined;
+    /* the experiment's tolerance (0: none), applied when initialisation ends, so that parameters set
+       before or after fmi2SetupExperiment (both are allowed) meet the same rule */
+    double tolerance;
     double last_successful_time;
 } Instance;
 
@@ -145,10 +148,7 @@ fmi2Status fmi2SetupExperiment(fmi2Component comp, fmi2Boolean toleranceDefined,
     if (!isfinite(startTime)) return fail(c, "fmi2SetupExperiment", "startTime is not finite");
     if (stopTimeDefined && !(stopTime >= startTime))
         return fail(c, "fmi2SetupExperiment", "stopTime is before startTime");
-    if (toleranceDefined && isfinite(tolerance) && tolerance > 0.0) {
-        /* the experiment tolerance tightens (never loosens) the solver tolerance */
-        if (tolerance < c->model.v[VR_rtol]) c->model.v[VR_rtol] = fmax(tolerance, 1e-14);
-    }
+    c->tolerance = (toleranceDefined && isfinite(tolerance) && tolerance > 0.0) ? tolerance : 0.0;
     c->start_time = startTime;
     c->stop_time = stopTime;
     c->stop_time_defined = stopTimeDefined;
@@ -168,6 +168,8 @@ fmi2Status fmi2ExitInitializationMode(fmi2Component comp)
     Instance *c = comp;
     char msg[512];
     if (!allowed(c, "fmi2ExitInitializationMode", ST_INIT)) return fmi2Error;
+    /* the experiment tolerance tightens (never loosens) the solver tolerance */
+    if (c->tolerance > 0.0 && c->tolerance < c->model.v[VR_rtol]) c->model.v[VR_rtol] = fmax(c->tolerance, 1e-14);
     if (model_validate(&c->model, msg, sizeof msg) ||
         model_initialize(&c->model, c->start_time, msg, sizeof msg)) {
         c->state = ST_ERROR;
@@ -195,6 +197,7 @@ fmi2Status fmi2Reset(fmi2Component comp)
     model_set_start_values(&c->model);
     c->state = ST_INSTANTIATED;
     c->stop_time_defined = fmi2False;
+    c->tolerance = 0.0;
     return fmi2OK;
 }
 

@@ -25,6 +25,12 @@ def _initialise(r: FMURunner, fixed_calls: list, vr_varied, val_varied, values: 
     """Set the prepared parameters and inputs of one run on a ready instance and initialise it (the part
     RunPlan and DrivenPlan share; the phases name where a failure happened)."""
     s = r.instance
+    # fmpy's order: the experiment first, then the values (some exports drop values set before it)
+    r.phase = "while setting up the experiment"
+    if r.setup_tolerance is None:
+        s.fmi2SetupExperiment(s.component, 0, 0.0, start, 1, stop)
+    else:
+        s.fmi2SetupExperiment(s.component, 1, r.setup_tolerance, start, 1, stop)
     r.phase = "while setting parameters"
     for fn, vr, val in fixed_calls:
         getattr(s, fn)(s.component, vr, len(vr), val)
@@ -35,10 +41,6 @@ def _initialise(r: FMURunner, fixed_calls: list, vr_varied, val_varied, values: 
     for fn, vr, val in input_calls:
         getattr(s, fn)(s.component, vr, len(vr), val)
     r.phase = "during initialisation"
-    if r.relative_tolerance is None:
-        s.fmi2SetupExperiment(s.component, 0, 0.0, start, 1, stop)
-    else:
-        s.fmi2SetupExperiment(s.component, 1, r.relative_tolerance, start, 1, stop)
     s.fmi2EnterInitializationMode(s.component)
     s.fmi2ExitInitializationMode(s.component)
 

@@ -1,9 +1,14 @@
 """Run FMI 2.0 FMUs: the one module of fmusa that talks to an FMU (through fmpy).
 
 An :class:`FMURunner` extracts the FMU once, instantiates it once and then runs it as often as
-needed: every run is ``reset`` → set parameters → ``setupExperiment`` → initialisation →
-``doStep`` … → read outputs. Reusing the instance avoids the unzip/load/instantiate cost that
-``fmpy.simulate_fmu`` pays on every call, which matters for studies of thousands of runs.
+needed, in fmpy's call order: ``setupExperiment`` (with the default experiment's tolerance unless one is
+given) → set parameters → initialisation → ``doStep`` … → read outputs. Between runs the instance is
+brought back to the state it had right after instantiation as :attr:`FMURunner.reuse` says: ``reset``
+(``fmi2Reset``), ``snapshot`` (``fmi2SetFMUstate`` to a state taken right after instantiation) or
+``fresh`` (a new instance, its library loaded anew, as ``fmpy.simulate_fmu`` makes every run). Which one
+an FMU needs is found by :mod:`fmusa.runs.preflight`, since real exports break ``fmi2Reset`` in many
+ways. Reusing the instance avoids the unzip/load/instantiate cost that ``fmpy.simulate_fmu`` pays on
+every call, which matters for studies of thousands of runs.
 
 Co-simulation FMUs integrate themselves. Model exchange FMUs are integrated by fmpy's solver (CVode or
 Euler, ``fmpy.simulate_fmu`` on the reused instance). What an FMU declares and the load-time checks are
@@ -47,6 +52,9 @@ from fmusa.fmi.info import (SOLVERS, FMUError, FMUNotFoundError, FMURunError, Va
 READABLE = ("output", "parameter", "calculatedParameter", "local", "input")
 
 _STATUS = ["OK", "Warning", "Discard", "Error", "Fatal", "Pending"]
+#: How a runner brings its instance back to the state right after instantiation between two runs.
+REUSE_MODES = ("reset", "snapshot", "fresh")
+
 #: The range of an fmi2Integer (a C int).
 INT_MIN, INT_MAX = -2**31, 2**31 - 1
 
@@ -89,13 +97,20 @@ class FMURunner:
         Model exchange only: fmpy's solver (``"CVode"``, the default, or ``"Euler"``), CVode's relative
         tolerance (default: the FMU's default experiment, else 1e-5) and the integration step (Euler's
         fixed step; for CVode the longest step). For a co-simulation FMU ``relative_tolerance`` is passed
-        to ``fmi2SetupExperiment``; ``solver`` and ``step_size`` are errors.
+        to ``fmi2SetupExperiment`` (default: the default experiment's tolerance, as fmpy does; undefined
+        when it declares none); ``solver`` and ``step_size`` are errors.
+    reuse:
+        How the instance returns to its state right after instantiation between runs (:data:`REUSE_MODES`).
     """
 
     def __init__(self, fmu_path: str | os.PathLike | None = None, instance_name: str = "fmusa",
                  debug_logging: Iterable[str] | None = None, *, interface: str = "auto",
                  solver: str | None = None, relative_tolerance: float | None = None,
-                 step_size: float | None = None) -> None:
+                 step_size: float | None = None, reuse: str = "reset") -> None:
+        if reuse not in REUSE_MODES:
+            raise UsageError(f"unknown reuse mode {reuse!r}; use one of {', '.join(REUSE_MODES)}")
+        self.reuse = reuse
+        self._snapshot = None
         self.fmu_path = Path(fmu_path) if fmu_path is not None else default_fmu_path()
         if not self.fmu_path.exists():
             raise FMUNotFoundError(f"FMU not found: {self.fmu_path}")
@@ -141,6 +156,10 @@ class FMURunner:
             raise
         md = self.model_description
         self.variables = {v.name: v for v in md.modelVariables}
+        #: the tolerance passed to fmi2SetupExperiment: the one asked for, else the default experiment's
+        self.setup_tolerance = self.relative_tolerance
+        if self.setup_tolerance is None:
+            self.setup_tolerance = experiment_tolerance(md)
         self.messages: deque[tuple[str, str, str]] = deque(maxlen=500)
         cats = [c.name for c in getattr(md, "logCategories", [])]
         if debug_logging is None:
@@ -177,9 +196,14 @@ class FMURunner:
 
         md = self.model_description
         cls = FMU2Model if self.is_model_exchange else FMU2Slave
-        slave = cls(guid=md.guid, unzipDirectory=str(self.unzipdir),
-                    modelIdentifier=self.info.interfaces[self.interface],
-                    instanceName=self.instance_name)
+        cwd = os.getcwd()
+        try:
+            slave = cls(guid=md.guid, unzipDirectory=str(self.unzipdir),
+                        modelIdentifier=self.info.interfaces[self.interface],
+                        instanceName=self.instance_name)
+        finally:   # fmpy changes into the binary's folder to load it and stays there when loading fails
+            if os.getcwd() != cwd:
+                os.chdir(cwd)
         callbacks = fmi2CallbackFunctions()
         # Keep references to the ctypes callbacks: they must outlive the instance.
         self._logger_cb = fmi2CallbackLoggerTYPE(self._log_message)
@@ -196,15 +220,23 @@ class FMURunner:
         self._instance = slave
         if self._debug_logging:
             slave.setDebugLogging(True, self._debug_logging)
+        if self.reuse == "snapshot":
+            self._snapshot = slave.getFMUstate()
         self._state = "instantiated"
 
     def _free(self) -> None:
         if self._instance is not None:
+            if self._snapshot is not None:
+                try:
+                    self._instance.freeFMUstate(self._snapshot)
+                except Exception:
+                    pass
             try:
                 self._instance.freeInstance()
             except Exception:
                 pass
         self._instance = None
+        self._snapshot = None
         self._state = "closed"
 
     def _log_message(self, env, instance_name, status, category, message) -> None:
@@ -391,15 +423,28 @@ class FMURunner:
         """Record that the current run ended normally (the next :meth:`ready` resets the instance)."""
         self._state = "done"
 
+    def restore(self) -> None:
+        """Bring the instance back to its state right after instantiation as :attr:`reuse` says
+        (``fmi2Reset``, ``fmi2SetFMUstate`` to the snapshot, or a new instance); the FMU's error is
+        raised, not hidden, so that :mod:`fmusa.runs.preflight` can tell a reset that fails."""
+        if self._instance is None or self.reuse == "fresh":
+            self._free()
+            self._instantiate()
+        elif self.reuse == "snapshot":
+            self._instance.setFMUstate(self._snapshot)
+        else:
+            self._instance.reset()
+        self._state = "instantiated"
+
     def ready(self) -> None:
-        """An instance in the instantiated state, for a new run: reset the last run's, or instantiate
-        afresh (after a fatal error)."""
+        """An instance in the state right after instantiation, for a new run: the last run's brought back
+        as :attr:`reuse` says, or a new one (after a fatal error, or when bringing it back fails)."""
         if self._instance is None:
             self._instantiate()
         elif self._state != "instantiated":
             try:
-                self._instance.reset()
-            except Exception:  # a failed instance that cannot be reset: start afresh
+                self.restore()
+            except Exception:  # a failed instance that cannot be brought back: start afresh
                 self._free()
                 self._instantiate()
         self._state = "running"
@@ -408,13 +453,14 @@ class FMURunner:
     def _start(self, params: Mapping[str, Value], stop_time: float,
                inputs: Mapping[str, float] | None) -> None:
         self.ready()
+        inst = self._instance
+        self.phase = "while setting up the experiment"
+        inst.setupExperiment(tolerance=self.setup_tolerance, startTime=0.0, stopTime=float(stop_time))
         self.phase = "while setting parameters"
         self._set(params, ("parameter",), "parameter")
         if inputs:
             self._set(inputs, ("input",), "input")
         self.phase = "during initialisation"
-        inst = self._instance
-        inst.setupExperiment(tolerance=self.relative_tolerance, startTime=0.0, stopTime=float(stop_time))
         inst.enterInitializationMode()
         inst.exitInitializationMode()
         self.phase = "after initialisation"
@@ -542,6 +588,19 @@ class FMURunner:
             raise self.fail(exc, params) from exc
         self._state = "done"
         return dict(zip(outputs, row))
+
+
+def experiment_tolerance(md) -> float | None:
+    """The default experiment's tolerance of model description ``md`` (what fmpy passes to
+    fmi2SetupExperiment when none is asked for), or None when it declares none or a value that is not a
+    positive number."""
+    exp = getattr(md, "defaultExperiment", None)
+    tol = getattr(exp, "tolerance", None) if exp is not None else None
+    try:
+        tol = float(tol) if tol is not None else None
+    except (TypeError, ValueError):
+        return None
+    return tol if tol is not None and math.isfinite(tol) and tol > 0 else None
 
 
 def _sample_at(res, times: np.ndarray, outputs: Sequence[str]) -> np.ndarray:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol, Sequence
 
@@ -28,7 +28,9 @@ from fmusa.files import writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
 from fmusa.pipeline.sampling_check import sampling_summary
-from fmusa.study.plan import check_fmu, grid_points, run_fingerprint, study_plan_spec
+from fmusa.pipeline.solver_check import implausible_runs, solver_summary
+from fmusa.study.plan import check_fmu, check_points, grid_points, run_fingerprint, study_plan_spec
+from fmusa.runs.preflight import preflight
 
 
 @dataclass
@@ -71,9 +73,15 @@ class StudyRunner:
             raise FMUCompileError(f"{study.path}: {exc}") from None
         self.params = list(study.parameters)
         self.metrics = list(study.metrics)
-        spec = self.spec = study_plan_spec(study, run_path)
+        spec = study_plan_spec(study, run_path)
         #: what besides the parameters decides a run: a resumed study reuses stored runs only while it holds
         self.fingerprint = run_fingerprint(study, fmu_path)
+        # the FMU loaded once, and how its runs must be made to equal runs on a fresh instance, before
+        # anything is written (a binary that cannot load stops the study here, nothing moved aside)
+        a, b = check_points(study, spec)
+        self.reuse = preflight(spec, a, b, isolate=study.fmu is not None, timeout_s=study.execution.timeout_s,
+                               digest=str(self.fingerprint.get("fmu")))
+        spec = self.spec = replace(spec, reuse=self.reuse.mode)
         # any FMU but our own runs in supervised workers: a crash or hang then costs one run
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
                                    scheduler=scheduler or study.execution.scheduler,
@@ -132,7 +140,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     out = writable_folder(out, "output folder (--out)")
     t0 = time.perf_counter()
     runner = StudyRunner(study, out, resume, workers, scheduler, progress)
-    summary: dict[str, Any] = {"study": study.name, "study_file": str(study.path)}
+    summary: dict[str, Any] = {"study": study.name, "study_file": str(study.path),
+                               "fmu_runs": runner.reuse.as_dict()}
     result = SweepResult(study, out, pd.DataFrame(), summary)
     try:
         stage_times: dict[str, float] = {}
@@ -204,6 +213,14 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         if sampling is not None:     # how the output sampling moves peaks and settling times
             summary["sampling"] = sampling
         runs = runner.store.frame()
+        if study.execution.check_fmu_steps:   # how the FMU's own integration moves the metrics
+            steps = solver_summary(study, runs, summary.get("optimum"), runner.evaluator.local_spec(),
+                                   isolate=runner.evaluator.isolate)
+            if steps is not None:
+                summary["fmu_steps"] = steps
+        implausible = implausible_runs(runs, runner.metrics)
+        if implausible:
+            summary["implausible"] = implausible
         result.runs = runs
         summary["runs"] = int(len(runs))
         summary["simulated_this_session"] = int(runner.simulated)

@@ -61,6 +61,11 @@ class Evaluator:
         self._local = self.spec if self._unzipdir is None else replace(self.spec, fmu_path=self._unzipdir)
         return self._local
 
+    def local_spec(self) -> PlanSpec:
+        """The spec on the FMU as unpacked here for this study (its ``fmu_path`` a folder): further runs
+        of the same FMU (another step, another interface) made from it need no unpacking of their own."""
+        return self._local_spec()
+
     def _in_process(self) -> tuple[PlanSpec, str | None] | None:
         """(the spec runs in this process are made with, the FMU parameter fmusa set in it to keep each run
         within ``timeout_s``, or None when the study sets it), or None when a run here could outlast

@@ -34,6 +34,12 @@ class PlanSpec:
     step_size: float | None = None
     # scenario.refine_peaks: peaks and settling times re-sampled this many times finer (fmusa.runs.refine)
     refine_factor: int | None = None
+    # how an instance returns to its state right after instantiation between runs (fmusa.runs.preflight
+    # finds which one the FMU needs): reset | snapshot | fresh
+    reuse: str = "reset"
+    # metrics from every ``subsample``-th communication point only (and the last): a run with a finer
+    # communication step read at the study's own sampling (fmusa.pipeline.solver_check)
+    subsample: int = 1
 
 
 @dataclass
@@ -54,7 +60,7 @@ def runner_for(spec: PlanSpec) -> FMURunner:
     """A new FMURunner on ``spec``'s FMU with the study's ``fmu_options``: for the runs a plan makes, and for
     runs outside the run store (a finer sampling, another scenario). Close it (or use ``with``)."""
     return FMURunner(spec.fmu_path, interface=spec.interface, solver=spec.solver,
-                     relative_tolerance=spec.relative_tolerance, step_size=spec.step_size)
+                     relative_tolerance=spec.relative_tolerance, step_size=spec.step_size, reuse=spec.reuse)
 
 
 #: The last spec plan_for was asked for and its plan: hashing a spec (every field) costs more than a cheap run.
@@ -204,6 +210,10 @@ def _run_rows(spec: PlanSpec, plan, ids, values, fmu, refine: bool, started, emi
 
     perf, mono = time.perf_counter, time.monotonic
     n = len(ids)
+    times, keep = plan.times, None
+    if spec.subsample > 1 and not refine:     # refined peaks do not depend on the sampling
+        keep = np.unique(np.r_[np.arange(0, len(times), spec.subsample), len(times) - 1])
+        times = times[keep]
     if refine:
         from fmusa.runs.refine import refine_run
     if timeout_s is not None:
@@ -225,6 +235,8 @@ def _run_rows(spec: PlanSpec, plan, ids, values, fmu, refine: bool, started, emi
                 plan.runner.deadline = mono() + timeout_s
             try:
                 data = plan(fmu[i])
+                if keep is not None:
+                    data = data[keep]
                 if refine:   # re-runs finer around the peaks: run by run, timed and supervised as the run;
                     # then ``datas`` holds the metrics of the runs rather than their outputs
                     datas.append(refine_run(spec, plan, fmu[i], data, reduce_series(plan.times, data, spec.rules)))
@@ -249,11 +261,11 @@ def _run_rows(spec: PlanSpec, plan, ids, values, fmu, refine: bool, started, emi
             if refine:      # the metrics themselves, already
                 metrics[okl] = datas
             elif len(datas) == 1:   # one run (a search's): the same values without numpy's cost per rule
-                metrics[okl] = reduce_series(plan.times, datas[0], spec.rules)
+                metrics[okl] = reduce_series(times, datas[0], spec.rules)
             elif len({d.shape for d in datas}) == 1:
-                metrics[okl] = reduce_batch(plan.times, np.stack(datas), spec.rules)
+                metrics[okl] = reduce_batch(times, np.stack(datas), spec.rules)
             else:  # pragma: no cover - a plan samples every run at the same times
-                metrics[okl] = [reduce_series(plan.times, d, spec.rules) for d in datas]
+                metrics[okl] = [reduce_series(times, d, spec.rules) for d in datas]
         batch = RunBatch(np.asarray(ids[lo:i], dtype=np.int64), values[lo:i], metrics, ok,
                          np.asarray(secs, dtype=float), msgs)
         if i >= n or emit is None:

@@ -814,14 +814,18 @@ def _parse_execution(p: _Parser, top: _Map) -> Execution:
     if node is None:
         return Execution()
     m = p.mapping(node, "execution", "execution")
-    m.allow(("workers", "scheduler", "timeout_s"))
+    m.allow(("workers", "scheduler", "timeout_s", "check_fmu_steps"))
     snode = m.opt("scheduler")
     scheduler = None if snode is None else p.string(snode, "scheduler", "execution",
                                                     "scheduler: tcp://127.0.0.1:8786")
+    cnode = m.opt("check_fmu_steps")
+    check_steps = True if cnode is None else p.boolean(cnode, "check_fmu_steps", "execution",
+                                                        "check_fmu_steps: false")
     return Execution(
         workers=m.int_("workers", None, "workers: 4  (or null for all cores)", minimum=1),
         scheduler=scheduler,
-        timeout_s=m.num("timeout_s", 60.0, "timeout_s: 60", positive=True))
+        timeout_s=m.num("timeout_s", 60.0, "timeout_s: 60", positive=True),
+        check_fmu_steps=check_steps)
 
 
 _INTERFACE_ALIASES = {"auto": "auto", "cosimulation": "co-simulation", "cs": "co-simulation",

@@ -71,6 +71,68 @@ def check_fmu(study: Study, fmu_path: Path) -> list[str]:
     for sp in (getattr(sens, "parameters", None) or {}).values():
         check(f"stages.sensitivity.parameters.{sp.name}.variable",
               f"sensitivity parameter '{sp.name}' (variable: {sp.variable})", sp.variable, "varied")
+    errors += ambiguity_problems(study, info)
+    return errors
+
+
+def _uses(study: Study) -> list[tuple[str, str, str, object]]:
+    """(study key, what, FMU variable, value) of every variable the study names; value ``None`` for one
+    the study varies or reads, the fixed value or input value otherwise."""
+    out: list[tuple[str, str, str, object]] = []
+    for p in study.parameters.values():
+        out.append((f"parameters.{p.name}.variable", f"study parameter '{p.name}'", p.variable, None))
+    sens = study.stages.get("sensitivity")
+    for sp in (getattr(sens, "parameters", None) or {}).values():
+        out.append((f"stages.sensitivity.parameters.{sp.name}.variable", f"sensitivity parameter '{sp.name}'",
+                    sp.variable, None))
+    for name, value in study.fixed.items():
+        out.append((f"fixed.{name}", f"fixed '{name}'", name, value))
+    for name, value in study.scenario.inputs.items():
+        out.append((f"scenario.inputs.{name}", f"scenario.inputs '{name}'", name, value))
+    for m in study.metrics.values():
+        out.append((f"metrics.{m.name}.output", f"metric '{m.name}'", m.output, "read"))
+    return out
+
+
+def ambiguity_problems(study: Study, info) -> list[str]:
+    """What in the FMU's model description makes the study ambiguous: a variable it names that the
+    description declares twice (a set or a read would reach only one of them), or two names it sets that
+    share a value reference (FMI 2.0 aliases: one value, so two different values cannot both hold)."""
+    errors: list[str] = []
+    by_name: dict[str, list] = {}
+    for v in info.variables:
+        by_name.setdefault(v.name, []).append(v)
+    uses = _uses(study)
+    seen: set[str] = set()
+    for key, what, name, _ in uses:
+        twins = by_name.get(name, [])
+        if len(twins) > 1 and name not in seen:
+            seen.add(name)
+            each = "; ".join(f"value reference {v.valueReference}, causality {v.causality}"
+                             + (f", {v.description!r}" if v.description else "") for v in twins)
+            errors.append(f"{study.line(key)}: {what}: the FMU declares {len(twins)} variables named {name!r} "
+                          f"({each}): fmusa cannot tell which one is meant, and a value set or read would "
+                          f"reach only one of them; ask the FMU's exporter for unique names")
+    setters: dict[tuple, list[tuple[str, str, str, object]]] = {}
+    for use in uses:
+        key, what, name, value = use
+        if isinstance(value, str) and value == "read":
+            continue
+        v = info.variable(name)
+        if v is None or len(by_name.get(name, [])) > 1:
+            continue
+        setters.setdefault((v.type, v.valueReference), []).append(use)
+    for (typ, vr), group in setters.items():
+        names = {u[2] for u in group}
+        if len(names) < 2:
+            continue
+        varied = [u for u in group if u[3] is None]
+        values = {repr(u[3]) for u in group if u[3] is not None}
+        if varied or len(values) > 1:
+            listed = " and ".join(f"{u[1]} ({u[2]}{'' if u[3] is None else f' = {u[3]!r}'})" for u in group)
+            errors.append(f"{study.line(group[0][0])}: {listed} are one FMU variable: they share value "
+                          f"reference {vr} ({typ}; FMI 2.0 aliases), so one value would silently override "
+                          f"the other; set only one of them")
     return errors
 
 
@@ -98,6 +160,29 @@ def study_plan_spec(study: Study, fmu_path: str | Path) -> PlanSpec:
         step_size=opts.step_size,
         refine_factor=study.scenario.refine_factor if study.scenario.refine_peaks else None,
     )
+
+
+def check_points(study: Study, spec: PlanSpec) -> tuple[list[float], list[float]]:
+    """Two points (FMU values of ``spec.varied``) for the FMU's reset check (:mod:`fmusa.runs.preflight`):
+    the grid's first and last points, as far apart as the study goes; without a grid, the study
+    parameters' start values, twice (the check then still finds a state that a reset does not restore)."""
+    scale, offset = np.asarray(spec.scale, dtype=float), np.asarray(spec.offset, dtype=float)
+    if "grid" in study.stages and study.parameters:
+        pts = grid_points(study)
+        names = list(study.parameters)
+        first = np.array([pts[0][n] for n in names]) * scale + offset
+        last = np.array([pts[-1][n] for n in names]) * scale + offset
+        return first.tolist(), last.tolist()
+    from fmusa.fmi.info import read_fmu_info
+    info = read_fmu_info(spec.fmu_path)
+    start = []
+    for name in spec.varied:
+        v = info.variable(name)
+        try:
+            start.append(float(v.start) if v is not None and v.start is not None else 0.0)
+        except (TypeError, ValueError):
+            start.append(0.0)
+    return start, start
 
 
 def grid_points(study: Study) -> list[dict[str, float]]:

@@ -277,10 +277,16 @@ class SensitivityStage:
 
 @dataclass(frozen=True)
 class Execution:
-    """Where the runs execute: local worker processes (None = all cores) or a Dask scheduler."""
+    """Where the runs execute: local worker processes (None = all cores) or a Dask scheduler.
+
+    ``check_fmu_steps``: after the stages, rerun a few points with the communication step halved, the
+    tolerance tightened tenfold and (where the FMU has it) through model exchange, and flag the metrics that
+    move by more than the study's tolerance (:mod:`fmusa.pipeline.solver_check`); false skips those runs.
+    """
     workers: int | None = None
     scheduler: str | None = None
     timeout_s: float = 60.0
+    check_fmu_steps: bool = True
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,364 @@
+"""Before a study's first run: the FMU loads, and a run on a reused instance equals a run on a fresh one.
+
+fmusa reuses one FMU instance per worker, so every run but a worker's first starts from what the instance
+was brought back to. Real exports get that wrong in many ways: after ``fmi2Reset`` a Dymola 2022x FMU
+restarts its state at 0 instead of its start value, a 20-sim 4.6 FMU outputs zeros, an Amesim 15 FMU
+returns fmi2Error. Every run would then be ``ok`` and wrong, and the answer would change with the number
+of workers. So, before the first batch, :func:`check_reuse` runs point A on a fresh instance, then point
+B and point A again on the same instance, brought back between runs by ``fmi2Reset``; every output the
+metrics read must be identical. Where it is not (or the reset fails), the same is tried with a state
+snapshot taken right after instantiation (``fmi2SetFMUstate``, where the FMU can get and set its state),
+and else every run gets a new instance (its library loaded anew, as ``fmpy.simulate_fmu`` does). If even
+that does not reproduce the fresh run, the FMU's runs depend on something fmusa cannot reset, and the
+study is refused.
+
+The check also loads the FMU once before anything is written: a binary that cannot load (a missing
+library or symbol, the wrong platform) stops the study at once with the loader's reason and the fix
+(:class:`FMULoadError`). An FMU other than our own is checked in a child process, so that a crash costs
+the check, not the study. Verdicts are cached per FMU digest and run set-up (:func:`cache_dir`).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+import sys
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from fmusa.errors import FmusaError
+from fmusa.fmi.info import FMUError, read_fmu_info, select_interface
+from fmusa.runs.spec import PlanSpec, runner_for
+
+#: Environment variable naming the folder of fmusa's caches (default: the platform's user cache folder).
+ENV_CACHE = "FMUSA_CACHE_DIR"
+#: Bumped when the check changes what it decides, so that older cached verdicts are not used.
+_CHECK_VERSION = 1
+
+
+class FMULoadError(FmusaError, RuntimeError):
+    """The FMU's binary cannot be loaded or instantiated on this machine (a missing library or symbol, the
+    wrong platform, an instantiation the FMU refuses); the message holds the loader's reason and the fix."""
+
+    exit_code = 1
+
+
+class FMUReuseError(FmusaError, RuntimeError):
+    """Runs of the FMU are not reproducible even on a new instance with its library loaded anew: its
+    results depend on something fmusa cannot reset (state kept in its process, a nondeterministic
+    solver), so no run of it could be trusted."""
+
+    exit_code = 1
+
+
+@dataclass
+class ReuseVerdict:
+    """How the study's runs are made (``mode``: reset | snapshot | fresh), why, and what it costs."""
+    mode: str
+    why: str
+    #: one entry per way tried: mode, whether it reproduced the fresh run, what differed, its cost
+    tried: list[dict] = field(default_factory=list)
+    #: wall time of bringing the instance back before a run in the chosen mode, in ms (None: not measured)
+    restore_ms: float | None = None
+    #: the check's own wall time, in s (0 when the verdict came from the cache)
+    check_s: float = 0.0
+    cached: bool = False
+    #: where the check ran: "this process" or "a child process"
+    where: str = "this process"
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+# ------------------------------------------------------------------------------------------ loading
+def load_problem(fmu: str, exc: BaseException) -> str:
+    """The loader's reason why ``fmu`` cannot be loaded or instantiated here, with the fix."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    lib = re.search(r"([\w.+-]+\.(?:so(?:\.\d+)*|dll|dylib)): cannot open shared object file", text)
+    if lib:
+        fix = (f"the binary needs the library {lib.group(1)}, which this machine does not have: install it "
+               f"(on Debian/Ubuntu: apt-file search {lib.group(1)} names the package), or re-export the FMU "
+               f"with its runtime linked statically or with its C sources, which fmusa can build")
+    elif "undefined symbol" in text:
+        fix = ("the binary needs a symbol that no loaded library provides: re-export the FMU against this "
+               "platform's libraries, or with its C sources")
+    elif re.search(r"wrong ELF class|invalid ELF header|not a valid Win32|mach-o", text, re.I):
+        fix = "the binary is for another platform: re-export the FMU for this one, or with its C sources"
+    elif "instantiate" in text.lower():
+        fix = ("fmi2Instantiate failed: the FMU's log above says why (a licence, a resource file, a GUID "
+               "that does not match its model description)")
+    else:
+        fix = "check that the FMU was exported for this platform, or re-export it with its C sources"
+    return f"{fmu}: the FMU cannot be loaded on this machine: {text}. Fix: {fix}"
+
+
+# ------------------------------------------------------------------------------------------ the check
+def _difference(first: np.ndarray, again: np.ndarray, outputs: Sequence[str], times: np.ndarray) -> str:
+    """Where run ``again`` differs most from run ``first`` (the same point), in words."""
+    if first.shape != again.shape:
+        return f"the runs have {len(first)} and {len(again)} samples"
+    diff = np.abs(first - again)
+    diff[np.isnan(first) & np.isnan(again)] = 0.0
+    diff[np.isnan(diff)] = np.inf
+    i, j = np.unravel_index(int(np.argmax(diff)), diff.shape)
+    return (f"{outputs[j]} = {first[i, j]:.10g} on a fresh instance, {again[i, j]:.10g} on the reused one "
+            f"(t = {times[i]:.6g} s)")
+
+
+def _run_sequence(spec: PlanSpec, mode: str, a: Sequence[float], b: Sequence[float]) -> dict:
+    """Point ``a`` on a fresh instance, then ``b`` and ``a`` again on the same instance brought back by
+    ``mode``; the entry of :attr:`ReuseVerdict.tried` (with the two runs of ``a`` under private keys)."""
+    from fmusa.fmi.plans import RunPlan
+
+    entry: dict = {"mode": mode, "reproduced": False, "detail": "", "restore_ms": None}
+    try:
+        runner = runner_for(replace(spec, reuse=mode))
+    except Exception as exc:        # fmpy raises a plain Exception for a library that does not load
+        if isinstance(exc, FmusaError) and not isinstance(exc, FMUError):
+            raise
+        if mode == "reset":
+            raise FMULoadError(load_problem(spec.fmu_path, exc)) from None
+        entry["detail"] = f"could not be instantiated: {' '.join(str(exc).split())[:300]}"
+        return entry
+    try:
+        plan = RunPlan(runner, spec.varied, dict(spec.fixed), spec.outputs, spec.stop_time, spec.step,
+                       dict(spec.inputs))
+        try:
+            first = plan(a)
+        except Exception as exc:
+            entry["detail"] = f"the first run failed on a fresh instance: {' '.join(str(exc).split())[:300]}"
+            entry["first_failed"] = True
+            return entry
+        costs = []
+        for point in (b, a):
+            t0 = time.perf_counter()
+            try:
+                runner.restore()
+            except Exception as exc:
+                entry["detail"] = (f"bringing the instance back failed ({mode}): "
+                                   f"{' '.join(str(exc).split())[:300]}")
+                return entry
+            costs.append(time.perf_counter() - t0)
+            try:
+                again = plan(point)
+            except Exception as exc:
+                if point is a:
+                    entry["detail"] = (f"the run that worked on a fresh instance failed on the reused one: "
+                                       f"{' '.join(str(exc).split())[:300]}")
+                    return entry
+        entry["restore_ms"] = 1e3 * min(costs)
+        if np.array_equal(first, again, equal_nan=True):
+            entry["reproduced"] = True
+            entry["detail"] = "every output equal at every sample"
+        else:
+            entry["detail"] = _difference(first, again, list(spec.outputs), plan.times)
+        entry["_first"] = first
+        return entry
+    finally:
+        runner.close()
+
+
+def _can_snapshot(spec: PlanSpec) -> bool:
+    try:
+        info = read_fmu_info(spec.fmu_path)
+        iface = select_interface(info, spec.interface)
+    except FmusaError:
+        return False
+    md = info.model_description
+    part = md.coSimulation if iface == "co-simulation" else md.modelExchange
+    return bool(getattr(part, "canGetAndSetFMUstate", False))
+
+
+def check_reuse(spec: PlanSpec, a: Sequence[float], b: Sequence[float]) -> ReuseVerdict:
+    """The way runs of ``spec`` must be made so that each equals a run on a fresh instance, found by running
+    point ``a`` fresh, then ``b`` and ``a`` again on the same instance (FMU values of ``spec.varied``), in
+    this process. Raises :class:`FMULoadError` when the FMU cannot be loaded, :class:`FMUReuseError` when
+    not even a new instance reproduces a fresh run."""
+    t0 = time.perf_counter()
+    a, b = [float(x) for x in a], [float(x) for x in b]
+    tried = []
+    reset = _run_sequence(spec, "reset", a, b)
+    tried.append(reset)
+    if reset.get("first_failed") and b != a:      # point a does not run: check with b first instead
+        reset = _run_sequence(spec, "reset", b, a)
+        tried.append(reset)
+    if reset.get("first_failed"):
+        return _verdict("fresh", "the check's points fail on a fresh instance too, so the reset could not "
+                        "be checked; every run gets a new instance (always right, costs an instantiation)",
+                        tried, None, t0)
+    if reset["reproduced"]:
+        return _verdict("reset", "fmi2Reset restores the state of a fresh instance: the rerun of the first "
+                        "point after another point equals its run on a fresh instance", tried,
+                        reset["restore_ms"], t0)
+    first_a, second = (a, b) if reset is tried[0] else (b, a)
+    problem = f"after fmi2Reset {reset['detail']}"
+    if _can_snapshot(spec):
+        snap = _run_sequence(spec, "snapshot", first_a, second)
+        tried.append(snap)
+        if snap["reproduced"]:
+            return _verdict("snapshot", f"{problem}; a state snapshot taken right after instantiation "
+                            f"(fmi2SetFMUstate) restores it", tried, snap["restore_ms"], t0)
+        problem += f"; fmi2SetFMUstate to a snapshot: {snap['detail']}"
+    fresh = _run_sequence(spec, "fresh", first_a, second)
+    tried.append(fresh)
+    if not fresh["reproduced"]:
+        raise FMUReuseError(
+            f"{spec.fmu_path}: runs of this FMU are not reproducible: {problem}; and even on a new instance, "
+            f"its library loaded anew, {fresh['detail']}. Its results depend on something fmusa cannot reset "
+            f"(state kept in its process, a nondeterministic solver): ask its exporter, or run each point in "
+            f"a process of its own")
+    if "_first" in reset and "_first" in fresh and not np.array_equal(reset["_first"], fresh["_first"],
+                                                                      equal_nan=True):
+        raise FMUReuseError(f"{spec.fmu_path}: two fresh instances of this FMU give different results for "
+                            f"the same point: its results depend on something fmusa cannot reset")
+    return _verdict("fresh", f"{problem}; every run gets a new instance", tried, fresh["restore_ms"], t0)
+
+
+def _verdict(mode: str, why: str, tried: list[dict], restore_ms: float | None, t0: float) -> ReuseVerdict:
+    public = [{k: v for k, v in e.items() if not k.startswith("_") and k != "first_failed"} for e in tried]
+    return ReuseVerdict(mode, why, public, restore_ms, time.perf_counter() - t0)
+
+
+# ------------------------------------------------------------------------------------------ isolated
+def _child(conn, spec: PlanSpec, a, b) -> None:
+    try:
+        conn.send(("ok", check_reuse(spec, a, b)))
+    except FmusaError as exc:
+        conn.send(("error", type(exc).__name__, str(exc)))
+    except BaseException as exc:     # noqa: BLE001 - anything else is reported, not lost
+        conn.send(("bug", type(exc).__name__, str(exc)))
+    finally:
+        conn.close()
+
+
+def check_reuse_isolated(spec: PlanSpec, a: Sequence[float], b: Sequence[float],
+                         timeout_s: float | None) -> ReuseVerdict:
+    """:func:`check_reuse` in a child process: an FMU that crashes or hangs costs the check, not the study.
+    A check that crashes or outlasts its limit gives ``fresh`` (always right) and says why."""
+    import multiprocessing as mp
+
+    method = os.environ.get("FMUSA_START_METHOD") or None
+    ctx = mp.get_context(method)
+    t0 = time.perf_counter()
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(send, spec, list(a), list(b)), name="fmusa-preflight", daemon=True)
+    proc.start()
+    send.close()
+    limit = 10.0 * timeout_s + 30.0 if timeout_s else 600.0
+    try:
+        if recv.poll(limit):
+            try:
+                msg = recv.recv()
+            except EOFError:
+                msg = None
+        else:
+            msg = "timeout"
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        proc.join(5)
+        recv.close()
+    if isinstance(msg, tuple) and msg[0] == "ok":
+        verdict = msg[1]
+        verdict.where = "a child process"
+        return verdict
+    if isinstance(msg, tuple) and msg[0] == "error":
+        cls = {"FMULoadError": FMULoadError, "FMUReuseError": FMUReuseError}.get(msg[1], FMULoadError)
+        raise cls(msg[2])
+    if isinstance(msg, tuple):
+        raise RuntimeError(f"the reset check failed in its process: {msg[1]}: {msg[2]}")
+    if msg == "timeout":
+        why = f"the reset check did not finish within {limit:g} s"
+    else:
+        code = proc.exitcode
+        why = f"the FMU crashed during the reset check (its process exited with code {code})"
+    return ReuseVerdict("fresh", f"{why}; every run gets a new instance (always right, costs an instantiation)",
+                        [], None, time.perf_counter() - t0, where="a child process")
+
+
+# ------------------------------------------------------------------------------------------ cache
+def cache_dir() -> Path:
+    """fmusa's cache folder: ``$FMUSA_CACHE_DIR``, else the platform's user cache folder."""
+    env = os.environ.get(ENV_CACHE)
+    if env:
+        return Path(env).expanduser()
+    if sys.platform == "win32":
+        base = Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local")
+        return base / "fmusa" / "cache"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Caches" / "fmusa"
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fmusa"
+
+
+def _cache_key(spec: PlanSpec, digest: str, a, b) -> str:
+    what = [_CHECK_VERSION, digest, spec.interface, spec.solver, spec.relative_tolerance, spec.step_size,
+            list(spec.varied), [[k, repr(v)] for k, v in spec.fixed], [[k, repr(v)] for k, v in spec.inputs],
+            list(spec.outputs), spec.stop_time, spec.step, [repr(float(x)) for x in a],
+            [repr(float(x)) for x in b]]
+    return hashlib.sha256(json.dumps(what).encode("utf-8")).hexdigest()[:32]
+
+
+_MEMORY: dict[tuple[str, str], ReuseVerdict] = {}
+
+
+def _read_cached(key: str) -> ReuseVerdict | None:
+    folder = cache_dir()
+    if (str(folder), key) in _MEMORY:
+        return _MEMORY[str(folder), key]
+    path = folder / f"reuse-{key}.json"
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        verdict = ReuseVerdict(**data)
+    except (OSError, ValueError, TypeError):
+        return None
+    if verdict.mode not in ("reset", "snapshot", "fresh"):
+        return None
+    _MEMORY[str(folder), key] = verdict
+    return verdict
+
+
+def _write_cached(key: str, verdict: ReuseVerdict) -> None:
+    folder = cache_dir()
+    _MEMORY[str(folder), key] = verdict
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = folder / f".reuse-{key}.{os.getpid()}.tmp"
+        tmp.write_text(json.dumps(verdict.as_dict()), encoding="utf-8")
+        os.replace(tmp, folder / f"reuse-{key}.json")
+    except OSError:     # a cache that cannot be written costs the check next time, nothing else
+        pass
+
+
+def preflight(spec: PlanSpec, a: Sequence[float], b: Sequence[float], *, isolate: bool,
+              timeout_s: float | None = None, digest: str | None = None, cache: bool = True) -> ReuseVerdict:
+    """Load the FMU and find how its runs must be made (:func:`check_reuse`), in a child process when
+    ``isolate`` (an FMU not our own), the verdict cached under the FMU's ``digest`` and the run set-up."""
+    key = _cache_key(spec, digest, a, b) if (cache and digest) else None
+    if key is not None:
+        hit = _read_cached(key)
+        if hit is not None:
+            _confirm_loads(spec, isolate)
+            return replace(hit, cached=True, check_s=0.0)
+    verdict = check_reuse_isolated(spec, a, b, timeout_s) if isolate else check_reuse(spec, a, b)
+    if key is not None and math.isfinite(verdict.check_s) and verdict.tried:
+        _write_cached(key, verdict)
+    return verdict
+
+
+def _confirm_loads(spec: PlanSpec, isolate: bool) -> None:
+    """A cached verdict still needs our FMU to load here; an FMU not our own is not loaded in this process
+    (its workers say why, run by run; a cached verdict was made by a binary that loaded)."""
+    if isolate:
+        return
+    try:
+        runner_for(spec).close()
+    except Exception as exc:
+        if isinstance(exc, FmusaError) and not isinstance(exc, FMUError):
+            raise
+        raise FMULoadError(load_problem(spec.fmu_path, exc)) from None
