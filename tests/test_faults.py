@@ -237,7 +237,11 @@ def test_two_studies_cannot_write_the_same_runs_file(tmp_path):
     RunStore(out / "runs.csv", ["c"], ["max_y"], resume=True).close()     # free again once closed
 
 
-def test_an_fmu_whose_binary_does_not_load_fails_its_runs_with_the_cause(tmp_path):
+def test_an_fmu_whose_binary_does_not_load_stops_the_study_before_any_run(tmp_path):
+    """Issue 17: the FMU is loaded once before the first batch; a binary that cannot load stops the study
+    at once with the loader's reason and the fix, and no runs.csv is written."""
+    from fmusa.runs.preflight import FMULoadError
+
     bad = tmp_path / "Short.fmu"
     with zipfile.ZipFile(default_fmu_path()) as zin, zipfile.ZipFile(bad, "w") as zout:
         for info in zin.infolist():
@@ -245,14 +249,10 @@ def test_an_fmu_whose_binary_does_not_load_fails_its_runs_with_the_cause(tmp_pat
             zout.writestr(info.filename, data[:100] if info.filename.endswith(".so") else data)
     text = SMALL.replace("fmu: default", f"fmu: {bad}") + "  roi: {}\n  search: {inner: c}\n"
     study = parse_study(text, tmp_path / "s.yaml")
-    with pytest.raises(StudyError, match=r"all 2 grid runs failed, so there is no region of interest; the first "
-                                         r"says: the FMU could not be loaded or instantiated: .*ScrewVertebra.so"):
+    with pytest.raises(FMULoadError, match=r"Short.fmu: the FMU cannot be loaded on this machine: .*ScrewVertebra.so"
+                                           r".*Fix: the binary is damaged"):
         run_study(study, tmp_path / "out", figures=False, progress=False)
-    import pandas as pd
-    runs = pd.read_csv(tmp_path / "out" / "runs.csv")
-    assert (runs["status"] == "failed").all() and len(runs) == 2
-    assert runs["message"].str.contains("could not be loaded or instantiated").all()
-    assert not runs["message"].str.contains("worker exited").any()
+    assert not (tmp_path / "out" / "runs.csv").exists()
 
 
 def _paper_text() -> str:

@@ -182,6 +182,11 @@ class FMURunner:
         return self.interface == "model-exchange"
 
     @property
+    def is_fresh(self) -> bool:
+        """Whether the instance is as instantiated, no run made on it yet."""
+        return self._instance is not None and self._state == "instantiated"
+
+    @property
     def instance(self):
         """The fmpy instance (``FMU2Slave`` for co-simulation, ``FMU2Model`` for model exchange) that
         :class:`~fmusa.fmi.plans.RunPlan` calls through ctypes; None after :meth:`close` or a fatal error

@@ -144,23 +144,26 @@ def implausible_runs(runs: pd.DataFrame, metrics: list[str], decades: float = 6.
     """Successful runs whose value of a metric lies orders of magnitude beyond the rest (an FMU whose solver
     blew up reports a travel of 1e23 mm as ``ok``): more than ``decades`` decades above the upper quartile
     of that metric's magnitudes, with the interquartile spread of the magnitudes added, so that a metric
-    that spans decades over the grid by design (y = F/c) is not flagged."""
+    that spans decades over the grid by design (y = F/c) is not flagged. An infinite value is flagged too."""
     if not len(runs) or "status" not in runs:
         return []
     ok = runs[runs["status"] == "ok"]
+    ids = ok["run_id"].to_numpy() if "run_id" in ok else ok.index.to_numpy()
     out = []
     for m in metrics:
         if m not in ok:
             continue
-        x = np.abs(ok[m].to_numpy(dtype=float))
+        v = ok[m].to_numpy(dtype=float)
+        x = np.abs(v)
         good = x[np.isfinite(x) & (x > 0)]
         if len(good) < 4:
             continue
         lg = np.log10(good)
         q1, q3 = np.percentile(lg, [25, 75])
         limit = q3 + (q3 - q1) + decades
-        for idx, value in zip(ok.index, ok[m].to_numpy(dtype=float)):
-            if math.isinf(value) or (math.isfinite(value) and value != 0 and math.log10(abs(value)) > limit):
-                out.append({"run": int(ok.loc[idx, "run_id"]) if "run_id" in ok else int(idx), "metric": m,
-                            "value": value, "typical_upper": float(10 ** q3), "limit": float(10 ** limit)})
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bad = np.isinf(v) | (np.isfinite(v) & (x > 0) & (np.log10(np.where(x > 0, x, 1.0)) > limit))
+        for k in np.flatnonzero(bad):
+            out.append({"run": int(ids[k]), "metric": m, "value": float(v[k]), "typical_upper": float(10 ** q3),
+                        "limit": float(10 ** limit)})
     return out

@@ -76,18 +76,19 @@ class StudyRunner:
         spec = study_plan_spec(study, run_path)
         #: what besides the parameters decides a run: a resumed study reuses stored runs only while it holds
         self.fingerprint = run_fingerprint(study, fmu_path)
-        # the FMU loaded once, and how its runs must be made to equal runs on a fresh instance, before
-        # anything is written (a binary that cannot load stops the study here, nothing moved aside)
-        a, b = check_points(study, spec)
-        self.reuse = preflight(spec, a, b, isolate=study.fmu is not None, timeout_s=study.execution.timeout_s,
-                               digest=str(self.fingerprint.get("fmu")))
-        spec = self.spec = replace(spec, reuse=self.reuse.mode)
         # any FMU but our own runs in supervised workers: a crash or hang then costs one run
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
                                    scheduler=scheduler or study.execution.scheduler,
                                    isolate=study.fmu is not None, timeout_s=study.execution.timeout_s)
         try:   # a scheduler that cannot be reached fails here, before an earlier runs.csv is moved aside
             self.evaluator.connect()
+            # the FMU loaded once, and how its runs must be made to equal runs on a fresh instance, before
+            # anything is written (a binary that cannot load stops the study here, nothing moved aside)
+            a, b = check_points(study, spec)
+            self.reuse = preflight(self.evaluator.check_spec(), a, b, isolate=self.evaluator.supervised_only,
+                                   timeout_s=study.execution.timeout_s, digest=str(self.fingerprint.get("fmu")))
+            self.evaluator.set_reuse(self.reuse.mode)
+            self.spec = replace(spec, reuse=self.reuse.mode)
             self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
                                   fingerprint=self.fingerprint)
         except BaseException:
@@ -156,6 +157,12 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                 runner.defaults = dict(pts[0])
                 runner.evaluate(pts, "grid")
                 grid_df = runner.store.frame("grid")
+                # values orders of magnitude beyond the rest (a solver that blew up) are not results: the
+                # region of interest is found without them (summary["implausible"] lists them)
+                bad = {i["run"] for i in implausible_runs(grid_df, runner.metrics)}
+                if bad:
+                    grid_df = grid_df.copy()
+                    grid_df.loc[grid_df["run_id"].isin(bad), "status"] = "implausible"
                 summary["grid"] = {"points": len(pts), "axes": {k: [float(x) for x in v]
                                                                 for k, v in stage.points().items()},
                                    **grid_findings(grid_df, _grid_axes(study), list(study.metrics))}
@@ -213,10 +220,15 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         if sampling is not None:     # how the output sampling moves peaks and settling times
             summary["sampling"] = sampling
         runs = runner.store.frame()
-        if study.execution.check_fmu_steps:   # how the FMU's own integration moves the metrics
+        check_steps = study.execution.check_fmu_steps
+        if check_steps is None:       # auto: every FMU but our own (its tests hold its solver to closed forms)
+            check_steps = runner.evaluator.isolate
+        if check_steps:               # how the FMU's own integration moves the metrics
+            ts = time.perf_counter()
             steps = solver_summary(study, runs, summary.get("optimum"), runner.evaluator.local_spec(),
                                    isolate=runner.evaluator.isolate)
             if steps is not None:
+                steps["wall_s"] = time.perf_counter() - ts
                 summary["fmu_steps"] = steps
         implausible = implausible_runs(runs, runner.metrics)
         if implausible:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Sequence
 
 from fmusa.files import writable_folder
+from fmusa.report import fmu_sections
 from fmusa.report import sections as S
 from fmusa.report.context import ReportContext, ReportSection, Section
 from fmusa.report.study_figures import figures_section
@@ -29,6 +30,8 @@ GENERIC_SECTIONS: tuple[Section, ...] = (
     Section("results.regression", S.regression_section),
     Section("results.failed", S.failed_section),
     Section("sampling", S.sampling_section),
+    Section("fmu_runs", fmu_sections.fmu_runs_section),
+    Section("fmu_steps", fmu_sections.fmu_steps_section),
     Section("figures", figures_section),
     Section("sensitivity", S.sensitivity_section),
     Section("notes", S.notes_section),

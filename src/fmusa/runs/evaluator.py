@@ -66,6 +66,29 @@ class Evaluator:
         of the same FMU (another step, another interface) made from it need no unpacking of their own."""
         return self._local_spec()
 
+    def check_spec(self) -> PlanSpec:
+        """The spec the FMU's reset check (:mod:`fmusa.runs.preflight`) runs: the one runs in this process
+        are made with when there are such runs (the check's instance is then theirs), else the unpacked FMU's."""
+        here = None if self.isolate else self._in_process()
+        return here[0] if here else self._local_spec()
+
+    @property
+    def supervised_only(self) -> bool:
+        """Whether every run of this evaluator is made in supervised workers (an FMU not our own, or one that
+        cannot keep a run to ``timeout_s`` by itself): then anything else that runs the FMU must be
+        supervised too."""
+        return bool(self.isolate or self._in_process() is None)
+
+    def set_reuse(self, mode: str) -> None:
+        """Make every later run bring its instance back as ``mode`` says (the reset check's verdict)."""
+        if mode == self.spec.reuse:
+            return
+        self.spec = replace(self.spec, reuse=mode)
+        if self._local is not None:
+            self._local = replace(self._local, reuse=mode)
+        if isinstance(self._here, tuple):
+            self._here = (replace(self._here[0], reuse=mode), self._here[1])
+
     def _in_process(self) -> tuple[PlanSpec, str | None] | None:
         """(the spec runs in this process are made with, the FMU parameter fmusa set in it to keep each run
         within ``timeout_s``, or None when the study sets it), or None when a run here could outlast

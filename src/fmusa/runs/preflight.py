@@ -28,13 +28,13 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from fmusa.errors import FmusaError
 from fmusa.fmi.info import FMUError, read_fmu_info, select_interface
-from fmusa.runs.spec import PlanSpec, runner_for
+from fmusa.runs.spec import PlanSpec, plan_for, release_plan, runner_for
 
 #: Environment variable naming the folder of fmusa's caches (default: the platform's user cache folder).
 ENV_CACHE = "FMUSA_CACHE_DIR"
@@ -66,7 +66,7 @@ class ReuseVerdict:
     tried: list[dict] = field(default_factory=list)
     #: wall time of bringing the instance back before a run in the chosen mode, in ms (None: not measured)
     restore_ms: float | None = None
-    #: the check's own wall time, in s (0 when the verdict came from the cache)
+    #: the check's wall time, in s, with loading the FMU (which its runs here then use); 0 when cached
     check_s: float = 0.0
     cached: bool = False
     #: where the check ran: "this process" or "a child process"
@@ -88,6 +88,8 @@ def load_problem(fmu: str, exc: BaseException) -> str:
     elif "undefined symbol" in text:
         fix = ("the binary needs a symbol that no loaded library provides: re-export the FMU against this "
                "platform's libraries, or with its C sources")
+    elif re.search(r"file too short|cannot read file data|truncated", text, re.I):
+        fix = "the binary is damaged or truncated: export or download the FMU again"
     elif re.search(r"wrong ELF class|invalid ELF header|not a valid Win32|mach-o", text, re.I):
         fix = "the binary is for another platform: re-export the FMU for this one, or with its C sources"
     elif "instantiate" in text.lower():
@@ -111,12 +113,26 @@ def _difference(first: np.ndarray, again: np.ndarray, outputs: Sequence[str], ti
             f"(t = {times[i]:.6g} s)")
 
 
-def _run_sequence(spec: PlanSpec, mode: str, a: Sequence[float], b: Sequence[float]) -> dict:
+def _run_sequence(spec: PlanSpec, mode: str, a: Sequence[float], b: Sequence[float], shared: bool,
+                  budget: _Budget) -> dict:
     """Point ``a`` on a fresh instance, then ``b`` and ``a`` again on the same instance brought back by
-    ``mode``; the entry of :attr:`ReuseVerdict.tried` (with the two runs of ``a`` under private keys)."""
+    ``mode``; the entry of :attr:`ReuseVerdict.tried` (with the two runs of ``a`` under private keys).
+    ``shared``: the instance is this process's RunPlan for ``spec`` (:func:`~fmusa.runs.spec.plan_for`),
+    which the study's runs here then go on using, so the check costs its runs and nothing else."""
     from fmusa.fmi.plans import RunPlan
 
     entry: dict = {"mode": mode, "reproduced": False, "detail": "", "restore_ms": None}
+    if shared and mode == spec.reuse:
+        try:
+            plan = plan_for(spec)
+        except Exception as exc:
+            if isinstance(exc, FmusaError) and not isinstance(exc, FMUError):
+                raise
+            raise FMULoadError(load_problem(spec.fmu_path, exc)) from None
+        if plan.runner.is_fresh:
+            return _sequence(entry, plan, a, b, spec, mode, False, budget)
+        release_plan(spec)          # used before: the check needs a fresh instance
+        return _run_sequence(spec, mode, a, b, shared, budget)
     try:
         runner = runner_for(replace(spec, reuse=mode))
     except Exception as exc:        # fmpy raises a plain Exception for a library that does not load
@@ -129,13 +145,45 @@ def _run_sequence(spec: PlanSpec, mode: str, a: Sequence[float], b: Sequence[flo
     try:
         plan = RunPlan(runner, spec.varied, dict(spec.fixed), spec.outputs, spec.stop_time, spec.step,
                        dict(spec.inputs))
+    except BaseException:
+        runner.close()
+        raise
+    return _sequence(entry, plan, a, b, spec, mode, True, budget)
+
+
+@dataclass
+class _Budget:
+    """The time limit of each run of the check (the study's ``execution.timeout_s``), and a call made as each
+    run starts (a child process tells its parent, which stops it when a run outlasts the limit)."""
+    timeout_s: float | None = None
+    on_run: Callable[[], None] | None = None
+
+
+def _timed(plan, point, budget: _Budget):
+    """``plan(point)`` stopped at its first communication point past the limit (a single doStep is bounded
+    by the FMU's own budget, which the study's spec sets, or by the parent of the check's process)."""
+    if budget.on_run is not None:
+        budget.on_run()
+    if budget.timeout_s is None:
+        return plan(point)
+    plan.runner.deadline = time.monotonic() + budget.timeout_s
+    try:
+        return plan(point)
+    finally:
+        plan.runner.deadline = None
+
+
+def _sequence(entry: dict, plan, a, b, spec: PlanSpec, mode: str, close: bool, budget: _Budget) -> dict:
+    runner = plan.runner
+    try:
         try:
-            first = plan(a)
+            first = _timed(plan, a, budget)
         except Exception as exc:
             entry["detail"] = f"the first run failed on a fresh instance: {' '.join(str(exc).split())[:300]}"
             entry["first_failed"] = True
             return entry
         costs = []
+        t_runs = time.perf_counter()
         for point in (b, a):
             t0 = time.perf_counter()
             try:
@@ -146,13 +194,15 @@ def _run_sequence(spec: PlanSpec, mode: str, a: Sequence[float], b: Sequence[flo
                 return entry
             costs.append(time.perf_counter() - t0)
             try:
-                again = plan(point)
+                again = _timed(plan, point, budget)
             except Exception as exc:
                 if point is a:
                     entry["detail"] = (f"the run that worked on a fresh instance failed on the reused one: "
                                        f"{' '.join(str(exc).split())[:300]}")
                     return entry
         entry["restore_ms"] = 1e3 * min(costs)
+        # the check's own cost: the two runs after the first and bringing the instance back before each
+        entry["extra_ms"] = 1e3 * (time.perf_counter() - t_runs)
         if np.array_equal(first, again, equal_nan=True):
             entry["reproduced"] = True
             entry["detail"] = "every output equal at every sample"
@@ -161,7 +211,8 @@ def _run_sequence(spec: PlanSpec, mode: str, a: Sequence[float], b: Sequence[flo
         entry["_first"] = first
         return entry
     finally:
-        runner.close()
+        if close:
+            runner.close()
 
 
 def _can_snapshot(spec: PlanSpec) -> bool:
@@ -175,18 +226,21 @@ def _can_snapshot(spec: PlanSpec) -> bool:
     return bool(getattr(part, "canGetAndSetFMUstate", False))
 
 
-def check_reuse(spec: PlanSpec, a: Sequence[float], b: Sequence[float]) -> ReuseVerdict:
+def check_reuse(spec: PlanSpec, a: Sequence[float], b: Sequence[float], shared: bool = False,
+                timeout_s: float | None = None, on_run: Callable[[], None] | None = None) -> ReuseVerdict:
     """The way runs of ``spec`` must be made so that each equals a run on a fresh instance, found by running
     point ``a`` fresh, then ``b`` and ``a`` again on the same instance (FMU values of ``spec.varied``), in
     this process. Raises :class:`FMULoadError` when the FMU cannot be loaded, :class:`FMUReuseError` when
     not even a new instance reproduces a fresh run."""
     t0 = time.perf_counter()
     a, b = [float(x) for x in a], [float(x) for x in b]
+    budget = _Budget(timeout_s, on_run)
     tried = []
-    reset = _run_sequence(spec, "reset", a, b)
+    spec = replace(spec, reuse="reset")
+    reset = _run_sequence(spec, "reset", a, b, shared, budget)
     tried.append(reset)
     if reset.get("first_failed") and b != a:      # point a does not run: check with b first instead
-        reset = _run_sequence(spec, "reset", b, a)
+        reset = _run_sequence(spec, "reset", b, a, shared, budget)
         tried.append(reset)
     if reset.get("first_failed"):
         return _verdict("fresh", "the check's points fail on a fresh instance too, so the reset could not "
@@ -196,16 +250,18 @@ def check_reuse(spec: PlanSpec, a: Sequence[float], b: Sequence[float]) -> Reuse
         return _verdict("reset", "fmi2Reset restores the state of a fresh instance: the rerun of the first "
                         "point after another point equals its run on a fresh instance", tried,
                         reset["restore_ms"], t0)
+    if shared:
+        release_plan(spec)      # runs here will use another way: no instance left behind
     first_a, second = (a, b) if reset is tried[0] else (b, a)
     problem = f"after fmi2Reset {reset['detail']}"
     if _can_snapshot(spec):
-        snap = _run_sequence(spec, "snapshot", first_a, second)
+        snap = _run_sequence(spec, "snapshot", first_a, second, False, budget)
         tried.append(snap)
         if snap["reproduced"]:
             return _verdict("snapshot", f"{problem}; a state snapshot taken right after instantiation "
                             f"(fmi2SetFMUstate) restores it", tried, snap["restore_ms"], t0)
         problem += f"; fmi2SetFMUstate to a snapshot: {snap['detail']}"
-    fresh = _run_sequence(spec, "fresh", first_a, second)
+    fresh = _run_sequence(spec, "fresh", first_a, second, False, budget)
     tried.append(fresh)
     if not fresh["reproduced"]:
         raise FMUReuseError(
@@ -226,9 +282,9 @@ def _verdict(mode: str, why: str, tried: list[dict], restore_ms: float | None, t
 
 
 # ------------------------------------------------------------------------------------------ isolated
-def _child(conn, spec: PlanSpec, a, b) -> None:
+def _child(conn, spec: PlanSpec, a, b, timeout_s) -> None:
     try:
-        conn.send(("ok", check_reuse(spec, a, b)))
+        conn.send(("ok", check_reuse(spec, a, b, timeout_s=timeout_s, on_run=lambda: conn.send(("run",)))))
     except FmusaError as exc:
         conn.send(("error", type(exc).__name__, str(exc)))
     except BaseException as exc:     # noqa: BLE001 - anything else is reported, not lost
@@ -237,47 +293,72 @@ def _child(conn, spec: PlanSpec, a, b) -> None:
         conn.close()
 
 
-def check_reuse_isolated(spec: PlanSpec, a: Sequence[float], b: Sequence[float],
-                         timeout_s: float | None) -> ReuseVerdict:
-    """:func:`check_reuse` in a child process: an FMU that crashes or hangs costs the check, not the study.
-    A check that crashes or outlasts its limit gives ``fresh`` (always right) and says why."""
+def _isolated_once(spec: PlanSpec, a, b, timeout_s: float | None) -> tuple[object, int, float]:
+    """One run of :func:`check_reuse` in a child process: (what it sent last, or "timeout" or None for a
+    crash; how many of its runs had started; the limit in force when it stopped)."""
     import multiprocessing as mp
 
     method = os.environ.get("FMUSA_START_METHOD") or None
     ctx = mp.get_context(method)
-    t0 = time.perf_counter()
     recv, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(send, spec, list(a), list(b)), name="fmusa-preflight", daemon=True)
+    proc = ctx.Process(target=_child, args=(send, spec, list(a), list(b), timeout_s), name="fmusa-preflight",
+                       daemon=True)
     proc.start()
     send.close()
-    limit = 10.0 * timeout_s + 30.0 if timeout_s else 600.0
+    # the process's start and the FMU's loading, then each run within the study's limit of a run: a run
+    # that hangs in one doStep is stopped here, with the whole check
+    first_limit, run_limit = 60.0, (1.1 * timeout_s + 0.5 if timeout_s else 600.0)
+    msg, limit, started = None, first_limit, 0
     try:
-        if recv.poll(limit):
+        while True:
+            if not recv.poll(limit):
+                msg = "timeout"
+                break
             try:
                 msg = recv.recv()
             except EOFError:
                 msg = None
-        else:
-            msg = "timeout"
+                break
+            if msg != ("run",):
+                break
+            started += 1
+            limit = run_limit
     finally:
         if proc.is_alive():
             proc.kill()
         proc.join(5)
         recv.close()
+    if msg is None:
+        msg = ("crash", proc.exitcode)
+    return msg, started, limit
+
+
+def check_reuse_isolated(spec: PlanSpec, a: Sequence[float], b: Sequence[float],
+                         timeout_s: float | None) -> ReuseVerdict:
+    """:func:`check_reuse` in a child process: an FMU that crashes or hangs costs the check, not the study.
+    When one of the check's two points outlasts the time limit of a run, the check is made again with the
+    other point alone (its rerun after itself still shows a state the reset does not restore); a check that
+    crashes or hangs again gives ``fresh`` (always right) and says why."""
+    t0 = time.perf_counter()
+    msg, started, limit = _isolated_once(spec, a, b, timeout_s)
+    if msg == "timeout" and started in (1, 2) and list(a) != list(b):
+        other = list(b) if started == 1 else list(a)        # the first run is a, the second b
+        msg, started, limit = _isolated_once(spec, other, other, timeout_s)
     if isinstance(msg, tuple) and msg[0] == "ok":
         verdict = msg[1]
         verdict.where = "a child process"
+        verdict.check_s = time.perf_counter() - t0
         return verdict
     if isinstance(msg, tuple) and msg[0] == "error":
         cls = {"FMULoadError": FMULoadError, "FMUReuseError": FMUReuseError}.get(msg[1], FMULoadError)
         raise cls(msg[2])
-    if isinstance(msg, tuple):
+    if isinstance(msg, tuple) and msg[0] == "bug":
         raise RuntimeError(f"the reset check failed in its process: {msg[1]}: {msg[2]}")
     if msg == "timeout":
-        why = f"the reset check did not finish within {limit:g} s"
+        why = (f"a run of the reset check did not finish within {limit:g} s" if started else
+               f"the FMU did not load within {limit:g} s")
     else:
-        code = proc.exitcode
-        why = f"the FMU crashed during the reset check (its process exited with code {code})"
+        why = f"the FMU crashed during the reset check (its process exited with code {msg[1]})"
     return ReuseVerdict("fresh", f"{why}; every run gets a new instance (always right, costs an instantiation)",
                         [], None, time.perf_counter() - t0, where="a child process")
 
@@ -305,6 +386,11 @@ def _cache_key(spec: PlanSpec, digest: str, a, b) -> str:
 
 
 _MEMORY: dict[tuple[str, str], ReuseVerdict] = {}
+
+
+def forget_verdicts() -> None:
+    """Forget the verdicts this process remembers (the files in :func:`cache_dir` stay)."""
+    _MEMORY.clear()
 
 
 def _read_cached(key: str) -> ReuseVerdict | None:
@@ -338,14 +424,16 @@ def _write_cached(key: str, verdict: ReuseVerdict) -> None:
 def preflight(spec: PlanSpec, a: Sequence[float], b: Sequence[float], *, isolate: bool,
               timeout_s: float | None = None, digest: str | None = None, cache: bool = True) -> ReuseVerdict:
     """Load the FMU and find how its runs must be made (:func:`check_reuse`), in a child process when
-    ``isolate`` (an FMU not our own), the verdict cached under the FMU's ``digest`` and the run set-up."""
+    ``isolate`` (an FMU not our own; else on this process's RunPlan for ``spec``, which its runs here then
+    use), the verdict cached under the FMU's ``digest`` and the run set-up."""
     key = _cache_key(spec, digest, a, b) if (cache and digest) else None
     if key is not None:
         hit = _read_cached(key)
         if hit is not None:
             _confirm_loads(spec, isolate)
             return replace(hit, cached=True, check_s=0.0)
-    verdict = check_reuse_isolated(spec, a, b, timeout_s) if isolate else check_reuse(spec, a, b)
+    verdict = (check_reuse_isolated(spec, a, b, timeout_s) if isolate
+               else check_reuse(spec, a, b, shared=True, timeout_s=timeout_s))
     if key is not None and math.isfinite(verdict.check_s) and verdict.tried:
         _write_cached(key, verdict)
     return verdict

@@ -818,9 +818,10 @@ def _parse_execution(p: _Parser, top: _Map) -> Execution:
     snode = m.opt("scheduler")
     scheduler = None if snode is None else p.string(snode, "scheduler", "execution",
                                                     "scheduler: tcp://127.0.0.1:8786")
-    cnode = m.opt("check_fmu_steps")
-    check_steps = True if cnode is None else p.boolean(cnode, "check_fmu_steps", "execution",
-                                                        "check_fmu_steps: false")
+    cnode = m.opt("check_fmu_steps")      # auto (None): every FMU but our own
+    check_steps = None
+    if cnode is not None and not (isinstance(cnode.value, str) and cnode.value.strip().lower() == "auto"):
+        check_steps = p.boolean(cnode, "check_fmu_steps", "execution", "check_fmu_steps: auto  (or true, false)")
     return Execution(
         workers=m.int_("workers", None, "workers: 4  (or null for all cores)", minimum=1),
         scheduler=scheduler,

@@ -281,12 +281,14 @@ class Execution:
 
     ``check_fmu_steps``: after the stages, rerun a few points with the communication step halved, the
     tolerance tightened tenfold and (where the FMU has it) through model exchange, and flag the metrics that
-    move by more than the study's tolerance (:mod:`fmusa.pipeline.solver_check`); false skips those runs.
+    move by more than the study's tolerance (:mod:`fmusa.pipeline.solver_check`). ``None`` (``auto``, the
+    default): for every FMU but this repository's own ScrewVertebra, whose solver its tests hold to closed
+    forms and an independent stiff solver; ``true`` checks ours too, ``false`` skips those runs.
     """
     workers: int | None = None
     scheduler: str | None = None
     timeout_s: float = 60.0
-    check_fmu_steps: bool = True
+    check_fmu_steps: bool | None = None
 
 
 @dataclass(frozen=True)
