@@ -177,11 +177,20 @@ def test_one_parameter_study_in_rounds(tmp_path):
     from test_search_1d import GRID_D, D_STAR, study_text
     fmu = build_spring_fmu(tmp_path, "SpringCS", ("co-simulation",))
     found, rounds = [], []
+    from fmusa.api import run_study as run_with_report
     for par in ("false", "1", "4"):
         stages = (f"  grid: {{values: {{d: {GRID_D}}}}}\n  roi:\n"
                   f"  search: {{inner: d, inner_rtol: 1.0e-3, parallel: {par}}}\n")
         study = parse_study(study_text(fmu, stages), tmp_path / f"o{par}.yaml")
-        res = run_study(study, tmp_path / f"out{par}", progress=False)
+        if par == "4":      # the report says what the rounds cost against the sequential search
+            res = run_with_report(study, tmp_path / f"out{par}", progress=False)
+            text = (tmp_path / f"out{par}" / "report.md").read_text(encoding="utf-8")
+            par_s = res.summary["search"]["parallel"]
+            assert (f"The search ran in rounds of up to 4 points: {par_s['rounds']} rounds, {par_s['runs']} runs"
+                    in text), text
+            assert f"takes {par_s['sequential_rounds']} rounds of one run" in text
+        else:
+            res = run_study(study, tmp_path / f"out{par}", progress=False)
         found.append(res.search.optimum["d"])
         rounds.append(res.summary["stage_runs"]["search"]["rounds"])
     assert D_STAR <= found[0] <= D_STAR * (1 + 1e-3)
@@ -206,3 +215,24 @@ def test_a_round_cut_short_resumes(pullout_fmu, tmp_path):
     assert again.summary["simulated_this_session"] == n - keep
     assert again.summary["search"]["parallel"]["rounds"] == full.summary["search"]["parallel"]["rounds"]
     assert again.summary["runs"] == n
+
+
+@pytest.mark.parametrize("value, expected", [(None, "auto"), ("auto", "auto"), ("true", "auto"),
+                                             ("false", False), ("16", 16)])
+def test_parallel_is_read(value, expected, tmp_path):
+    text = PAPER_TEXT.replace("    parallel: false\n", "" if value is None else f"    parallel: {value}\n")
+    assert parse_study(text, tmp_path / "p.yaml").stages["search"].parallel == expected
+
+
+@pytest.mark.parametrize("value, message", [
+    ("0", "key 'parallel' in 'stages.search' must be ≥ 1 points per round, got 0"),
+    ("fast", "key 'parallel' in 'stages.search' must be auto, false or an integer, got the string 'fast'"),
+    ("2.5", "must be auto, false or an integer, got the number 2.5")])
+def test_a_bad_parallel_names_its_line_and_the_fix(value, message, tmp_path):
+    from fmusa.study.schema import StudyError
+    text = PAPER_TEXT.replace("    parallel: false", f"    parallel: {value}")
+    with pytest.raises(StudyError) as exc:
+        parse_study(text, tmp_path / "p.yaml")
+    msg = str(exc.value)
+    line = next(i for i, ln in enumerate(text.splitlines(), 1) if ln.startswith("    parallel:"))
+    assert msg.startswith(f"{tmp_path / 'p.yaml'}:{line}: ") and message in msg and "e.g. parallel: auto" in msg, msg
