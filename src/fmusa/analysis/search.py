@@ -21,6 +21,14 @@ paper's study: 66 runs asked (64 simulated) instead of 227 (225), c within 4.5e-
 One parameter (``region.outer`` None): one bisection of the inner parameter inside the region, guard
 included; the result has ``outer`` None, ``optimum`` {inner: value} and a single level whose ``outer`` is
 None.
+
+:func:`search_in_rounds` (``search.parallel``, for FMUs that cost seconds per run, where the wall time is
+the number of rounds of runs waited for, not the runs): the same search, asking for up to ``workers``
+points per round. Every level walks the sequential bisection's own lattice and infers verdicts from
+monotonicity, so for a monotone boundary it lands on the sequential answer at every level (the same stop,
+the same optimum); a level predicted by another level's answer costs the two ends of its cell, the others
+are k-sectioned, and independent levels share rounds. The paper's study on 16 workers: 15 rounds instead
+of 357 (224 runs instead of 381); ``result.rounds`` says what it cost and what the sequential search takes.
 """
 from __future__ import annotations
 
@@ -524,7 +532,7 @@ def search_in_rounds(evaluate_many: EvaluateMany, region: Region, response: Sequ
                 found = [w for w in res_walks if w.answer() is not None]
                 need = []
                 if found:
-                    best = _best_index(res_walks, how, response, response_rtol, response_atol)
+                    best = _best_index(res_walks, how)
                     if res_walks[best].walk()[0] == "cell":
                         need = [res_walks[best]]
             budget = workers
@@ -592,7 +600,7 @@ def search_in_rounds(evaluate_many: EvaluateMany, region: Region, response: Sequ
         res = SearchResult(inner, outer, None, None, [], levels, stop, warnings, warm_start, cost.runs)
         res.rounds = cost
         return res
-    best = levels[_best_index(res_walks, how, response, response_rtol, response_atol)]
+    best = levels[_best_index(res_walks, how)]
     if not per_level_guard and best.below is not None:
         walks[levels.index(best)].check_guard(inner, outer, best.inner, warnings)
     res = SearchResult(inner, outer, {inner: best.inner, outer: best.outer}, best.row, _binding(best), levels,
@@ -629,7 +637,7 @@ def _plan_round(walks: list[_Walk], walk: Callable[[int], _Walk], first: int, n_
     return todo
 
 
-def _best_index(walks: list[_Walk], how: str, response, response_rtol, response_atol) -> int:
+def _best_index(walks: list[_Walk], how: str) -> int:
     """Index of the answer among the result's levels: the first of the final unchanged run (two
     levels back from the last), else the last feasible level."""
     feasible = [i for i, w in enumerate(walks) if w.answer() is not None]
