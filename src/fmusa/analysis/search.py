@@ -32,6 +32,7 @@ of 357 (224 runs instead of 381); ``result.rounds`` says what it cost and what t
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
@@ -262,9 +263,15 @@ def nested_binary_search(evaluate: Evaluate, region: Region, response: Sequence[
 EvaluateMany = Callable[[list[dict[str, float]]], list[dict]]
 
 
+@functools.lru_cache(maxsize=4096)
+def _guard_points(x: float) -> tuple[float, ...]:
+    return tuple(float(v) for v in np.geomspace(x, x * 1.5, 4)[1:])
+
+
 def guard_points(x: float) -> list[float]:
-    """The monotonicity guard's points above an answer x: 3 in (x, 1.5·x] (as :func:`check_monotone`)."""
-    return [float(v) for v in np.geomspace(x, x * 1.5, 4)[1:]]
+    """The monotonicity guard's points above an answer x: 3 in (x, 1.5·x] (the floats of
+    :func:`check_monotone`)."""
+    return list(_guard_points(float(x)))
 
 
 def _guard_warning(outer: str | None, z: float | None, inner: str, x: float, xg: float, top: dict) -> str:
@@ -289,20 +296,41 @@ class _Walk:
         self.guards: dict[float, dict] = {}    # the guard's runs: never used to infer a verdict
         self.asked = 0                      # points this level asked for
         self.bracket_guard: list[float] = []
+        self._walks: dict[float | None, tuple[str, float, float]] = {}    # walk() by hypothesis, until a run
+        self._answered: bool | None = None
+        self._min_feasible = math.inf          # the smallest feasible run and the largest infeasible one
+        self._max_infeasible = -math.inf
+
+    def add(self, x: float, row: dict, guard: bool) -> None:
+        """A run of this level (``guard``: one of the guard's)."""
+        (self.guards if guard else self.known)[x] = row
+        self.asked += 1
+        if not guard:
+            self._walks.clear()
+            self._answered = None
+            if _feasible(row):
+                self._min_feasible = min(self._min_feasible, x)
+            else:
+                self._max_infeasible = max(self._max_infeasible, x)
 
     def verdict(self, x: float) -> bool | None:
         r = self.known.get(x)
         if r is not None:
             return _feasible(r)
-        if any(k <= x and _feasible(r) for k, r in self.known.items()):
+        if self._min_feasible <= x:
             return True
-        if any(k >= x and not _feasible(r) for k, r in self.known.items()):
+        if self._max_infeasible >= x:
             return False
         return None
 
     def walk(self, hypothesis: float | None = None) -> tuple[str, float, float]:
         """("feasible_at_lo" | "infeasible_at_hi" | "open" | "cell", a, b): the state of the bisection.
         With ``hypothesis`` p, a midpoint without verdict counts as feasible iff it is >= p."""
+        if hypothesis not in self._walks:
+            self._walks[hypothesis] = self._walk(hypothesis)
+        return self._walks[hypothesis]
+
+    def _walk(self, hypothesis: float | None) -> tuple[str, float, float]:
         r_lo, r_hi = self.known.get(self.lo), self.known.get(self.hi)
         if r_lo is not None and _feasible(r_lo):
             return FEASIBLE_AT_LO, self.lo, self.lo
@@ -332,8 +360,11 @@ class _Walk:
         return need
 
     def answered(self) -> bool:
-        state, a, b = self.walk()
-        return state in (FEASIBLE_AT_LO, INFEASIBLE_AT_HI) or (state == "cell" and not self._cell_needs(a, b))
+        if self._answered is None:
+            state, a, b = self.walk()
+            self._answered = (state in (FEASIBLE_AT_LO, INFEASIBLE_AT_HI)
+                              or (state == "cell" and not self._cell_needs(a, b)))
+        return self._answered
 
     def answer(self) -> float | None:
         """The level's smallest feasible inner value (lo when feasible there), once answered."""
@@ -555,8 +586,7 @@ def search_in_rounds(evaluate_many: EvaluateMany, region: Region, response: Sequ
         cost.runs += len(points)
         cost.largest_round = max(cost.largest_round, len(points))
         for (k, x, is_guard), row in zip(todo, rows):
-            (walks[k].guards if is_guard else walks[k].known)[x] = row
-            walks[k].asked += 1
+            walks[k].add(x, row, is_guard)
 
     res_walks = walks[:n_result]
     cost.speculative = sum(w.asked for w in walks[n_result:])
