@@ -255,3 +255,29 @@ def test_a_dask_worker_killed_mid_study_loses_nothing(fmu, tmp_path):
         assert 4 <= len(on_disk) < 40
     finally:
         c.close()
+
+
+def test_the_search_in_rounds_on_dask(cluster, fmu, tmp_path):
+    """studies/paper.yaml with search.parallel: auto on the cluster: as many points per round as its
+    threads (2), the sequential search's optimum level by level, fewer rounds than at 1 point per round."""
+    text = (ROOT / "studies" / "paper.yaml").read_text(encoding="utf-8")
+    summaries = {}
+    for name, par, args in (("seq", "false", ()), ("one", "1", ()), ("dask", "auto", ("--scheduler", cluster.address))):
+        study = tmp_path / f"{name}.yaml"
+        study.write_text(text.replace("    parallel: false", f"    parallel: {par}"), encoding="utf-8")
+        t0 = time.monotonic()
+        r = sweep(fmu, str(study), "--out", str(tmp_path / name), *args)
+        assert r.returncode == 0, r.stderr
+        summaries[name] = json.loads((tmp_path / name / "summary.json").read_text())
+        summaries[name]["wall"] = time.monotonic() - t0
+    seq, one, dask = summaries["seq"], summaries["one"], summaries["dask"]
+    assert dask["optimum"] == one["optimum"] == seq["optimum"]
+    for key in ("search", "paper_roi_search"):
+        assert [(lv["outer"], lv["inner"]) for lv in dask[key]["levels"]] == \
+               [(lv["outer"], lv["inner"]) for lv in seq[key]["levels"]]
+        assert dask[key]["parallel"]["workers"] == 2 and dask[key]["parallel"]["largest_round"] == 2
+        assert dask[key]["parallel"]["sequential_rounds"] == seq[key]["evaluations"]
+    assert seq["rounds"] > one["rounds"] > dask["rounds"], (seq["rounds"], one["rounds"], dask["rounds"])
+    assert dask["failed"] == 0
+    print(f"paper study in rounds on Dask (2 threads): {dask['rounds']} rounds, {dask['runs']} runs, "
+          f"{dask['wall']:.1f} s; locally at 1 point per round {one['rounds']}, sequential {seq['rounds']}")

@@ -71,7 +71,8 @@ def test_paper_study_loads():
     np.testing.assert_array_equal(pts["c"], [25.0 ** k for k in range(3, 8)])
     np.testing.assert_array_equal(pts["d"], [25.0 ** k for k in range(2, 7)])
     assert s.stages["roi"] == RoiStage(manual=None)
-    assert s.stages["search"] == SearchStage("c", "d", 1e-3, 1e-3, 20, ["max_y", "max_v", "t_eq"], {})
+    assert s.stages["search"] == SearchStage("c", "d", 1e-3, 1e-3, 20, ["max_y", "max_v", "t_eq"], {},
+                                             parallel=False)     # the paper's sequential search
     assert s.stages["regression"] == RegressionStage("c", ["max_y", "max_v"], "d", 3)
     assert (s.execution.workers, s.execution.scheduler, s.execution.timeout_s) == (None, None, 60.0)
     assert s.paper["optimum"] == {"c": 823224, "d": 488, "t_eq": 0.07674}

@@ -48,8 +48,9 @@ def test_paper_study_finds_the_papers_stiffness(paper_run):
     assert s["failed"] == 0
     # the paper-faithful search (no warm start) is the default: its exact lattice point and run count
     assert (c, d) == (822067.2607421875, 381.4697265625) and s["search"]["warm_start"] is False
-    assert s["stage_runs"]["grid"] == {"asked": 25, "simulated": 25}
-    assert s["stage_runs"]["search"] == {"asked": 227, "simulated": 225}      # 2 level-0 ends are grid points
+    assert s["stage_runs"]["grid"] == {"asked": 25, "simulated": 25, "rounds": 1}
+    # 2 level-0 ends are grid points; one point per round (parallel: false)
+    assert s["stage_runs"]["search"] == {"asked": 227, "simulated": 225, "rounds": 225}
     assert s["stage_runs"]["search"]["asked"] == s["search"]["evaluations"]
     assert sum(r["simulated"] for r in s["stage_runs"].values()) == s["runs"]
     assert s["regression_source"] == "search"

@@ -14,6 +14,11 @@ pool on all cores, with its RunStore and the SALib analysis: ``sobol_runs``, ``s
 ``--sobol-small-runs`` (2500) to show how memory scales with the number of runs (each in a fresh
 process, so that the peaks are its own), and ``sobol_profile``: where a run's time goes.
 
+``paper_study_rounds`` counts the rounds (batches of runs waited for one after another) and runs of the paper
+study with ``search.parallel`` at 1, 2 and 16 points per round against the sequential search;
+``paper_study_wall_s_slow_fmu`` times it on a stand-in FMU that sleeps 0.5 s per run (16 local workers),
+next to ``paper_study_wall_s_slow_fmu_sequential`` (``--slow-fmu-workers``, ``--no-slow-fmu-sequential``).
+
 With ``--pipeline-runs`` (default 40000; 0 skips it) it measures the pipeline's own cost on cheap runs (the
 6-DOF Sobol study with the screw at rest: FMU runs of ~0.02 ms): ``pipeline_overhead_ms_per_run`` (CPU per
 run around the FMU, worker and parent), ``pipeline_worker_python_ms_per_run``,
@@ -551,6 +556,95 @@ def bench_paper_search_warm(study=None, default_optimum: dict | None = None) -> 
             "paper_search_warm_within_inner_rtol": bool(rel) and max(rel.values()) <= stage.inner_rtol}
 
 
+def _paper_text() -> str:
+    return (Path(__file__).resolve().parents[2] / "studies" / "paper.yaml").read_text(encoding="utf-8")
+
+
+def _paper_variant(parallel: str, workers: int | None = None, fmu: Path | None = None,
+                   sleep_s: float | None = None):
+    """studies/paper.yaml with ``search.parallel`` set (``"false"``, ``"auto"`` or a number), optionally on
+    another FMU (``fmu``, with ScrewVertebra's variable names; ``sleep_s`` set in ``fixed``) and
+    ``execution.workers``."""
+    from fmusa.api import parse_study
+
+    text = _paper_text()
+    assert "    parallel: false" in text and "fmu: default" in text and "  workers: null " in text
+    text = text.replace("    parallel: false", f"    parallel: {parallel}")
+    if fmu is not None:
+        text = text.replace("fmu: default", f"fmu: {fmu.as_posix()}")
+    if sleep_s is not None:
+        text = text.replace("fixed:\n", f"fixed:\n  sleep_s: {sleep_s!r}\n", 1)
+    if workers is not None:
+        text = text.replace("  workers: null ", f"  workers: {workers} ")
+    return parse_study(text, Path(__file__).resolve().parents[2] / "studies" / "paper.yaml")
+
+
+def _rounds_entry(summary: dict) -> dict:
+    """Rounds and runs per stage of a finished study (stages that ran the FMU)."""
+    stages = {k: v for k, v in summary["stage_runs"].items() if v.get("asked")}
+    out = {"rounds": summary["rounds"], "runs": summary["runs"], "stages": stages,
+           "optimum": summary.get("optimum")}
+    for key in ("search", "paper_roi_search"):
+        par = (summary.get(key) or {}).get("parallel")
+        if par:
+            out[f"{key}_sequential_rounds"] = par["sequential_rounds"]
+    return out
+
+
+def bench_paper_study_rounds(workers: tuple[int, ...] = (1, 2, 16)) -> dict:
+    """``paper_study_rounds``: the paper study (our FMU, figures off) with ``search.parallel`` at 1, 2 and 16
+    points per round, next to the sequential search of studies/paper.yaml: rounds (batches of runs waited
+    for one after another: the wall time of an FMU that costs seconds per run) and runs, per stage."""
+    from fmusa.api import run_study
+
+    out: dict = {}
+    for w in ("false", *workers):
+        study = _paper_variant(str(w))
+        with tempfile.TemporaryDirectory(prefix="fmusa-bench-rounds-") as tmp:
+            res = run_study(study, tmp, figures=False, progress=False)
+        out["sequential" if w == "false" else str(w)] = _rounds_entry(res.summary)
+    return {"paper_study_rounds": out, "paper_study_rounds_target_16": 20,
+            "paper_study_rounds_16_within_target": out.get("16", {}).get("rounds", 10 ** 9) <= 20,
+            "paper_study_runs_target_16": 2 * out["sequential"]["runs"]}
+
+
+def bench_paper_study_slow_fmu(workers: tuple[int, ...] = (16,), sequential: bool = True,
+                               sleep_s: float = 0.5) -> dict:
+    """``paper_study_wall_s_slow_fmu``: the paper study on a stand-in FMU that sleeps ``sleep_s`` of wall
+    time per run and returns the closed-form axial pullout (tests/fmus/slow_pullout, built here with the C
+    compiler), with ``search.parallel: auto`` on 16 local workers (sleeping needs no cores), next to the
+    sequential search (``sequential``; one run at a time, ~runs x sleep_s). Other worker counts go into
+    ``paper_study_slow_fmu``."""
+    from fmusa.api import run_study
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests" / "fmus" / "slow_pullout"))
+    try:
+        from build import build_pullout_fmu
+    finally:
+        sys.path.pop(0)
+    detail: dict = {}
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-slow-") as tmp:
+        fmu = build_pullout_fmu(Path(tmp))
+        runs_list = [("auto", w) for w in workers] + ([("false", 1)] if sequential else [])
+        for par, w in runs_list:
+            study = _paper_variant(par, w, fmu, sleep_s)
+            t0 = time.perf_counter()
+            res = run_study(study, Path(tmp) / f"out-{par}-{w}", figures=False, progress=False)
+            entry = _rounds_entry(res.summary)
+            entry["wall_s"] = time.perf_counter() - t0
+            detail["sequential" if par == "false" else str(w)] = entry
+            print(f"paper study, stand-in FMU at {sleep_s} s per run, "
+                  f"{'sequential search' if par == 'false' else f'{w} workers'}: {entry['wall_s']:.1f} s, "
+                  f"{entry['rounds']} rounds, {entry['runs']} runs")
+    out = {"paper_study_slow_fmu": detail, "paper_study_slow_fmu_sleep_s": sleep_s,
+           "paper_study_wall_s_slow_fmu_target_s": 15.0}
+    if "16" in detail:
+        out["paper_study_wall_s_slow_fmu"] = detail["16"]["wall_s"]
+    if "sequential" in detail:
+        out["paper_study_wall_s_slow_fmu_sequential"] = detail["sequential"]["wall_s"]
+    return out
+
+
 def bench_diagnose(fmu_path: Path, workers: int | None = None) -> dict:
     """`fmusa diagnose`: one FMU run on a measured drive (300 samples) with the baseline and with the most
     expensive effect, and the wall time of a whole diagnosis (six candidates, held-out refits) of one real
@@ -606,6 +700,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=None, help="pool workers (default: all cores)")
     ap.add_argument("--no-diagnose", dest="diagnose", action="store_false",
                     help="skip the timings of `fmusa diagnose`")
+    ap.add_argument("--slow-fmu-workers", default="16",
+                    help="worker counts of the paper study on the slow stand-in FMU, e.g. 1,2,4,16 (0 skips it)")
+    ap.add_argument("--no-slow-fmu-sequential", dest="slow_sequential", action="store_false",
+                    help="skip the sequential search on the slow FMU (~190 s)")
     args = ap.parse_args(argv)
     fmu_path = (args.fmu or default_fmu_path()).resolve()
 
@@ -643,6 +741,10 @@ def main(argv: list[str] | None = None) -> int:
     }
 
     result.update(bench_paper_study())
+    result.update(bench_paper_study_rounds())
+    slow_workers = tuple(int(w) for w in args.slow_fmu_workers.split(",") if int(w) > 0)
+    if slow_workers or args.slow_sequential:
+        result.update(bench_paper_study_slow_fmu(slow_workers, args.slow_sequential))
     result.update(bench_fmu_limits(fmu_path))
     result.update(bench_closed_form_c())
     result.update(bench_six_dof_runs(fmu_path=args.fmu))

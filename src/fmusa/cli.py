@@ -225,6 +225,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if s.get("optimum"):
         opt = ", ".join(f"{k} = {v:.6g}" for k, v in s["optimum"].items())
         print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}")
+    par = (s.get("search") or {}).get("parallel")
+    if par:      # the search in rounds (search.parallel): its rounds against the sequential search's
+        print(f"search: {par['rounds']} rounds of up to {par['workers']} runs ({par['runs']} runs); the "
+              f"sequential search: {par['sequential_rounds']} rounds")
     for name in ("runs.csv", "summary.json", "report.md"):
         if (args.out / name).exists():
             print(f"wrote {args.out / name}")

@@ -23,7 +23,7 @@ from fmusa.fmi.build import prepare_fmu
 from fmusa.analysis.regression import fit_by_level
 from fmusa.analysis.roi import grid_findings, Region, automatic_region, manual_region
 from fmusa.runs.store import RunStore
-from fmusa.analysis.search import SearchResult, nested_binary_search
+from fmusa.analysis.search import SearchResult, nested_binary_search, search_in_rounds
 from fmusa.files import writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
@@ -95,6 +95,8 @@ class StudyRunner:
             self.evaluator.close()
             raise
         self.progress = progress
+        #: batches that simulated at least one new run: the study's wall time for an FMU that costs seconds
+        self.rounds = 0
         self.simulated = 0
         #: points asked for (a repeated point counts again; the store simulates it once)
         self.asked = 0
@@ -119,15 +121,43 @@ class StudyRunner:
             # results arrive as blocks (arrays) and go to runs.csv as one write each
             self.evaluator.map_batches(items, lambda batch: self.store.add_batch(stage, batch), progress=bar)
             self.simulated += len(items)
+            self.rounds += 1
             if bar is not None:
                 bar.close()
         return [self.store.get(k) for k in keys]
 
     def evaluate_one(self, point: dict[str, float], stage: str) -> dict:
-        full = dict(point)
-        for name in self.params:          # parameters the stage does not vary keep the first grid value
-            full.setdefault(name, self.defaults[name])
-        return self.evaluate([full], stage)[0]
+        return self.evaluate_many([point], stage)[0]
+
+    def evaluate_many(self, points: list[dict[str, float]], stage: str) -> list[dict]:
+        """Rows for ``points`` run together (one round); parameters a point does not set keep the first
+        grid value."""
+        full = [dict(p) for p in points]
+        for f in full:
+            for name in self.params:
+                f.setdefault(name, self.defaults[name])
+        return self.evaluate(full, stage)
+
+    def parallel_workers(self) -> int:
+        """Points that run at once: the Dask cluster's threads, else the local workers."""
+        return self.evaluator.parallel_workers()
+
+    def search(self, region: Region, stage, tag: str, hints: Sequence[float] = (),
+               warm_start: bool | None = None) -> SearchResult:
+        """The search stage ``stage`` (a SearchStage) inside ``region``, its runs tagged ``tag``: in rounds
+        of the study's workers (``parallel``), else the sequential search, one point at a time.
+        ``warm_start`` None: the stage's."""
+        response = list(stage.response)      # default: the constrained metrics (study.py)
+        warm = stage.warm_start if warm_start is None else warm_start
+        par = getattr(stage, "parallel", False)
+        if par is False:
+            return nested_binary_search(lambda p: self.evaluate_one(p, tag), region, response, stage.inner_rtol,
+                                        stage.response_rtol, stage.max_outer, stage.response_atol,
+                                        warm_start=warm)
+        workers = self.parallel_workers() if par == "auto" or par is True else int(par)
+        return search_in_rounds(lambda pts: self.evaluate_many(pts, tag), region, response, workers,
+                                stage.inner_rtol, stage.response_rtol, stage.max_outer, stage.response_atol,
+                                warm_start=warm, hints=hints)
 
 
 def run_study(study: Study, out: str | Path, resume: bool = False, workers: int | None = None,
@@ -151,7 +181,7 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         runner.defaults = {}
         for name, stage in study.stages.items():
             ts = time.perf_counter()
-            asked0, simulated0 = runner.asked, runner.simulated
+            asked0, simulated0, rounds0 = runner.asked, runner.simulated, runner.rounds
             if name == "grid":
                 pts = grid_points(study)
                 runner.defaults = dict(pts[0])
@@ -184,14 +214,7 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
             elif name == "search":
                 if result.region is None:
                     raise StudyError(f"{study.path}: stages.search needs stages.roi before it")
-                response = list(stage.response)      # default: the constrained metrics (study.py)
-
-                def ev(point: dict[str, float], tag: str = "search") -> dict:
-                    return runner.evaluate_one(point, tag)
-
-                result.search = nested_binary_search(ev, result.region, response, stage.inner_rtol,
-                                                     stage.response_rtol, stage.max_outer, stage.response_atol,
-                                                     warm_start=stage.warm_start)
+                result.search = runner.search(result.region, stage, "search")
                 summary["optimum"] = result.search.optimum      # {inner: x} when the search has no outer
                 summary["binding_constraint"] = result.search.binding
                 summary["search"] = search_summary(result.search)
@@ -209,13 +232,13 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                 result.sensitivity = run_sensitivity(study, stage, out, runner, progress=progress)
                 summary["sensitivity"] = result.sensitivity["summary"]
             stage_times[name] = time.perf_counter() - ts
-            stage_runs[name] = {"asked": runner.asked - asked0, "simulated": runner.simulated - simulated0}
+            stage_runs[name] = _stage_runs(runner, asked0, simulated0, rounds0)
         for ext in extensions:
             ts = time.perf_counter()
-            asked0, simulated0 = runner.asked, runner.simulated
+            asked0, simulated0, rounds0 = runner.asked, runner.simulated, runner.rounds
             ext.after_stages(result, runner)
             stage_times[ext.name] = time.perf_counter() - ts
-            stage_runs[ext.name] = {"asked": runner.asked - asked0, "simulated": runner.simulated - simulated0}
+            stage_runs[ext.name] = _stage_runs(runner, asked0, simulated0, rounds0)
         sampling = sampling_summary(study, runner.store.frame(), summary.get("optimum"), runner.spec)
         if sampling is not None:     # how the output sampling moves peaks and settling times
             summary["sampling"] = sampling
@@ -239,11 +262,19 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         summary["failed"] = int((runs["status"] != "ok").sum()) if len(runs) else 0
         summary["stage_wall_s"] = stage_times
         summary["stage_runs"] = stage_runs
+        summary["rounds"] = int(runner.rounds)
         summary["wall_s"] = time.perf_counter() - t0
     finally:
         runner.close()
     write_summary(result)
     return result
+
+
+def _stage_runs(runner: StudyRunner, asked0: int, simulated0: int, rounds0: int) -> dict[str, int]:
+    """A stage's FMU runs: asked for, simulated (the rest were in runs.csv) and rounds (batches waited
+    for one after another: the wall time of an FMU that costs seconds per run)."""
+    return {"asked": runner.asked - asked0, "simulated": runner.simulated - simulated0,
+            "rounds": runner.rounds - rounds0}
 
 
 def _grid_axes(study: Study) -> list[str]:
@@ -271,6 +302,8 @@ def search_summary(s: SearchResult) -> dict:
         "warnings": s.warnings,
         "warm_start": s.warm_start,
         "evaluations": s.evaluations,
+        # the search in rounds: rounds, runs, and the sequential search's for the same answers
+        "parallel": s.rounds.as_dict() if s.rounds is not None else None,
         "levels": [{"outer": lv.outer, "inner": lv.inner, "evaluations": lv.evaluations,
                     "changed": lv.changed, "note": lv.note,
                     "response": ({k: lv.row[k] for k in lv.row if not k.startswith("ok_")} if lv.row else None)}

@@ -377,13 +377,30 @@ def stage_runs_text(ctx: ReportContext) -> str:
         if isinstance(v, Mapping) and not any(v.values()):
             continue          # a stage that runs nothing (roi, regression)
         if isinstance(v, Mapping):
-            asked, sim = v.get("asked"), v.get("simulated")
-            parts.append(f"{stage}: {asked} asked, {sim} simulated" if asked is not None else
-                         f"{stage}: " + ", ".join(f"{k} {x}" for k, x in v.items()))
+            asked, sim, rounds = v.get("asked"), v.get("simulated"), v.get("rounds")
+            text = (f"{stage}: {asked} asked, {sim} simulated" if asked is not None else
+                    f"{stage}: " + ", ".join(f"{k} {x}" for k, x in v.items() if k != "rounds"))
+            if rounds is not None and sim:
+                text += f" in {rounds} round{'s' if rounds != 1 else ''}"
+            parts.append(text)
         else:
             parts.append(f"{stage}: {v}")
-    return ("\nFMU runs per stage (points asked for; simulated, the rest were already in runs.csv): "
-            + "; ".join(parts) + ".\n")
+    return ("\nFMU runs per stage (points asked for; simulated, the rest were already in runs.csv; rounds: "
+            "batches waited for one after another, the wall time of an FMU that costs seconds per run): "
+            + "; ".join(parts) + ".\n" + rounds_text(ctx.summary))
+
+
+def rounds_text(summary: Mapping) -> str:
+    """How a search in rounds (search.parallel) compares with the sequential search; "" without one."""
+    out = []
+    for key, what in (("search", "The search"), ("paper_roi_search", "The search in the paper's region")):
+        par = (summary.get(key) or {}).get("parallel") if isinstance(summary.get(key), Mapping) else None
+        if not par:
+            continue
+        out.append(f"{what} ran in rounds of up to {par['workers']} points: {par['rounds']} rounds, "
+                   f"{par['runs']} runs ({par['speculative_runs']} for levels past the stop); the sequential "
+                   f"search takes {par['sequential_rounds']} rounds of one run for the same answers.")
+    return ("\n" + " ".join(out) + "\n") if out else ""
 
 
 def search_section(ctx: ReportContext, sig: Sig = _sig5, extra: str = "") -> str:

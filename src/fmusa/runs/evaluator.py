@@ -134,6 +134,13 @@ class Evaluator:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def parallel_workers(self) -> int:
+        """How many runs go at once: the Dask cluster's threads (asked for now), else the local workers."""
+        if self.scheduler:
+            self.connect()
+            return max(1, sum(self._client.nthreads().values()))
+        return self.workers
+
     @staticmethod
     def _chunk_size(n: int, n_parallel: int) -> int:
         """Runs per chunk: about 8 chunks per worker (the last ones balance the load), at most 1000 (a worker
@@ -195,7 +202,10 @@ class Evaluator:
               or (here := self._in_process()) is None):
             if self._pool is None:
                 self._pool = WorkerPool(self._local_spec(), self.workers, self.timeout_s)
-            self._pool.map((ids, values), take, max(self._chunk_size(len(ids), self.workers), 200))
+            # chunks of 200 runs at least keep the pipes quiet; a batch smaller than 200 per worker (a
+            # search's round) is spread over all workers
+            size = max(self._chunk_size(len(ids), self.workers), min(200, -(-len(ids) // self.workers)))
+            self._pool.map((ids, values), take, size)
         else:      # unsupervised: each run kept to timeout_s by the FMU's own budget
             spec, budget = here
             size = self._chunk_size(len(ids), 1)

@@ -596,7 +596,7 @@ def _parse_roi(p: _Parser, m: _Map, where: str, parameters: Mapping) -> RoiStage
 def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping, metrics: Mapping,
                   constraints: Sequence[Constraint]) -> SearchStage:
     m.allow(("inner", "outer", "inner_rtol", "response_rtol", "response_atol", "response", "max_outer",
-             "warm_start"))
+             "warm_start", "parallel"))
     inner = p.name_in(m.need("inner", "inner: c"), "inner", where, parameters, "study parameter",
                       "inner: c")
     onode = m.opt("outer")       # optional: without it, one bisection of 'inner' inside the region
@@ -612,6 +612,7 @@ def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping, metrics:
         raise p.error(wnode, f"{_key('warm_start', where)}: a warm start brackets each outer level from the "
                              f"previous level's answer, but the search has no 'outer' parameter (one "
                              f"bisection); remove warm_start or add outer")
+    parallel = _parse_parallel(p, m.opt("parallel"), where)
     rnode = m.opt("response")
     if rnode is not None:
         response = p.names_in(rnode, "response", where, metrics, "metric", "response: [max_y, max_v, t_eq]")
@@ -645,7 +646,26 @@ def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping, metrics:
         inner_rtol=m.num("inner_rtol", 1e-3, "inner_rtol: 1.0e-3", positive=True),
         response_rtol=m.num("response_rtol", 1e-3, "response_rtol: 1.0e-3", positive=True),
         max_outer=m.int_("max_outer", 20, "max_outer: 20", minimum=1),
-        response=response, response_atol=atol, warm_start=warm_start)
+        response=response, response_atol=atol, warm_start=warm_start, parallel=parallel)
+
+
+def _parse_parallel(p: _Parser, node: Node | None, where: str) -> str | int | bool:
+    """search.parallel: auto (default; also true), false (the sequential search) or a number of points
+    per round (an integer ≥ 1)."""
+    if node is None:
+        return "auto"
+    hint = "parallel: auto  (points per round = the study's workers), parallel: false (one point at a time) or parallel: 16"
+    v = p.scalar(node) if isinstance(node, ScalarNode) else None
+    if v is True or v == "auto":
+        return "auto"
+    if v is False:
+        return False
+    if isinstance(v, int) and not isinstance(v, bool):
+        if v < 1:
+            raise p.error(node, f"{_key('parallel', where)} must be ≥ 1 points per round, got {v}; e.g. {hint}")
+        return v
+    raise p.error(node, f"{_key('parallel', where)} must be auto, false or an integer, got "
+                        f"{p.describe(node)}; e.g. {hint}")
 
 
 def _parse_regression(p: _Parser, m: _Map, where: str, parameters: Mapping,

@@ -230,7 +230,13 @@ class SearchStage:
 
     ``warm_start`` brackets each outer level from the previous level's answer instead of the whole
     region (fewer FMU runs; the answer stays within ``inner_rtol``; see :mod:`fmusa.analysis.search`);
-    off by default, the paper's search."""
+    off by default, the paper's search.
+
+    ``parallel`` runs the search in rounds of points run together (:func:`fmusa.analysis.search.
+    search_in_rounds`): ``"auto"`` (the default) as many points per round as the study has workers (local
+    processes or the Dask cluster's threads), an integer that many, ``False`` the sequential search, one
+    point at a time (the paper's; studies/paper.yaml keeps it). The answer is the sequential search's for
+    a monotone boundary."""
     inner: str
     outer: str | None = None
     inner_rtol: float = 1e-3
@@ -239,6 +245,7 @@ class SearchStage:
     response: list[str] = field(default_factory=list)
     response_atol: dict[str, float] = field(default_factory=dict)
     warm_start: bool = False
+    parallel: str | int | bool = "auto"
 
 
 @dataclass(frozen=True)

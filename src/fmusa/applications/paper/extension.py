@@ -15,7 +15,6 @@ import time
 
 from fmusa.analysis.regression import fit_by_level
 from fmusa.analysis.roi import Region
-from fmusa.analysis.search import nested_binary_search
 from fmusa.applications.paper.physics import PaperScenario, compute_physics, optimum_time_series
 from fmusa.pipeline.sweep import StudyRunner, SweepResult, search_summary
 
@@ -52,9 +51,10 @@ class PaperExtension:
             return
         region = Region(inner, outer, tuple(map(float, paper_roi[inner])), tuple(map(float, paper_roi[outer])),
                         "paper (by hand)")
-        search = nested_binary_search(lambda p: runner.evaluate_one(p, PAPER_SEARCH_STAGE), region,
-                                      list(stage.response), stage.inner_rtol, stage.response_rtol,
-                                      stage.max_outer, stage.response_atol)
+        # the same search (sequential, or in rounds: then predicted by our search's answer, which lies
+        # on the same lattice when the inner ranges agree)
+        hints = [result.search.optimum[inner]] if result.search is not None and result.search.optimum else []
+        search = runner.search(region, stage, PAPER_SEARCH_STAGE, hints=hints, warm_start=False)
         part.update(region=region, search=search)
         summary["paper_roi_search"] = search_summary(search)
         reg = study.stages.get("regression")
