@@ -249,7 +249,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         if check_steps:               # how the FMU's own integration moves the metrics
             ts = time.perf_counter()
             steps = solver_summary(study, runs, summary.get("optimum"), runner.evaluator.local_spec(),
-                                   isolate=runner.evaluator.isolate)
+                                   isolate=runner.evaluator.isolate, workers=runner.evaluator.workers,
+                                   scheduler=runner.evaluator.scheduler)
             if steps is not None:
                 steps["wall_s"] = time.perf_counter() - ts
                 summary["fmu_steps"] = steps
