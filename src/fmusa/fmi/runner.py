@@ -103,7 +103,7 @@ class FMURunner:
         self._owns_unzipdir = False
         self.unzipdir = None
         self._instance = None
-        info = read_fmu_info(self.fmu_path)              # FMI 2.0? (FMUError otherwise)
+        info = read_fmu_info(self.fmu_path)              # FMI 2.0 or 3.0? (FMUError otherwise)
         self.interface = select_interface(info, interface)
         if solver is not None and solver not in SOLVERS:
             raise UsageError(f"unknown solver {solver!r}; use one of {', '.join(SOLVERS)}")
@@ -140,7 +140,7 @@ class FMURunner:
             self._cleanup_dir()
             raise
         md = self.model_description
-        self.variables = {v.name: v for v in md.modelVariables}
+        self.variables = {v.name: v for v in info.variables}   # FMI 3.0: scalars, arrays element-wise
         self.messages: deque[tuple[str, str, str]] = deque(maxlen=500)
         cats = [c.name for c in getattr(md, "logCategories", [])]
         if debug_logging is None:
@@ -175,6 +175,12 @@ class FMURunner:
                                fmi2CallbackFreeMemoryTYPE, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE)
         from fmpy import calloc, free
 
+        if self.info.is_fmi3:   # fmpy's FMU3Slave/FMU3Model behind the FMI 2 calls (fmusa.fmi.fmi3)
+            from fmusa.fmi.fmi3 import FMI3Instance
+            self._instance = FMI3Instance(self.info, str(self.unzipdir), self.interface, self.instance_name,
+                                          self._log_message, self._debug_logging)
+            self._state = "instantiated"
+            return
         md = self.model_description
         cls = FMU2Model if self.is_model_exchange else FMU2Slave
         slave = cls(guid=md.guid, unzipDirectory=str(self.unzipdir),
@@ -447,13 +453,19 @@ class FMURunner:
         interval, step_size = self._me_intervals(times)
         self.phase = (f"in fmpy's {self.solver} integration of the model exchange FMU "
                        f"from t = 0 to {times[-1]:.10g} s")
+        start, recorded, instance = dict(values), list(outputs), self._instance
+        if self.info.is_fmi3:   # fmpy sets and records FMI 3.0 arrays whole: elements gathered, picked out
+            from fmusa.fmi.fmi3 import me_columns, me_outputs, me_start_values
+            start, recorded, instance = me_start_values(self.info, start), me_outputs(self.info, outputs), instance.fmu
         try:
             res = simulate_fmu(str(self.unzipdir), validate=True, start_time=0.0, stop_time=float(times[-1]),
                                solver=self.solver, step_size=step_size,
                                relative_tolerance=self.relative_tolerance, output_interval=interval,
-                               record_events=True, fmi_type="ModelExchange", start_values=dict(values),
-                               output=list(outputs), model_description=self.model_description,
-                               fmu_instance=self._instance)
+                               record_events=True, fmi_type="ModelExchange", start_values=start,
+                               output=recorded, model_description=self.model_description,
+                               fmu_instance=instance)
+            if self.info.is_fmi3:
+                res = me_columns(self.info, res, outputs)
         except Exception as exc:
             raise self.fail(exc, params) from exc
         self._state = "done"
