@@ -118,6 +118,7 @@ def test_variable_problem_roles(fmu_path):
     assert variable_problem(info, "mode", "parameter") is None            # an Integer, set once
     assert "must be Real" in variable_problem(info, "mode", "varied")
     assert variable_problem(info, "F_ext_y", "input") is None
+    assert variable_problem(info, "F_ext_y", "varied") is None              # a study parameter may be an input
     assert variable_problem(info, "y_max", "output") is None
     assert variable_problem(info, "I_1", "output") is None                 # a calculatedParameter can be read
     assert "an input, not a parameter" in variable_problem(info, "F_ext_y", "parameter")

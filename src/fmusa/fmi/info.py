@@ -471,7 +471,8 @@ _TYPES = ("Real", "Integer", "Enumeration", "Boolean")
 def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
     """Why FMU variable ``name`` cannot play ``role``, or None when it can.
 
-    ``role`` is ``"varied"`` (a study parameter: a settable Real parameter), ``"parameter"`` (set once per
+    ``role`` is ``"varied"`` (a study parameter: a settable Real parameter, or a Real input held at the
+    study's value over the run), ``"parameter"`` (set once per
     run: a settable parameter of any supported type), ``"input"`` or ``"output"`` (read after the run).
     The message lists the closest names the FMU does have.
     """
@@ -483,6 +484,8 @@ def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
             return hint_
     if role in ("varied", "parameter"):
         pool = [x.name for x in vs if x.causality == "parameter" and x.variability in ("fixed", "tunable")]
+        if role == "varied":
+            pool += [x.name for x in vs if x.causality == "input"]
         wider = pool
         what = "parameter"
     elif role == "input":
@@ -515,6 +518,11 @@ def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
     causality, variability = v.causality or "local", v.variability or "continuous"
     if v.type not in _TYPES:
         return f"{name!r} is of type {v.type}; fmusa sets and reads only Real, Integer, Boolean and Enumeration"
+    if role == "varied" and causality == "input":   # held at the study's value over the run
+        if v.type != "Real":
+            return (f"{name!r} is {_an(v.type)} input; a study parameter must be Real (hold {v.type} inputs "
+                    f"under scenario.inputs)")
+        return None
     if role in ("varied", "parameter"):
         if causality == "calculatedParameter":
             deps = None
