@@ -92,6 +92,22 @@ class FMI3Instance:
     def freeInstance(self) -> None:
         self.fmu.freeInstance()
 
+    def terminate(self) -> None:
+        self.fmu.terminate()
+
+    # FMU state snapshots under FMI 2's names (FMI 3.0 spells them ...FMUState); the values known here
+    # go with the snapshot, so a restored state sets arrays from what they were when it was taken
+    def getFMUstate(self):
+        return self.fmu.getFMUState(), {vr: list(v) for vr, v in self._arrays.items()}
+
+    def setFMUstate(self, state) -> None:
+        fmu_state, arrays = state
+        self.fmu.setFMUState(fmu_state)
+        self._arrays = {vr: list(v) for vr, v in arrays.items()}
+
+    def freeFMUstate(self, state) -> None:
+        self.fmu.freeFMUState(state[0])
+
     def setDebugLogging(self, on: bool, categories: Sequence[str]) -> None:
         self.fmu.setDebugLogging(on, list(categories))
 
