@@ -24,7 +24,7 @@ import pytest
 
 import fmpy
 from fmusa.api import run_study
-from fmusa.fmi.info import FMUError, read_fmu_info, variable_problem
+from fmusa.fmi.info import FMUError, FMURunError, read_fmu_info, variable_problem
 from fmusa.fmi.plans import DrivenPlan, RunPlan
 from fmusa.fmi.runner import FMURunner
 from fmusa.study.loader import load_study
@@ -149,8 +149,8 @@ def test_run_plan_reuses_the_instance_and_an_error_is_the_fmus(decay3):
             x1 = x_exact(t, u, k1, X0[0])
             np.testing.assert_allclose(data[:, 1], x1, rtol=1e-13)
             np.testing.assert_allclose(data[:, 0], 2.0 * x1 + x_exact(t, u, K[1], X0[1]), rtol=1e-13, atol=1e-14)
-        with pytest.raises(Exception, match=r"(?s)fmi3ExitInitializationMode returned Error.*FMU log:.*k\[1\] and k\[2\] must "
-                                            r"be positive"):
+        with pytest.raises(FMURunError, match=r"(?s)fmi3ExitInitializationMode returned Error.*FMU log:.*"
+                                              r"k\[1\] and k\[2\] must be positive"):
             plan([-1.0, 0.0])
         np.testing.assert_array_equal(plan([2.0, 1.0]), a)     # and the next run is right again
         with pytest.raises(FMUError, match=r"unknown parameter 'k\[3\]'"):

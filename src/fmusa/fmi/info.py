@@ -46,7 +46,7 @@ def default_fmu_path() -> Path:
 
 
 # ---------------------------------------------------------------------- what an FMU holds, checks, compiling
-#: The FMI 2.0 interfaces fmusa runs, in order of preference for ``interface: auto``.
+#: The interfaces fmusa runs (FMI 2.0 and 3.0), in order of preference for ``interface: auto``.
 INTERFACES = ("co-simulation", "model-exchange")
 #: Values of ``fmu_options.interface``.
 INTERFACE_CHOICES = ("auto",) + INTERFACES
@@ -57,7 +57,7 @@ _SHORT = {"co-simulation": "CS", "model-exchange": "ME"}
 
 
 class FMUError(FmusaError, ValueError):
-    """An FMU fmusa cannot run as asked: not FMI 2.0, the requested interface missing, no binary for
+    """An FMU fmusa cannot run as asked: neither FMI 2.0 nor 3.0, the requested interface missing, no binary for
     this platform and no sources to build one, an unreadable model description, an unknown variable
     name or a value of the wrong type for a variable."""
 

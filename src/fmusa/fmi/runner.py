@@ -1,4 +1,5 @@
-"""Run FMI 2.0 FMUs: the one module of fmusa that talks to an FMU (through fmpy).
+"""Run FMI 2.0 and 3.0 FMUs: the one module of fmusa that talks to an FMU (through fmpy; an FMI 3.0 FMU through
+:class:`fmusa.fmi.fmi3.FMI3Instance`, which gives fmpy's FMI 3 instance the FMI 2 calls used here).
 
 An :class:`FMURunner` extracts the FMU once, instantiates it once and then runs it as often as
 needed: every run is ``reset`` → set parameters → ``setupExperiment`` → initialisation →
@@ -67,7 +68,7 @@ def communication_points(stop_time: float, step: float | None) -> np.ndarray:
 
 
 class FMURunner:
-    """One extracted, instantiated FMI 2.0 FMU, run again and again.
+    """One extracted, instantiated FMI 2.0 or 3.0 FMU, run again and again (FMI 3.0 arrays element-wise, ``x[2]``).
 
     Co-simulation FMUs integrate themselves (``fmi2DoStep``); model exchange FMUs are integrated by
     fmpy's solver (CVode or Euler) through ``fmpy.simulate_fmu``, on the same reused instance. An FMU
