@@ -124,3 +124,17 @@ def test_the_closed_form_is_the_fmus_answer_on_a_fresh_fmpy_instance(spring):
     res = fmpy.simulate_fmu(str(spring), fmi_type="CoSimulation", stop_time=STOP, output_interval=STEP,
                             start_values={"F_ext": 20.0, "c": 400.0, "d": DAMP, "F_max": 0.0}, output=["y"])
     assert float(res["y"][-1]) == pytest.approx(step_response(20.0, 400.0, DAMP, STOP), rel=1e-9)
+
+
+@pytest.mark.parametrize("interface", ["co-simulation", "model-exchange"])
+def test_the_runner_takes_an_input_among_the_parameters_of_a_run(spring, interface):
+    """FMURunner.run/run_final set an input named among ``params`` as RunPlan does (re-runs of a study's
+    points outside the plan, e.g. a finer sampling, pass the study parameters that way)."""
+    from fmusa.fmi.runner import FMURunner
+    with FMURunner(spring, interface=interface) as r:
+        final = r.run_final({"F_ext": 7.0, "F_max": 0.0, "c": 400.0, "d": DAMP}, STOP, ["F", "y"])
+        df = r.run({"F_ext": -3.0, "F_max": 0.0, "c": 100.0, "d": DAMP}, STOP, STEP, ["F", "y"])
+    assert final["F"] == 7.0
+    assert final["y"] == pytest.approx(step_response(7.0, 400.0, DAMP, STOP), rel=2e-5)
+    assert (df["F"] == -3.0).all()
+    assert df["y"].iloc[-1] == pytest.approx(step_response(-3.0, 100.0, DAMP, STOP), rel=2e-5)

@@ -416,7 +416,7 @@ class FMURunner:
                inputs: Mapping[str, float] | None) -> None:
         self.ready()
         self.phase = "while setting parameters"
-        self._set(params, ("parameter",), "parameter")
+        self._set(params, ("parameter", "input"), "parameter")   # a study parameter may be an input
         if inputs:
             self._set(inputs, ("input",), "input")
         self.phase = "during initialisation"
@@ -485,7 +485,7 @@ class FMURunner:
                  inputs: Mapping[str, float] | None) -> None:
         """Check the names of a run's parameters and inputs before it starts (:class:`FMUError`)."""
         for name in params:
-            self.lookup(name, ("parameter",), "parameter")
+            self.lookup(name, ("parameter", "input"), "parameter")   # (a study parameter may be an input)
         for name in inputs or {}:
             self.lookup(name, ("input",), "input")
         if isinstance(outputs, str):
