@@ -67,6 +67,8 @@ class FMI3Instance:
                 self._starts.setdefault(sv.vr, [None] * sv.size)[sv.index] = (
                     _zero(sv) if sv.start is None else _python_value(sv, sv.start))
         self._plans: dict[tuple, list] = {}
+        self._fast: dict[tuple, tuple] = {}          # (id of a ctypes vr array, n) -> (the array, its plan)
+        self._step_out = None
         self._experiment = (None, 0.0, None)
         self._default_tolerance = info.default_experiment.get("tolerance")
 
@@ -126,19 +128,30 @@ class FMI3Instance:
     def doStep(self, currentCommunicationPoint: float, communicationStepSize: float,
                noSetFMUStatePriorToCurrentPoint: bool = True) -> None:
         """fmi3DoStep; an FMU that asks to end the simulation ends the run (a RuntimeError naming the time)."""
-        _, terminate, _, last = self.fmu.doStep(currentCommunicationPoint, communicationStepSize,
-                                                noSetFMUStatePriorToCurrentPoint)
-        if terminate:
-            raise RuntimeError(f"the FMU asked to terminate the simulation in fmi3DoStep at t = {last:.10g} s "
-                               f"(step from {currentCommunicationPoint:.10g} s)")
+        out = self._step_out        # fmi3DoStep's four results, allocated once (a call per communication point)
+        if out is None:
+            from ctypes import byref
+
+            from fmpy.fmi3 import fmi3Boolean, fmi3Float64
+            vals = (fmi3Boolean(), fmi3Boolean(), fmi3Boolean(), fmi3Float64())
+            out = self._step_out = (vals, tuple(byref(v) for v in vals))
+        self.fmu.fmi3DoStep(self.fmu.component, currentCommunicationPoint, communicationStepSize,
+                            bool(noSetFMUStatePriorToCurrentPoint), *out[1])
+        if out[0][1].value:
+            raise RuntimeError(f"the FMU asked to terminate the simulation in fmi3DoStep at t = "
+                               f"{out[0][3].value:.10g} s (step from {currentCommunicationPoint:.10g} s)")
 
     # ------------------------------------------------------------------ values by scalar index
     def _plan(self, refs: tuple) -> list:
-        """(FMI 3 type, vrs, number of values, [(position in refs, flat offset in the values read)]) per
-        type, for reading the scalars ``refs``; built once per tuple of refs."""
+        """How to read the scalars ``refs``, built once per tuple of refs: per FMI 3 type, (fmpy's ctypes
+        getter ``fmi3Get<Type>``, the value references as a ctypes array, the number of values, a ctypes
+        buffer for them, [(position in refs, offset in the buffer)]). A read then costs one ctypes call per
+        type, no allocation (it runs at every communication point)."""
         plan = self._plans.get(refs)
         if plan is not None:
             return plan
+        import fmpy.fmi3 as f3
+
         groups: dict[str, tuple[list, dict, list]] = {}
         for pos, ref in enumerate(refs):
             sv = self._scalars[ref]
@@ -150,7 +163,8 @@ class FMI3Instance:
         plan = []
         for typ, (vrs, _, picks) in groups.items():
             n = sum(self._scalars_size(v) for v in vrs)
-            plan.append((getattr(self.fmu, "get" + typ), vrs, n, picks))
+            plan.append((getattr(self.fmu, "fmi3Get" + typ), (f3.fmi3ValueReference * len(vrs))(*vrs), n,
+                         (getattr(f3, "fmi3" + typ) * n)(), picks))
         self._plans[refs] = plan
         return plan
 
@@ -162,10 +176,11 @@ class FMI3Instance:
         """The values of the scalars ``refs`` (any types), in order."""
         refs = tuple(int(r) for r in refs)
         out: list = [None] * len(refs)
-        for getter, vrs, n, picks in self._plan(refs):
-            values = getter(vrs, n)
+        component = self.fmu.component
+        for getter, vrs, n, buf, picks in self._plan(refs):
+            getter(component, vrs, len(vrs), buf, n)
             for pos, off in picks:
-                out[pos] = values[off]
+                out[pos] = buf[off]
         return out
 
     def set(self, refs: Iterable[int], values: Iterable) -> None:
@@ -220,8 +235,17 @@ class FMI3Instance:
         return 0
 
     def fmi2GetReal(self, component, vr, nvr, value) -> int:
-        for i, x in enumerate(self.get([vr[k] for k in range(nvr)])):
-            value[i] = float(x)
+        # a plan reads through the same ctypes array every time: its read plan is found by the array's id
+        key = (id(vr), nvr)
+        fast = self._fast.get(key)
+        if fast is None or fast[0] is not vr:
+            fast = (vr, self._plan(tuple(int(vr[k]) for k in range(nvr))))
+            self._fast[key] = fast
+        comp = self.fmu.component
+        for getter, vrs, n, buf, picks in fast[1]:
+            getter(comp, vrs, len(vrs), buf, n)
+            for pos, off in picks:
+                value[pos] = buf[off]
         return 0
 
     def fmi2SetupExperiment(self, component, toleranceDefined, tolerance, startTime, stopTimeDefined,
