@@ -1,8 +1,8 @@
 """FMI 3.0 FMUs, co-simulation and model exchange, through the same runner, plans and studies as FMI 2.0.
 
 Our own FMU is tests/fmus/fmi3_decay (Decay3, built here with gcc against fmpy's FMI 3 headers):
-x_i' = u - k_i x_i, z = w x, with array parameters k[2], x0[2], w[2,2], array outputs x[2], z[2] and a
-scalar input u, so x_i(t) = u/k_i + (x0_i - u/k_i) exp(-k_i t). Its co-simulation steps with the exact
+x_i' = u - k_i x_i, z = s·w x, with array parameters k[2], x0[2], w[2,2], array outputs x[2], z[2] and a
+scalar input u (s = ±10^scale_exp, a Boolean and an Int32 parameter; n_steps an Int32 output), so x_i(t) = u/k_i + (x0_i - u/k_i) exp(-k_i t). Its co-simulation steps with the exact
 exponential (the closed form to rounding); model exchange is integrated by fmpy's CVode.
 
 The real export is ../shared/vendor-fmus/MapleSim2024_CoupledClutches_FMI3.fmu (CS + ME, array output
@@ -76,11 +76,14 @@ def test_array_variables_are_element_scalars(decay3):
     assert info.platforms == [fmpy.platform_tuple] and info.has_binary("co-simulation")
     names = [v.name for v in info.variables]
     assert names == ["time", "k[1]", "k[2]", "x0[1]", "x0[2]", "w[1,1]", "w[1,2]", "w[2,1]", "w[2,2]", "u",
-                     "x[1]", "x[2]", "der(x)[1]", "der(x)[2]", "z[1]", "z[2]"]
+                     "x[1]", "x[2]", "der(x)[1]", "der(x)[2]", "z[1]", "z[2]", "negate", "scale_exp", "n_steps"]
     w21 = info.variable("w[2,1]")
     assert (w21.type, w21.fmi3_type, w21.vr, w21.index, w21.size, w21.shape) == ("Real", "Float64", 3, 2, 4, (2, 2))
     assert info.variable("x0[2]").start == "-0.5"
-    assert [v.name for v in info.declared_variables] == ["time", "k", "x0", "w", "u", "x", "der(x)", "z"]
+    assert [v.name for v in info.declared_variables] == ["time", "k", "x0", "w", "u", "x", "der(x)", "z", "negate",
+                                                         "scale_exp", "n_steps"]
+    assert [(info.variable(n).type, info.variable(n).fmi3_type) for n in ("negate", "scale_exp")] == \
+        [("Boolean", "Boolean"), ("Integer", "Int32")]
     # roles: an element is a parameter/output like a scalar; an array's name tells how to address it
     assert variable_problem(info, "k[2]", "varied") is None
     assert variable_problem(info, "u", "varied") is None
@@ -99,7 +102,7 @@ def test_inspect_shows_the_fmi3_platform_and_the_arrays(decay3):
     out = proc.stdout
     assert f"binaries            {fmpy.platform_tuple}  (this machine, {fmpy.platform_tuple}: yes)" in out
     assert "w (2×2, parameter): w[1,1] … w[2,2]" in out and "z (2, output): z[1] … z[2]" in out
-    assert "16 scalars" in out and "in 8 variables, 6 of them arrays" in out
+    assert "19 scalars" in out and "in 11 variables, 6 of them arrays" in out
     rows = {line.split()[0]: line.split() for line in out.splitlines() if line.startswith(("w[", "u ", "x0["))}
     assert rows["w[2,2]"][1:4] == ["parameter", "tunable", "Float64"] and rows["x0[2]"][-3] == "-0.5"
 
@@ -169,6 +172,57 @@ def test_a_driven_plan_runs_an_fmi3_co_simulation(decay3):
         x = float(x_exact(t[i] - t[i - 1], u[i - 1], 1.5, x))
         expect.append(x)
     np.testing.assert_allclose(data[:, 0], expect, rtol=1e-13)
+
+
+@pytest.mark.parametrize("interface", ["co-simulation", "model-exchange"])
+def test_boolean_and_integer_variables_are_set_and_read(decay3, interface):
+    with FMURunner(decay3, interface=interface) as r:
+        plan = RunPlan(r, ["k[1]"], {"negate": "true", "scale_exp": -2}, ["z[1]", "n_steps", "x[1]"], 1.0, 0.25)
+        data = plan([3.0])
+        plain = r.run_final({"k[1]": 3.0}, 1.0, ["z[1]", "n_steps"])      # back at the starts: false, 0
+    x1 = x_exact(plan.times, 0.0, 3.0, X0[0])
+    np.testing.assert_allclose(data[:, 2], x1, rtol=1e-13 if interface == "co-simulation" else 1e-5)
+    np.testing.assert_allclose(data[:, 0], -1e-2 * data[:, 2], rtol=1e-14)
+    # fmi3DoStep calls since the reset (model exchange makes none)
+    steps = [0, 1, 2, 3, 4] if interface == "co-simulation" else [0] * 5
+    assert data[:, 1].tolist() == steps
+    assert plain["z[1]"] == pytest.approx(float(x1[-1]), rel=1e-13 if interface == "co-simulation" else 1e-5)
+    assert plain["n_steps"] == (1 if interface == "co-simulation" else 0)
+    with FMURunner(decay3, interface=interface) as r, pytest.raises(FMUError, match=r"scale_exp is an Integer"):
+        r.run_final({"scale_exp": 1.5}, 1.0, ["z[1]"])
+
+
+def test_a_study_holds_an_fmi3_input_under_scenario_inputs(tmp_path, decay3):
+    text = f"""\
+name: decay3_inputs
+fmu: {decay3.as_posix()}
+parameters:
+  k1: {{variable: "k[1]"}}
+fixed:
+  scale_exp: 1
+scenario:
+  stop_time: 1.0
+  step: 0.1
+  inputs:
+    u: 0.25
+metrics:
+  z1_end: {{output: "z[1]", reduce: final}}
+  steps: {{output: n_steps, reduce: final}}
+stages:
+  grid:
+    values:
+      k1: [0.5, 2.0]
+execution:
+  workers: 1
+"""
+    path = tmp_path / "inputs.yaml"
+    path.write_text(text, encoding="utf-8")
+    run_study(load_study(path), tmp_path / "out", figures=False, progress=False)
+    runs = pd.read_csv(tmp_path / "out" / "runs.csv")
+    assert (runs["status"] == "ok").all(), runs[["status", "message"]]
+    for _, r in runs.iterrows():
+        assert r["z1_end"] == pytest.approx(10.0 * float(x_exact(1.0, 0.25, r["k1"], X0[0])), rel=1e-13)
+        assert r["steps"] == 10
 
 
 # ---------------------------------------------------------------------- a study of our FMI 3.0 FMU

@@ -1,6 +1,9 @@
 /* Decay3: a small FMI 3.0 FMU for the tests (co-simulation and model exchange in one binary).
  *
- *     x_i' = u - k_i x_i,   x_i(0) = x0_i   (i = 1, 2)      z = w x   (w a 2x2 matrix)
+ *     x_i' = u - k_i x_i,   x_i(0) = x0_i   (i = 1, 2)      z = s w x   (w a 2x2 matrix)
+ *
+ * with s = (negate ? -1 : 1) * 10^scale_exp (a Boolean and an Int32 parameter), and n_steps (an Int32
+ * output) counting the calls of fmi3DoStep since the reset.
  *
  * so x_i(t) = u/k_i + (x0_i - u/k_i) exp(-k_i t): the closed form tests/test_fmi3.py checks.
  * Arrays: parameters k[2], x0[2] and w[2,2] (row-major), outputs x[2] (the states) and z[2]; one scalar
@@ -9,6 +12,7 @@
  *
  * Value references (as in tests/fmus/fmi3_decay/modelDescription.xml):
  *   0 time   1 k[2]   2 x0[2]   3 w[2,2]   4 u   5 x[2]   6 der(x)[2]   7 z[2]
+ *   8 negate (Boolean)   9 scale_exp (Int32)   10 n_steps (Int32)
  * Built by tests/test_fmi3.py with gcc and the FMI 3 headers of fmpy's c-code directory. Functions this
  * model does not support return fmi3Error (every function fmpy binds must exist).
  */
@@ -19,11 +23,14 @@
 
 #include "fmi3Functions.h"
 
-enum { VR_TIME = 0, VR_K = 1, VR_X0 = 2, VR_W = 3, VR_U = 4, VR_X = 5, VR_DX = 6, VR_Z = 7 };
+enum { VR_TIME = 0, VR_K = 1, VR_X0 = 2, VR_W = 3, VR_U = 4, VR_X = 5, VR_DX = 6, VR_Z = 7, VR_NEGATE = 8,
+       VR_SCALE_EXP = 9, VR_N_STEPS = 10 };
 
 typedef struct {
     double k[2], x0[2], w[4], u, x[2];
     double time;
+    fmi3Boolean negate;
+    fmi3Int32 scale_exp, n_steps;
     int initialised;
     fmi3InstanceEnvironment env;
     fmi3LogMessageCallback log;
@@ -36,7 +43,14 @@ static void defaults(Model *m) {
     m->u = 0.0;
     m->x[0] = m->x0[0]; m->x[1] = m->x0[1];
     m->time = 0.0;
+    m->negate = fmi3False;
+    m->scale_exp = 0;
+    m->n_steps = 0;
     m->initialised = 0;
+}
+
+static double output_scale(const Model *m) {
+    return (m->negate ? -1.0 : 1.0) * pow(10.0, (double)m->scale_exp);
 }
 
 static void fail(Model *m, const char *what) {
@@ -56,8 +70,8 @@ static int get_values(Model *m, fmi3ValueReference vr, double *dst, size_t room)
     case VR_X: v[0] = m->x[0]; v[1] = m->x[1]; n = 2; break;
     case VR_DX: v[0] = m->u - m->k[0] * m->x[0]; v[1] = m->u - m->k[1] * m->x[1]; n = 2; break;
     case VR_Z:
-        v[0] = m->w[0] * m->x[0] + m->w[1] * m->x[1];
-        v[1] = m->w[2] * m->x[0] + m->w[3] * m->x[1];
+        v[0] = output_scale(m) * (m->w[0] * m->x[0] + m->w[1] * m->x[1]);
+        v[1] = output_scale(m) * (m->w[2] * m->x[0] + m->w[3] * m->x[1]);
         n = 2; break;
     default: return -1;
     }
@@ -201,22 +215,51 @@ UNSUPPORTED_GET(fmi3GetInt8, fmi3Int8)
 UNSUPPORTED_GET(fmi3GetUInt8, fmi3UInt8)
 UNSUPPORTED_GET(fmi3GetInt16, fmi3Int16)
 UNSUPPORTED_GET(fmi3GetUInt16, fmi3UInt16)
-UNSUPPORTED_GET(fmi3GetInt32, fmi3Int32)
+fmi3Status fmi3GetInt32(fmi3Instance instance, const fmi3ValueReference vr[], size_t nvr, fmi3Int32 values[],
+                        size_t nValues) {
+    Model *m = instance;
+    size_t i;
+    if (nvr != nValues) return fmi3Error;
+    for (i = 0; i < nvr; i++) {
+        if (vr[i] == VR_SCALE_EXP) values[i] = m->scale_exp;
+        else if (vr[i] == VR_N_STEPS) values[i] = m->n_steps;
+        else { fail(m, "fmi3GetInt32: unknown value reference"); return fmi3Error; }
+    }
+    return fmi3OK;
+}
 UNSUPPORTED_GET(fmi3GetUInt32, fmi3UInt32)
 UNSUPPORTED_GET(fmi3GetInt64, fmi3Int64)
 UNSUPPORTED_GET(fmi3GetUInt64, fmi3UInt64)
-UNSUPPORTED_GET(fmi3GetBoolean, fmi3Boolean)
+fmi3Status fmi3GetBoolean(fmi3Instance instance, const fmi3ValueReference vr[], size_t nvr, fmi3Boolean values[],
+                          size_t nValues) {
+    Model *m = instance;
+    if (nvr != 1 || nValues != 1 || vr[0] != VR_NEGATE) { fail(m, "fmi3GetBoolean: unknown value reference"); return fmi3Error; }
+    values[0] = m->negate;
+    return fmi3OK;
+}
 UNSUPPORTED_GET(fmi3GetString, fmi3String)
 UNSUPPORTED_SET(fmi3SetFloat32, fmi3Float32)
 UNSUPPORTED_SET(fmi3SetInt8, fmi3Int8)
 UNSUPPORTED_SET(fmi3SetUInt8, fmi3UInt8)
 UNSUPPORTED_SET(fmi3SetInt16, fmi3Int16)
 UNSUPPORTED_SET(fmi3SetUInt16, fmi3UInt16)
-UNSUPPORTED_SET(fmi3SetInt32, fmi3Int32)
+fmi3Status fmi3SetInt32(fmi3Instance instance, const fmi3ValueReference vr[], size_t nvr, const fmi3Int32 values[],
+                        size_t nValues) {
+    Model *m = instance;
+    if (nvr != 1 || nValues != 1 || vr[0] != VR_SCALE_EXP) { fail(m, "fmi3SetInt32: not settable"); return fmi3Error; }
+    m->scale_exp = values[0];
+    return fmi3OK;
+}
 UNSUPPORTED_SET(fmi3SetUInt32, fmi3UInt32)
 UNSUPPORTED_SET(fmi3SetInt64, fmi3Int64)
 UNSUPPORTED_SET(fmi3SetUInt64, fmi3UInt64)
-UNSUPPORTED_SET(fmi3SetBoolean, fmi3Boolean)
+fmi3Status fmi3SetBoolean(fmi3Instance instance, const fmi3ValueReference vr[], size_t nvr,
+                          const fmi3Boolean values[], size_t nValues) {
+    Model *m = instance;
+    if (nvr != 1 || nValues != 1 || vr[0] != VR_NEGATE) { fail(m, "fmi3SetBoolean: not settable"); return fmi3Error; }
+    m->negate = values[0];
+    return fmi3OK;
+}
 UNSUPPORTED_SET(fmi3SetString, fmi3String)
 
 fmi3Status fmi3GetBinary(fmi3Instance instance, const fmi3ValueReference vr[], size_t nvr, size_t valueSizes[],
@@ -392,6 +435,7 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
         m->x[i] = xs + (m->x[i] - xs) * exp(-m->k[i] * communicationStepSize);
     }
     m->time = currentCommunicationPoint + communicationStepSize;
+    m->n_steps++;
     *eventHandlingNeeded = fmi3False;
     *terminateSimulation = fmi3False;
     *earlyReturn = fmi3False;
