@@ -368,6 +368,12 @@ class ScalarVariable:
     def array_name(self) -> str:
         return self.base.name
 
+    def __getattr__(self, name: str):
+        """fmpy's other attributes of the declared variable (``nominal``, ``min``, ``derivative`` …)."""
+        if name.startswith("__") or name == "base":
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
 
 def _split_start(start, size: int) -> list | None:
     """An array variable's start as a list of ``size`` strings (None when it declares none)."""
