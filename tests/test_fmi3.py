@@ -337,3 +337,48 @@ def test_maplesim_fmi3_study_equals_fresh_fmpy_runs(tmp_path, interface, rtol):
             assert abs(r[name] - value) <= rtol * scale, (interface, name, r[name], value)
         moved.append(r["w1_end"])
     assert np.ptp(moved) > 1e-3          # the study parameters reach the FMU (the answers differ)
+
+
+def test_morris_on_array_elements_and_an_input(tmp_path, decay3):
+    """A sensitivity stage whose parameters are array elements and an input: every run is the closed form,
+    and z's coupling w[1,2] has no effect on x[2] (mu* exactly 0)."""
+    text = f"""\
+name: decay3_morris
+fmu: {decay3.as_posix()}
+parameters:
+  k2: {{variable: "k[2]"}}
+scenario:
+  stop_time: 1.5
+  step: 0.05
+metrics:
+  x2_end: {{output: "x[2]", reduce: final}}
+  z1_end: {{output: "z[1]", reduce: final}}
+stages:
+  grid:
+    values:
+      k2: [1.0]
+  sensitivity:
+    methods: [morris]
+    morris_trajectories: 4
+    seed: 1
+    outputs: [x2_end, z1_end]
+    parameters:
+      k2: {{variable: "k[2]", bounds: [0.5, 4.0]}}
+      drive: {{variable: u, bounds: [-1.0, 1.0]}}
+      w12: {{variable: "w[1,2]", bounds: [0.0, 2.0]}}
+execution:
+  workers: 1
+"""
+    path = tmp_path / "morris.yaml"
+    path.write_text(text, encoding="utf-8")
+    result = run_study(load_study(path), tmp_path / "out", figures=False, progress=False)
+    runs = pd.read_csv(tmp_path / "out" / "sensitivity_runs.csv")
+    assert len(runs) >= 16 and (runs["status"] == "ok").all(), runs[["status", "message"]]
+    for _, r in runs.iterrows():
+        x1 = float(x_exact(1.5, r["drive"], K[0], X0[0]))
+        x2 = float(x_exact(1.5, r["drive"], r["k2"], X0[1]))
+        assert r["x2_end"] == pytest.approx(x2, rel=1e-12, abs=1e-15)
+        assert r["z1_end"] == pytest.approx(x1 + r["w12"] * x2, rel=1e-12, abs=1e-15)
+    morris = result.summary["sensitivity"]["morris"]
+    assert morris["x2_end"]["w12"]["mu_star"] == 0.0
+    assert morris["x2_end"]["drive"]["mu_star"] > 0.1 and morris["z1_end"]["w12"]["mu_star"] > 0.1
