@@ -76,12 +76,13 @@ def test_array_variables_are_element_scalars(decay3):
     assert info.platforms == [fmpy.platform_tuple] and info.has_binary("co-simulation")
     names = [v.name for v in info.variables]
     assert names == ["time", "k[1]", "k[2]", "x0[1]", "x0[2]", "w[1,1]", "w[1,2]", "w[2,1]", "w[2,2]", "u",
-                     "x[1]", "x[2]", "der(x)[1]", "der(x)[2]", "z[1]", "z[2]", "negate", "scale_exp", "n_steps"]
+                     "x[1]", "x[2]", "der(x)[1]", "der(x)[2]", "z[1]", "z[2]", "negate", "scale_exp", "t_terminate",
+                     "n_steps"]
     w21 = info.variable("w[2,1]")
     assert (w21.type, w21.fmi3_type, w21.vr, w21.index, w21.size, w21.shape) == ("Real", "Float64", 3, 2, 4, (2, 2))
     assert info.variable("x0[2]").start == "-0.5"
     assert [v.name for v in info.declared_variables] == ["time", "k", "x0", "w", "u", "x", "der(x)", "z", "negate",
-                                                         "scale_exp", "n_steps"]
+                                                         "scale_exp", "t_terminate", "n_steps"]
     assert [(info.variable(n).type, info.variable(n).fmi3_type) for n in ("negate", "scale_exp")] == \
         [("Boolean", "Boolean"), ("Integer", "Int32")]
     # roles: an element is a parameter/output like a scalar; an array's name tells how to address it
@@ -102,7 +103,7 @@ def test_inspect_shows_the_fmi3_platform_and_the_arrays(decay3):
     out = proc.stdout
     assert f"binaries            {fmpy.platform_tuple}  (this machine, {fmpy.platform_tuple}: yes)" in out
     assert "w (2×2, parameter): w[1,1] … w[2,2]" in out and "z (2, output): z[1] … z[2]" in out
-    assert "19 scalars" in out and "in 11 variables, 6 of them arrays" in out
+    assert "20 scalars" in out and "in 12 variables, 6 of them arrays" in out
     rows = {line.split()[0]: line.split() for line in out.splitlines() if line.startswith(("w[", "u ", "x0["))}
     assert rows["w[2,2]"][1:4] == ["parameter", "tunable", "Float64"] and rows["x0[2]"][-3] == "-0.5"
 
@@ -158,6 +159,15 @@ def test_run_plan_reuses_the_instance_and_an_error_is_the_fmus(decay3):
         np.testing.assert_array_equal(plan([2.0, 1.0]), a)     # and the next run is right again
         with pytest.raises(FMUError, match=r"unknown parameter 'k\[3\]'"):
             RunPlan(r, ["k[3]"], {}, ["x[1]"], 1.0, 0.5)
+
+
+def test_an_fmu_that_asks_to_terminate_fails_the_run_with_the_time(decay3):
+    with FMURunner(decay3) as r:
+        plan = RunPlan(r, ["t_terminate"], {}, ["x[1]"], 1.0, 0.25)
+        with pytest.raises(FMURunError, match=r"asked to terminate the simulation in fmi3DoStep at t = 0\.5 s "
+                                              r"\(step from 0\.25 s\)"):
+            plan([0.5])
+        np.testing.assert_allclose(plan([2.0])[:, 0], x_exact(plan.times, 0.0, K[0], X0[0]), rtol=1e-13)
 
 
 def test_a_driven_plan_runs_an_fmi3_co_simulation(decay3):

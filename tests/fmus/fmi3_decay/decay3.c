@@ -3,7 +3,8 @@
  *     x_i' = u - k_i x_i,   x_i(0) = x0_i   (i = 1, 2)      z = s w x   (w a 2x2 matrix)
  *
  * with s = (negate ? -1 : 1) * 10^scale_exp (a Boolean and an Int32 parameter), and n_steps (an Int32
- * output) counting the calls of fmi3DoStep since the reset.
+ * output) counting the calls of fmi3DoStep since the reset. From t = t_terminate on, fmi3DoStep asks the
+ * importer to end the simulation (terminateSimulation).
  *
  * so x_i(t) = u/k_i + (x0_i - u/k_i) exp(-k_i t): the closed form tests/test_fmi3.py checks.
  * Arrays: parameters k[2], x0[2] and w[2,2] (row-major), outputs x[2] (the states) and z[2]; one scalar
@@ -12,7 +13,7 @@
  *
  * Value references (as in tests/fmus/fmi3_decay/modelDescription.xml):
  *   0 time   1 k[2]   2 x0[2]   3 w[2,2]   4 u   5 x[2]   6 der(x)[2]   7 z[2]
- *   8 negate (Boolean)   9 scale_exp (Int32)   10 n_steps (Int32)
+ *   8 negate (Boolean)   9 scale_exp (Int32)   10 n_steps (Int32)   11 t_terminate
  * Built by tests/test_fmi3.py with gcc and the FMI 3 headers of fmpy's c-code directory. Functions this
  * model does not support return fmi3Error (every function fmpy binds must exist).
  */
@@ -24,11 +25,11 @@
 #include "fmi3Functions.h"
 
 enum { VR_TIME = 0, VR_K = 1, VR_X0 = 2, VR_W = 3, VR_U = 4, VR_X = 5, VR_DX = 6, VR_Z = 7, VR_NEGATE = 8,
-       VR_SCALE_EXP = 9, VR_N_STEPS = 10 };
+       VR_SCALE_EXP = 9, VR_N_STEPS = 10, VR_T_TERMINATE = 11 };
 
 typedef struct {
     double k[2], x0[2], w[4], u, x[2];
-    double time;
+    double time, t_terminate;
     fmi3Boolean negate;
     fmi3Int32 scale_exp, n_steps;
     int initialised;
@@ -43,6 +44,7 @@ static void defaults(Model *m) {
     m->u = 0.0;
     m->x[0] = m->x0[0]; m->x[1] = m->x0[1];
     m->time = 0.0;
+    m->t_terminate = 1e300;
     m->negate = fmi3False;
     m->scale_exp = 0;
     m->n_steps = 0;
@@ -67,6 +69,7 @@ static int get_values(Model *m, fmi3ValueReference vr, double *dst, size_t room)
     case VR_X0: v[0] = m->x0[0]; v[1] = m->x0[1]; n = 2; break;
     case VR_W: memcpy(v, m->w, sizeof m->w); n = 4; break;
     case VR_U: v[0] = m->u; n = 1; break;
+    case VR_T_TERMINATE: v[0] = m->t_terminate; n = 1; break;
     case VR_X: v[0] = m->x[0]; v[1] = m->x[1]; n = 2; break;
     case VR_DX: v[0] = m->u - m->k[0] * m->x[0]; v[1] = m->u - m->k[1] * m->x[1]; n = 2; break;
     case VR_Z:
@@ -86,6 +89,7 @@ static int set_values(Model *m, fmi3ValueReference vr, const double *src, size_t
     case VR_X0: if (room < 2) return -1; m->x0[0] = src[0]; m->x0[1] = src[1]; return 2;
     case VR_W: if (room < 4) return -1; memcpy(m->w, src, sizeof m->w); return 4;
     case VR_U: if (room < 1) return -1; m->u = src[0]; return 1;
+    case VR_T_TERMINATE: if (room < 1) return -1; m->t_terminate = src[0]; return 1;
     default: return -1;
     }
 }
@@ -437,7 +441,7 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
     m->time = currentCommunicationPoint + communicationStepSize;
     m->n_steps++;
     *eventHandlingNeeded = fmi3False;
-    *terminateSimulation = fmi3False;
+    *terminateSimulation = m->time >= m->t_terminate ? fmi3True : fmi3False;
     *earlyReturn = fmi3False;
     *lastSuccessfulTime = m->time;
     return fmi3OK;
