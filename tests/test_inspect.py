@@ -162,17 +162,17 @@ def test_inspect_full_and_narrow_terminal(capsys, fmu_path, monkeypatch):
     assert "Interface stiffness along the screw axis y (eq. 1)" in out
 
 
-def test_inspect_rejects_fmi3_with_a_clear_message(capsys, fmu_path, tmp_path):
-    fake = tmp_path / "Fmi3.fmu"
+def test_inspect_rejects_fmi1_with_a_clear_message(capsys, fmu_path, tmp_path):
+    fake = tmp_path / "Fmi1.fmu"
     with zipfile.ZipFile(fmu_path) as zin, zipfile.ZipFile(fake, "w") as zout:
         for item in zin.infolist():
             data = zin.read(item.filename)
             if item.filename == "modelDescription.xml":
-                data = data.replace(b'fmiVersion="2.0"', b'fmiVersion="3.0"', 1)
+                data = data.replace(b'fmiVersion="2.0"', b'fmiVersion="1.0"', 1)
             zout.writestr(item, data)
     code, out, err = _inspect(capsys, fake)
     assert code == 2
-    assert "is an FMI 3.0 FMU" in err and "fmusa needs FMI 2.0" in err
+    assert "is an FMI 1.0 FMU" in err and "fmusa needs FMI 2.0 or 3.0" in err
     code, out, err = _inspect(capsys, tmp_path / "missing.fmu")
     assert code == 1 and "FMU not found" in err
 

@@ -290,7 +290,7 @@ def _variable_rows(info, causality: set[str] | None, pattern: str | None) -> lis
                             else pattern.lower() in v.name.lower()):
             continue
         unit = v.unit or (v.declaredType.unit if getattr(v, "declaredType", None) is not None else None) or ""
-        typ = v.type or ""
+        typ = getattr(v, "fmi3_type", None) or v.type or ""   # FMI 3.0: its own type names (Float64…)
         if typ == "Enumeration" and getattr(v, "declaredType", None) is not None and v.declaredType.name:
             typ = f"Enumeration({v.declaredType.name})"
         rows.append({"name": v.name, "causality": c, "variability": v.variability or "continuous",
@@ -347,7 +347,7 @@ def _fmt_num(x) -> str:
 def cmd_inspect(args: argparse.Namespace) -> int:
     import shutil as _shutil
 
-    from fmusa.fmi.info import FMUError, host_platform, read_fmu_info
+    from fmusa.fmi.info import FMUError, read_fmu_info
 
     causality = _causalities(args.causality)
     note = None
@@ -374,7 +374,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         if note:
             print(f"fmusa inspect: {note}", file=sys.stderr)
         return 0
-    plat = host_platform()
+    plat = info.host_platform
     names = {"co-simulation": "co-simulation (CS)", "model-exchange": "model exchange (ME)"}
     ifaces = ", ".join(f"{names.get(k, k)}, model identifier {v}" for k, v in info.interfaces.items()) or "none"
     if info.platforms:
@@ -417,7 +417,17 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     if "model-exchange" in info.interfaces:
         head.append(("ME states / events", f"{info.n_states} continuous states, "
                                            f"{info.n_event_indicators} event indicators"))
-    head.append(("variables", f"{len(info.variables)} ({summary})"))
+    if info.is_fmi3:   # arrays are listed element-wise, as a study addresses them
+        arrays = [v for v in info.declared_variables if v.shape]
+        head.append(("variables", f"{len(info.variables)} scalars ({summary}) in "
+                                  f"{len(info.declared_variables)} variables, {len(arrays)} of them arrays"))
+        if arrays:
+            head.append(("arrays", "; ".join(
+                f"{v.name} ({'×'.join(map(str, v.shape))}, {v.causality or 'local'}): "
+                f"{v.name}[{','.join('1' * len(v.shape))}] … {v.name}[{','.join(map(str, v.shape))}]"
+                for v in arrays) + "  (elements 1-based, as a study names them)"))
+    else:
+        head.append(("variables", f"{len(info.variables)} ({summary})"))
     width = _shutil.get_terminal_size((120, 24)).columns
     try:
         _print_inspect(head, info, note, rows, causality, args, width)

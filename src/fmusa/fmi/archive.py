@@ -17,7 +17,7 @@ import zipfile
 import zlib
 from pathlib import Path
 
-from fmusa.fmi.info import FMUError, host_platform, member_problem
+from fmusa.fmi.info import FMUError, host_platforms, member_problem
 
 #: Largest total of unpacked bytes (FMUSA_MAX_FMU_BYTES overrides it): models with large tables or
 #: resources stay far below it, and a runaway archive cannot fill the disk.
@@ -102,9 +102,9 @@ def extract_fmu(fmu: str | os.PathLike, dest: str | os.PathLike | None = None,
 
 def _needed_to_run(names: list[str]) -> set[str]:
     """The members a run of the FMU on this machine needs (see :func:`extract_fmu`)."""
-    here = f"binaries/{host_platform()}/"
+    here = tuple(f"binaries/{p}/" for p in host_platforms())   # FMI 2.0's linux64, FMI 3.0's x86_64-linux
     has_binary = any(n.startswith(here) and not n.endswith("/") for n in names)
-    keep = ("resources/", here) if has_binary else ("resources/", here, "sources/")
+    keep = ("resources/",) + here + (() if has_binary else ("sources/",))
     return {n for n in names if n == "modelDescription.xml" or n.startswith(keep)}
 
 

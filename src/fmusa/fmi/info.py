@@ -46,7 +46,7 @@ def default_fmu_path() -> Path:
 
 
 # ---------------------------------------------------------------------- what an FMU holds, checks, compiling
-#: The FMI 2.0 interfaces fmusa runs, in order of preference for ``interface: auto``.
+#: The interfaces fmusa runs (FMI 2.0 and 3.0), in order of preference for ``interface: auto``.
 INTERFACES = ("co-simulation", "model-exchange")
 #: Values of ``fmu_options.interface``.
 INTERFACE_CHOICES = ("auto",) + INTERFACES
@@ -57,7 +57,7 @@ _SHORT = {"co-simulation": "CS", "model-exchange": "ME"}
 
 
 class FMUError(FmusaError, ValueError):
-    """An FMU fmusa cannot run as asked: not FMI 2.0, the requested interface missing, no binary for
+    """An FMU fmusa cannot run as asked: neither FMI 2.0 nor 3.0, the requested interface missing, no binary for
     this platform and no sources to build one, an unreadable model description, an unknown variable
     name or a value of the wrong type for a variable."""
 
@@ -87,10 +87,16 @@ class FMUTimeLimitError(FMURunError):
     set the deadline words the reason (which limit, and how to raise it)."""
 
 
-def host_platform() -> str:
-    """The FMI 2.0 platform directory of this machine (``linux64`` on Linux x86-64)."""
+def host_platform(fmi_version: str = "2.0") -> str:
+    """The platform directory of this machine for an FMU of ``fmi_version``: FMI 2.0's ``linux64``,
+    FMI 3.0's platform tuple ``x86_64-linux`` (on Linux x86-64)."""
     import fmpy
-    return fmpy.platform
+    return fmpy.platform_tuple if str(fmi_version).startswith("3") else fmpy.platform
+
+
+def host_platforms() -> tuple[str, str]:
+    """This machine's platform directories of both FMI versions (``linux64``, ``x86_64-linux``)."""
+    return host_platform("2.0"), host_platform("3.0")
 
 
 def _an(word: str) -> str:
@@ -167,6 +173,23 @@ class FMUInfo:
     n_event_indicators: int
     model_description: object   # the fmpy ModelDescription
     warnings: tuple = ()        # e.g. fmpy's schema validation problems (the FMU is still read)
+    #: The variables as declared (FMI 3.0: fmpy's, arrays whole); ``variables`` holds what a study can
+    #: address, an FMI 3.0 array as one element variable per element (``name[i]``, ``name[i,j]``).
+    declared: tuple = ()
+
+    @property
+    def is_fmi3(self) -> bool:
+        return str(self.fmi_version).startswith("3")
+
+    @property
+    def declared_variables(self) -> tuple:
+        """The variables as the model description declares them (arrays whole), for ``inspect``."""
+        return self.declared or self.variables
+
+    @property
+    def host_platform(self) -> str:
+        """This machine's binary directory for this FMU's FMI version."""
+        return host_platform(self.fmi_version)
 
     @property
     def platforms(self) -> list[str]:
@@ -190,12 +213,13 @@ class FMUInfo:
 
     def has_binary(self, interface: str, platform: str | None = None) -> bool:
         """Whether the shared library of ``interface`` is there for ``platform`` (default: this machine)."""
-        platform = platform or host_platform()
+        platform = platform or self.host_platform
         return self.binary_name(interface) in self.binaries.get(platform, [])
 
     @property
     def can_compile(self) -> bool:
-        return self.has_sources and bool(self.source_files)
+        """Whether fmusa can build a binary from the sources (FMI 2.0 only: it builds with FMI 2 headers)."""
+        return self.has_sources and bool(self.source_files) and not self.is_fmi3
 
 
 #: read_fmu_info's answers for FMU files, keyed by (path, size, modification time): a study reads the same
@@ -206,7 +230,8 @@ _INFO_CACHE: dict[tuple, "FMUInfo"] = {}
 def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo:
     """Read what ``path`` (an ``.fmu`` file or an extracted FMU directory) declares and contains.
 
-    Raises :class:`FMUError` when it is not an FMU, or (``require_fmi2``) not an FMI 2.0 FMU. fmpy's
+    Raises :class:`FMUError` when it is not an FMU, or (``require_fmi2``) neither an FMI 2.0 nor an FMI 3.0
+    FMU (the name is older than fmusa's FMI 3.0 support: FMI 1.0 is refused). fmpy's
     schema validation problems do not stop the reading: they are kept in ``warnings``. An FMU file read
     before is not parsed again while its size and modification time are the same.
     """
@@ -260,13 +285,12 @@ def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
     attrs = _root_attributes(path, raw)
     version = attrs.get("fmiVersion", "?")
     model = attrs.get("modelName", path.stem)
-    if require_fmi2 and version != "2.0":
-        major = version.split(".")[0]
+    major = version.split(".")[0]
+    if require_fmi2 and version != "2.0" and major != "3":
         raise FMUError(f"{path}: {model} is an FMI {version} FMU (fmiVersion=\"{version}\" in its "
-                       f"modelDescription.xml); fmusa needs FMI 2.0. Export the model again as an FMI "
-                       f"2.0 co-simulation or model exchange FMU"
-                       + (" (FMI 1.0 FMUs cannot be converted)" if major == "1" else
-                          " (most tools that export FMI 3.0 can also export FMI 2.0)" if major == "3" else ""))
+                       f"modelDescription.xml); fmusa needs FMI 2.0 or 3.0. Export the model again as an FMI "
+                       f"2.0 or 3.0 co-simulation or model exchange FMU"
+                       + (" (FMI 1.0 FMUs cannot be converted)" if major == "1" else ""))
     md, warnings = _parse_description(path, raw)
     interfaces = {}
     if getattr(md, "coSimulation", None) is not None:
@@ -295,14 +319,107 @@ def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
                     experiment[key] = float(val)
                 except ValueError:
                     experiment[key] = val
+    declared: tuple = ()
+    variables = tuple(md.modelVariables)
+    if str(md.fmiVersion).startswith("3"):
+        declared, variables = variables, tuple(scalar_variables(md))
     return FMUInfo(path=path, fmi_version=md.fmiVersion, model_name=md.modelName or model,
                    description=md.description or "", generation_tool=md.generationTool or "",
                    guid=md.guid or "", interfaces=interfaces, binaries=binaries,
                    source_files=tuple(source_files), has_sources=has_sources,
-                   default_experiment=experiment, variables=tuple(md.modelVariables),
+                   default_experiment=experiment, variables=variables, declared=declared,
                    n_states=int(md.numberOfContinuousStates or 0),
                    n_event_indicators=int(md.numberOfEventIndicators or 0),
                    model_description=md, warnings=tuple(warnings))
+
+
+# ---------------------------------------------------------------------- FMI 3.0 variables, element-wise
+#: FMI 3.0 types fmusa sets and reads, as the FMI 2.0 kind the rest of fmusa knows them by.
+FMI3_KIND = {"Float64": "Real", "Float32": "Real", "Int8": "Integer", "UInt8": "Integer", "Int16": "Integer",
+             "UInt16": "Integer", "Int32": "Integer", "UInt32": "Integer", "Int64": "Integer",
+             "UInt64": "Integer", "Boolean": "Boolean", "Enumeration": "Enumeration"}
+
+
+@dataclass(frozen=True, eq=False)
+class ScalarVariable:
+    """One scalar of an FMI 3.0 FMU: a scalar variable, or one element of an array variable, named as
+    Modelica and FMI 2.0's scalarised names do (``x[2]``, ``m[1,3]``, 1-based, row-major like FMI 3.0's
+    serialisation). It reads like fmpy's FMI 2 ``ModelVariable`` (``type`` is the FMI 2 kind ``Real``,
+    ``Integer``…), so the checks and runs written for FMI 2.0 apply unchanged; ``valueReference`` is its
+    index among the FMU's scalars (what :class:`fmusa.fmi.fmi3.FMI3Instance` translates), ``vr`` the FMU's."""
+    name: str
+    type: str                   # FMI 2 kind (Real, Integer, Boolean, Enumeration) or the FMI 3 type name
+    fmi3_type: str              # Float64, Int32, …
+    causality: str | None
+    variability: str | None
+    initial: str | None
+    valueReference: int         # the scalar's index (see the class docstring)
+    vr: int                     # the FMU's value reference of the (array) variable
+    index: int | None           # the element's flat, 0-based index in its array; None for a scalar
+    size: int                   # number of elements of the variable (1 for a scalar)
+    shape: tuple
+    start: object
+    description: str | None
+    unit: str | None
+    declaredType: object
+    base: object                # fmpy's ModelVariable
+
+    @property
+    def array_name(self) -> str:
+        return self.base.name
+
+    def __getattr__(self, name: str):
+        """fmpy's other attributes of the declared variable (``nominal``, ``min``, ``derivative`` …)."""
+        if name.startswith("__") or name == "base":
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+
+def _split_start(start, size: int) -> list | None:
+    """An array variable's start as a list of ``size`` strings (None when it declares none)."""
+    if start is None:
+        return None
+    items = start.split() if isinstance(start, str) else list(start)
+    return items if len(items) == size else None
+
+
+def scalar_variables(md) -> list[ScalarVariable]:
+    """The scalars of FMI 3.0 model description ``md``: each scalar variable, and each element of each
+    array variable (``name[i]``, ``name[i,j]``…, 1-based, row-major)."""
+    import itertools
+    out: list[ScalarVariable] = []
+    for v in md.modelVariables:
+        shape = tuple(int(n) for n in (v.shape or ()))
+        kind = FMI3_KIND.get(v.type, v.type)
+        common = dict(type=kind, fmi3_type=v.type, causality=v.causality, variability=v.variability,
+                      initial=v.initial, vr=v.valueReference, description=v.description,
+                      unit=getattr(v, "unit", None), declaredType=getattr(v, "declaredType", None), base=v,
+                      shape=shape)
+        if not shape:
+            out.append(ScalarVariable(name=v.name, valueReference=len(out), index=None, size=1,
+                                      start=v.start, **common))
+            continue
+        size = 1
+        for n in shape:
+            size *= n
+        starts = _split_start(v.start, size)
+        for flat, idx in enumerate(itertools.product(*[range(1, n + 1) for n in shape])):
+            out.append(ScalarVariable(name=f"{v.name}[{','.join(map(str, idx))}]", valueReference=len(out),
+                                      index=flat, size=size, start=None if starts is None else starts[flat],
+                                      **common))
+    return out
+
+
+def array_hint(info: FMUInfo, name: str) -> str | None:
+    """For the name of an FMI 3.0 array variable: how to address its elements; else None."""
+    for v in info.declared:
+        if v.name == name and v.shape:
+            dims = "×".join(map(str, v.shape))
+            first = "1" if len(v.shape) == 1 else ",".join("1" * len(v.shape))
+            last = ",".join(map(str, v.shape))
+            return (f"{name!r} is an array of {dims} elements; address one element as {name}[{first}] … "
+                    f"{name}[{last}] (1-based)")
+    return None
 
 
 def select_interface(info: FMUInfo, requested: str = "auto") -> str:
@@ -329,7 +446,11 @@ def binary_problem(info: FMUInfo, interface: str) -> str | None:
     """Why ``interface`` cannot run on this machine (no binary and no sources), or None."""
     if info.has_binary(interface) or info.can_compile:
         return None
-    plat = host_platform()
+    plat = info.host_platform
+    if info.is_fmi3 and info.has_sources:
+        return (f"{info.model_name} has no {plat} binary for {interface} "
+                f"(binaries/{plat}/{info.binary_name(interface)}); fmusa builds binaries from the sources of "
+                f"FMI 2.0 FMUs only: export the FMI 3.0 FMU with a {plat} binary")
     have = ", ".join(info.platforms) or "none"
     src = ("it has no C sources (sources/ and <SourceFiles>) to build one from" if not info.has_sources
            else "its sources/ are not listed under <SourceFiles> in modelDescription.xml, so they "
@@ -356,14 +477,21 @@ _TYPES = ("Real", "Integer", "Enumeration", "Boolean")
 def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
     """Why FMU variable ``name`` cannot play ``role``, or None when it can.
 
-    ``role`` is ``"varied"`` (a study parameter: a settable Real parameter), ``"parameter"`` (set once per
+    ``role`` is ``"varied"`` (a study parameter: a settable Real parameter, or a Real input held at the
+    study's value over the run), ``"parameter"`` (set once per
     run: a settable parameter of any supported type), ``"input"`` or ``"output"`` (read after the run).
     The message lists the closest names the FMU does have.
     """
     vs = info.variables
     v = info.variable(name)
+    if v is None and info.is_fmi3:
+        hint_ = array_hint(info, name)
+        if hint_:
+            return hint_
     if role in ("varied", "parameter"):
         pool = [x.name for x in vs if x.causality == "parameter" and x.variability in ("fixed", "tunable")]
+        if role == "varied":
+            pool += [x.name for x in vs if x.causality == "input"]
         wider = pool
         what = "parameter"
     elif role == "input":
@@ -396,6 +524,11 @@ def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
     causality, variability = v.causality or "local", v.variability or "continuous"
     if v.type not in _TYPES:
         return f"{name!r} is of type {v.type}; fmusa sets and reads only Real, Integer, Boolean and Enumeration"
+    if role == "varied" and causality == "input":   # held at the study's value over the run
+        if v.type != "Real":
+            return (f"{name!r} is {_an(v.type)} input; a study parameter must be Real (hold {v.type} inputs "
+                    f"under scenario.inputs)")
+        return None
     if role in ("varied", "parameter"):
         if causality == "calculatedParameter":
             deps = None

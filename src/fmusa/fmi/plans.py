@@ -17,6 +17,8 @@ from fmusa.fmi.runner import READABLE, FMURunner, communication_points
 
 #: Causalities a plan reads through ``fmi2GetReal`` (inputs are set, not read, by a co-simulation plan).
 _PLAN_READABLE = ("output", "parameter", "calculatedParameter", "local")
+#: Causalities a study parameter may have: a parameter, or an input held at the study's value over the run.
+VARIED = ("parameter", "input")
 
 
 # ---------------------------------------------------------------------- many runs, fast
@@ -67,11 +69,13 @@ class RunPlan:
         self.outputs = list(outputs)
         self.stop_time = float(stop_time)
         self.times = communication_points(self.stop_time, step)
-        vs = [runner.lookup(n, ("parameter",), "parameter") for n in self.varied]
+        # a study parameter is a parameter, or an input held at its value (set before initialisation; an FMI
+        # co-simulation or model exchange FMU keeps an input's value until it is set again)
+        vs = [runner.lookup(n, VARIED, "parameter") for n in self.varied]
         for v in vs:
             if v.type != "Real":
                 raise FMUError(f"study parameter {v.name!r} is a {v.type}; only Real parameters can be varied")
-            if v.variability not in ("fixed", "tunable"):
+            if v.causality == "parameter" and v.variability not in ("fixed", "tunable"):
                 raise FMUError(f"parameter {v.name!r} has variability {v.variability!r} and cannot be set")
         self._fixed_calls = self._prepared_sets(runner, self.fixed, ("parameter",), "parameter")
         self._input_calls = self._prepared_sets(runner, self.inputs, ("input",), "input")

@@ -1,4 +1,5 @@
-"""Run FMI 2.0 FMUs: the one module of fmusa that talks to an FMU (through fmpy).
+"""Run FMI 2.0 and 3.0 FMUs: the one module of fmusa that talks to an FMU (through fmpy; an FMI 3.0 FMU through
+:class:`fmusa.fmi.fmi3.FMI3Instance`, which gives fmpy's FMI 3 instance the FMI 2 calls used here).
 
 An :class:`FMURunner` extracts the FMU once, instantiates it once and then runs it as often as
 needed, in fmpy's call order: ``setupExperiment`` (with the default experiment's tolerance unless one is
@@ -75,7 +76,7 @@ def communication_points(stop_time: float, step: float | None) -> np.ndarray:
 
 
 class FMURunner:
-    """One extracted, instantiated FMI 2.0 FMU, run again and again.
+    """One extracted, instantiated FMI 2.0 or 3.0 FMU, run again and again (FMI 3.0 arrays element-wise, ``x[2]``).
 
     Co-simulation FMUs integrate themselves (``fmi2DoStep``); model exchange FMUs are integrated by
     fmpy's solver (CVode or Euler) through ``fmpy.simulate_fmu``, on the same reused instance. An FMU
@@ -118,7 +119,7 @@ class FMURunner:
         self._owns_unzipdir = False
         self.unzipdir = None
         self._instance = None
-        info = read_fmu_info(self.fmu_path)              # FMI 2.0? (FMUError otherwise)
+        info = read_fmu_info(self.fmu_path)              # FMI 2.0 or 3.0? (FMUError otherwise)
         self.interface = select_interface(info, interface)
         if solver is not None and solver not in SOLVERS:
             raise UsageError(f"unknown solver {solver!r}; use one of {', '.join(SOLVERS)}")
@@ -155,7 +156,7 @@ class FMURunner:
             self._cleanup_dir()
             raise
         md = self.model_description
-        self.variables = {v.name: v for v in md.modelVariables}
+        self.variables = {v.name: v for v in info.variables}   # FMI 3.0: scalars, arrays element-wise
         #: the tolerance passed to fmi2SetupExperiment: the one asked for, else the default experiment's
         self.setup_tolerance = self.relative_tolerance
         if self.setup_tolerance is None:
@@ -199,6 +200,12 @@ class FMURunner:
                                fmi2CallbackFreeMemoryTYPE, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE)
         from fmpy import calloc, free
 
+        if self.info.is_fmi3:   # fmpy's FMU3Slave/FMU3Model behind the FMI 2 calls (fmusa.fmi.fmi3)
+            from fmusa.fmi.fmi3 import FMI3Instance
+            self._instance = FMI3Instance(self.info, str(self.unzipdir), self.interface, self.instance_name,
+                                          self._log_message, self._debug_logging)
+            self._state = "instantiated"
+            return
         md = self.model_description
         cls = FMU2Model if self.is_model_exchange else FMU2Slave
         cwd = os.getcwd()
@@ -462,7 +469,7 @@ class FMURunner:
         self.phase = "while setting up the experiment"
         inst.setupExperiment(tolerance=self.setup_tolerance, startTime=0.0, stopTime=float(stop_time))
         self.phase = "while setting parameters"
-        self._set(params, ("parameter",), "parameter")
+        self._set(params, ("parameter", "input"), "parameter")   # a study parameter may be an input
         if inputs:
             self._set(inputs, ("input",), "input")
         self.phase = "during initialisation"
@@ -498,13 +505,19 @@ class FMURunner:
         interval, step_size = self._me_intervals(times)
         self.phase = (f"in fmpy's {self.solver} integration of the model exchange FMU "
                        f"from t = 0 to {times[-1]:.10g} s")
+        start, recorded, instance = dict(values), list(outputs), self._instance
+        if self.info.is_fmi3:   # fmpy sets and records FMI 3.0 arrays whole: elements gathered, picked out
+            from fmusa.fmi.fmi3 import me_columns, me_outputs, me_start_values
+            start, recorded, instance = me_start_values(self.info, start), me_outputs(self.info, outputs), instance.fmu
         try:
             res = simulate_fmu(str(self.unzipdir), validate=True, start_time=0.0, stop_time=float(times[-1]),
                                solver=self.solver, step_size=step_size,
                                relative_tolerance=self.relative_tolerance, output_interval=interval,
-                               record_events=True, fmi_type="ModelExchange", start_values=dict(values),
-                               output=list(outputs), model_description=self.model_description,
-                               fmu_instance=self._instance)
+                               record_events=True, fmi_type="ModelExchange", start_values=start,
+                               output=recorded, model_description=self.model_description,
+                               fmu_instance=instance)
+            if self.info.is_fmi3:
+                res = me_columns(self.info, res, outputs)
         except Exception as exc:
             raise self.fail(exc, params) from exc
         self._state = "done"
@@ -523,7 +536,7 @@ class FMURunner:
                  inputs: Mapping[str, float] | None) -> None:
         """Check the names of a run's parameters and inputs before it starts (:class:`FMUError`)."""
         for name in params:
-            self.lookup(name, ("parameter",), "parameter")
+            self.lookup(name, ("parameter", "input"), "parameter")   # (a study parameter may be an input)
         for name in inputs or {}:
             self.lookup(name, ("input",), "input")
         if isinstance(outputs, str):

@@ -933,6 +933,13 @@ def _check_conflicts(p: _Parser, top: _Map, parameters: Mapping[str, Parameter],
             raise p.error(fixed_map.key_node(prm.variable),
                           f"key '{prm.variable}' in 'fixed' is the FMU variable of study parameter "
                           f"'{prm.name}', which sets it on every run; remove it from 'fixed'")
+    if scenario.inputs:
+        for prm in parameters.values():
+            if prm.variable in scenario.inputs:
+                raise StudyError(f"{p.label}:{p.lines.get(f'scenario.inputs.{prm.variable}', '?')}: key "
+                                 f"'{prm.variable}' in 'scenario.inputs' is the FMU input of study parameter "
+                                 f"'{prm.name}', which holds it at the parameter's value on every run; "
+                                 f"remove it from 'scenario.inputs'")
     if fixed_map is not None:
         for name in scenario.inputs:
             if name in fixed:

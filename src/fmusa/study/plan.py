@@ -15,9 +15,10 @@ def check_fmu(study: Study, fmu_path: Path) -> list[str]:
     """Everything the study asks of the FMU, checked on its model description before any run (nothing is
     loaded, so an FMU that still has to be compiled from its sources is checked too).
 
-    FMI version 2.0; the interface ``fmu_options`` asks for (and a binary for this machine, or sources to
-    build one); every study, fixed and sensitivity parameter a settable parameter (causality parameter,
-    variability fixed or tunable; study parameters Real; a fixed value of the variable's type); every
+    FMI version 2.0 or 3.0; the interface ``fmu_options`` asks for (and a binary for this machine, or sources
+    to build one); every study, fixed and sensitivity parameter a settable parameter (causality parameter,
+    variability fixed or tunable; study parameters Real, or a Real input held at the study's value; a fixed
+    value of the variable's type); FMI 3.0 arrays addressed element-wise (``name[i]``); every
     scenario input an input; every metric's
     output a variable that can be read. Returns all problems, each ``file:line: what; closest names``.
     """
