@@ -77,7 +77,8 @@ class StudyRunner:
         # any FMU but our own runs in supervised workers: a crash or hang then costs one run
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
                                    scheduler=scheduler or study.execution.scheduler,
-                                   isolate=study.fmu is not None, timeout_s=study.execution.timeout_s)
+                                   isolate=study.fmu is not None, timeout_s=study.execution.timeout_s,
+                                   pool=study.execution.pool_options())
         try:   # a scheduler that cannot be reached fails here, before an earlier runs.csv is moved aside
             self.evaluator.connect()
             self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
