@@ -26,7 +26,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -257,16 +256,57 @@ def _six_dof(study_path: Path | None = None):
     return study, study.stages["sensitivity"]
 
 
-def _peak_rss_mb() -> float:
-    """This process's peak resident memory: VmHWM, which execve resets (``ru_maxrss`` keeps the peak of
-    the process that started this one, e.g. the whole benchmark's)."""
+def _rusage(who: str):
+    """``resource.getrusage`` (POSIX), or None where there is no ``resource`` module (Windows)."""
     try:
-        for line in Path("/proc/self/status").read_text().splitlines():
+        import resource
+    except ImportError:
+        return None
+    return resource.getrusage(getattr(resource, who))
+
+
+def _maxrss_mb(ru) -> float:
+    """``ru_maxrss`` in MB: kilobytes on Linux, bytes on macOS."""
+    return ru.ru_maxrss / (1024 * 1024 if sys.platform == "darwin" else 1024)
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory: on Linux VmHWM, which execve resets (``ru_maxrss`` keeps the
+    peak of the process that started this one, e.g. the whole benchmark's); elsewhere ``ru_maxrss``
+    (macOS) or psutil's peak working set (Windows)."""
+    try:
+        for line in Path("/proc/self/status").read_text(encoding="utf-8").splitlines():
             if line.startswith("VmHWM:"):
                 return int(line.split()[1]) / 1024
     except OSError:
         pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    ru = _rusage("RUSAGE_SELF")
+    if ru is not None:
+        return _maxrss_mb(ru)
+    import psutil
+    mem = psutil.Process().memory_info()
+    return getattr(mem, "peak_wset", mem.rss) / (1024 * 1024)
+
+
+def _children_peak_rss_mb() -> float | None:
+    """The largest peak resident memory of this process's ended children (POSIX ``RUSAGE_CHILDREN``), or
+    None where the system does not keep it (Windows)."""
+    ru = _rusage("RUSAGE_CHILDREN")
+    return None if ru is None else _maxrss_mb(ru)
+
+
+def _mb_text(mb: float | None) -> str:
+    return "n/a (not kept on this system)" if mb is None else f"{mb:.0f} MB"
+
+
+def _cpu_s() -> tuple[float, float]:
+    """(CPU seconds of this process, of its ended children): resource on POSIX, psutil elsewhere."""
+    me, kids = _rusage("RUSAGE_SELF"), _rusage("RUSAGE_CHILDREN")
+    if me is not None and kids is not None:
+        return me.ru_utime + me.ru_stime, kids.ru_utime + kids.ru_stime
+    import psutil
+    t = psutil.Process().cpu_times()
+    return t.user + t.system, getattr(t, "children_user", 0.0) + getattr(t, "children_system", 0.0)
 
 
 def cheap_six_dof(study):
@@ -300,27 +340,25 @@ def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str
     import SALib.sample.sobol  # noqa: F401
     rss_before = _peak_rss_mb()
     load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    _r = resource.getrusage(resource.RUSAGE_SELF)
-    cpu_before = _r.ru_utime + _r.ru_stime
+    cpu_before = _cpu_s()[0]
     with tempfile.TemporaryDirectory(prefix="fmusa-bench-sobol-") as tmp:
         t0 = time.perf_counter()
         res = run_sensitivity(study, stage, Path(tmp), runner, progress=False, resume=False, accuracy_samples=0)
         wall = time.perf_counter() - t0
         rss_study = _peak_rss_mb()         # the study's peak, before the benchmark reads runs.csv back
         import pandas as pd
-        secs = pd.read_csv(Path(tmp) / "sensitivity_runs.csv", usecols=["seconds"])["seconds"].to_numpy()
+        secs = pd.read_csv(Path(tmp) / "sensitivity_runs.csv", usecols=["seconds"], encoding="utf-8")["seconds"].to_numpy()
     s = res["summary"]
     ev = s["eval_wall_s"]
-    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu_workers = kids.ru_utime + kids.ru_stime
-    cpu_parent = me.ru_utime + me.ru_stime - cpu_before
+    cpu_me, cpu_workers = _cpu_s()
+    cpu_parent = cpu_me - cpu_before
     return {
         "runs": int(s["runs"]), "n": n, "k": k, "workers": workers, "failed": int(s["failed"]),
         "wall_s": ev, "wall_s_with_analysis": wall, "runs_per_s": s["runs"] / ev,
         "peak_rss_mb": {
             "parent": rss_study,
             "parent_before_study": rss_before,
-            "largest_worker": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
+            "largest_worker": _children_peak_rss_mb(),
         },
         "worker_s_per_run": {"mean_ms": float(secs.mean() * 1e3), "median_ms": float(np.median(secs) * 1e3),
                              "p90_ms": float(np.percentile(secs, 90) * 1e3),
@@ -341,7 +379,8 @@ def bench_sobol(runs: int, workers: int, fmu_path: Path | None = None, cheap: bo
     code = ("import json, sys; from fmusa.bench import sobol_child; "
             f"print('@@' + json.dumps(sobol_child({int(runs)}, {int(workers)}, None, "
             f"{str(fmu_path) if fmu_path else None!r}, {bool(cheap)!r})))")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8",
+                          errors="replace")
     if proc.returncode != 0:
         raise RuntimeError(f"Sobol benchmark ({runs} runs) failed:\n{proc.stderr[-4000:]}")
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("@@")][-1]
@@ -649,7 +688,7 @@ def main(argv: list[str] | None = None) -> int:
         big = bench_sobol(args.sobol_runs, workers, args.fmu)
         print(f"Sobol 6-DOF: {big['runs']} runs in {big['wall_s']:.1f} s = {big['runs_per_s']:.1f} runs/s on "
               f"{workers} workers; peak RSS parent {big['peak_rss_mb']['parent']:.0f} MB, largest worker "
-              f"{big['peak_rss_mb']['largest_worker']:.0f} MB")
+              f"{_mb_text(big['peak_rss_mb']['largest_worker'])}")
         result.update({
             "sobol_runs": big["runs"],
             "sobol_wall_s": big["wall_s"],
@@ -663,7 +702,7 @@ def main(argv: list[str] | None = None) -> int:
             small = bench_sobol(args.sobol_small_runs, workers, args.fmu)
             print(f"Sobol 6-DOF: {small['runs']} runs in {small['wall_s']:.1f} s = {small['runs_per_s']:.1f} "
                   f"runs/s; peak RSS parent {small['peak_rss_mb']['parent']:.0f} MB, largest worker "
-                  f"{small['peak_rss_mb']['largest_worker']:.0f} MB")
+                  f"{_mb_text(small['peak_rss_mb']['largest_worker'])}")
             result.update({
                 "sobol_small_runs": small["runs"],
                 "sobol_small_wall_s": small["wall_s"],
@@ -705,12 +744,12 @@ def main(argv: list[str] | None = None) -> int:
     merged = {}
     if args.out.exists():
         try:
-            merged = json.loads(args.out.read_text())
+            merged = json.loads(args.out.read_text(encoding="utf-8"))
         except json.JSONDecodeError:
             merged = {}
     merged.update(result)
     tmp = args.out.with_suffix(args.out.suffix + ".tmp")
-    tmp.write_text(json.dumps(merged, indent=2) + "\n")
+    tmp.write_text(json.dumps(merged, indent=2) + "\n", encoding="utf-8")
     tmp.replace(args.out)
 
     print(f"reused instance: median {med:.3f} ms, p90 {result['fmu_run_ms_p90']:.3f} ms "

@@ -91,7 +91,7 @@ def cmd_pullout(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "pullout.csv"
     png_path = out / "pullout.png"
-    df.to_csv(csv_path, index=False, float_format="%.10g")
+    df.to_csv(csv_path, index=False, float_format="%.10g", encoding="utf-8")
     plot_pullout(df, effective, png_path)
     last = df.iloc[-1]
     print(f"{_load_case(effective)}: c_y = {_fmt(effective['c_y'])} N/m, "
@@ -599,11 +599,25 @@ def _command_word(argv: list[str]) -> str:
     return next((a for a in argv if not a.startswith("-")), "")
 
 
+def _printable_console() -> None:
+    """Make stdout and stderr print what their encoding cannot hold as escapes (``\\u0394`` for Δ) rather
+    than end the command with UnicodeEncodeError: a Windows console in cp1252, or ``LC_ALL=C`` on POSIX,
+    cannot encode the Δ, ≥ or Ü of a message. Files fmusa writes are UTF-8 whatever the console."""
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None and (getattr(stream, "encoding", "") or "").lower().replace("-", "") != "utf8":
+            try:
+                reconfigure(errors="backslashreplace")
+            except (ValueError, OSError):   # a stream that cannot be reconfigured (detached, closed)
+                pass
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand. A :class:`~fmusa.errors.FmusaError` is the user's to fix: one line on stderr
     and its ``exit_code`` (2, or 1 when an FMU could not be found, built or run); any other exception
     propagates with its traceback, as the bug it is."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    _printable_console()
     parser = build_parser(_command_word(argv))
     args = parser.parse_args(argv)
     try:

@@ -374,7 +374,7 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
                 summary[method], rows = analyse_sobol(problem, Yg, ok_names, stage.seed)
                 cols = ["metric", "parameter", "S1", "S1_conf", "ST", "ST_conf"]
             frames[method] = pd.DataFrame(rows, columns=cols)
-            frames[method].to_csv(out / f"sensitivity_{method}.csv", index=False)
+            frames[method].to_csv(out / f"sensitivity_{method}.csv", index=False, encoding="utf-8")
 
         all_keys = keys[stage.methods[0]] if len(stage.methods) == 1 else np.concatenate(
             [keys[m] for m in stage.methods])

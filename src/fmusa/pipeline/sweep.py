@@ -228,7 +228,7 @@ def _grid_axes(study: Study) -> list[str]:
 def write_summary(result: SweepResult) -> Path:
     """``<out>/summary.json`` from ``result.summary`` (written before any figure, and again by the report)."""
     path = Path(result.out) / "summary.json"
-    path.write_text(json.dumps(jsonable(result.summary), indent=2))
+    path.write_text(json.dumps(jsonable(result.summary), indent=2), encoding="utf-8")
     return path
 
 
