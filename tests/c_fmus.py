@@ -28,6 +28,7 @@ _VARIABLES = [   # name, value reference, causality, start, description
     ("fail_hi", 4, "parameter", "-1", "Upper end of the k band in which fmi2DoStep fails"),
     ("y", 5, "output", None, "Displacement y = F/k"),
     ("y_peak", 6, "output", None, "Largest |y| over the run"),
+    ("crash_above_mb", 7, "parameter", "0", "fmi2DoStep aborts once the process has leaked more (0: never)"),
 ]
 
 
@@ -44,7 +45,7 @@ def leaky_description(extra: int = 0) -> str:
                         f'causality="output" variability="continuous" initial="calculated"><Real/></ScalarVariable>')
     rows += [f'<ScalarVariable name="p_{i}" valueReference="{1000 + i}" causality="parameter" '
              f'variability="tunable" initial="exact"><Real start="0"/></ScalarVariable>' for i in range(1, extra + 1)]
-    n_own = len(_VARIABLES)
+    out_index = [i + 1 for i, v in enumerate(_VARIABLES) if v[2] == "output"]
     return f"""<?xml version="1.0" encoding="UTF-8"?>
 <fmiModelDescription fmiVersion="2.0" modelName="Leaky" guid="{{8a0c5e1d-3f2b-4c6a-9d7e-leaky0000000}}"
   description="Spring y = F/k that leaks memory and fails with a non-ASCII message (a test fixture of fmusa)"
@@ -57,8 +58,8 @@ def leaky_description(extra: int = 0) -> str:
 {chr(10).join(rows)}
   </ModelVariables>
   <ModelStructure>
-    <Outputs><Unknown index="{n_own - 1}"/><Unknown index="{n_own}"/></Outputs>
-    <InitialUnknowns><Unknown index="{n_own - 1}"/><Unknown index="{n_own}"/></InitialUnknowns>
+    <Outputs>{"".join(f'<Unknown index="{i}"/>' for i in out_index)}</Outputs>
+    <InitialUnknowns>{"".join(f'<Unknown index="{i}"/>' for i in out_index)}</InitialUnknowns>
   </ModelStructure>
 </fmiModelDescription>
 """

@@ -43,6 +43,8 @@ STARTUP_LIMIT_S = 600.0
 START_FAILURES = 3
 #: Seconds between two looks at the workers' memory (with ``worker_max_memory_mb`` set).
 MEMORY_POLL_S = 0.2
+#: Most runs in one chunk with ``worker_max_memory_mb`` set (the memory is also looked at between chunks).
+MEMORY_CHUNK = 4
 
 #: Windows exception codes (NTSTATUS) a process ends with when native code crashes it.
 WINDOWS_CRASHES = {
@@ -114,6 +116,34 @@ def exit_reason(code: int | None) -> str:
     if status >= 0xC0000000:
         return f"the FMU crashed the worker process (exception code 0x{status:08X})"
     return f"the worker process exited with code {code}"
+
+
+#: Model descriptions with more variables than this go to spawned workers with only the variables a run
+#: uses: pickling 200k fmpy variables costs more than parsing them.
+LEAN_ABOVE = 2000
+
+
+def _lean_info(info, spec: PlanSpec):
+    """``info`` for a worker that makes ``spec``'s runs: a co-simulation FMU's description with only the
+    variables those runs set or read (a model exchange FMU's whole description goes: fmpy's solver reads
+    it). Runs look variables up by name only, and the parent has checked every name already."""
+    import copy
+    import dataclasses
+
+    from fmusa.fmi.info import select_interface
+    from fmusa.runs.timelimit import WALL_BUDGET
+
+    if len(info.variables) <= LEAN_ABOVE or select_interface(info, spec.interface) != "co-simulation":
+        return info
+    keep = (set(spec.varied) | {n for n, _ in spec.fixed} | {n for n, _ in spec.inputs} | set(spec.outputs)
+            | {WALL_BUDGET})
+    md = copy.copy(info.model_description)
+    md.modelVariables = [v for v in md.modelVariables if v.name in keep]
+    for attr in ("outputs", "derivatives", "initialUnknowns"):
+        unknowns = getattr(md, attr, None)
+        if unknowns:
+            setattr(md, attr, [u for u in unknowns if getattr(u.variable, "name", None) in keep])
+    return dataclasses.replace(info, variables=tuple(md.modelVariables), model_description=md)
 
 
 _START_LOCK = threading.Lock()
@@ -311,6 +341,8 @@ class WorkerPool:
                     adopt_fmu_info(info)      # forked workers inherit it; this process reads it again so
                 except Exception:  # noqa: BLE001 - the workers report the problem, run by run
                     info = None
+            if info is not None and self.method != "fork":
+                info = _lean_info(info, self.spec)
             self._payload = pickle.dumps((self.spec, None if self.method == "fork" else info),
                                          protocol=pickle.HIGHEST_PROTOCOL)
         return self._payload
@@ -357,8 +389,14 @@ class WorkerPool:
         self.workers, self._retiring, self.spare = [], [], None
 
     def _chunk_limit(self, w: _Worker) -> int | None:
+        """Most runs ``w`` may be given at once: what is left of its ``worker_max_runs``, and
+        :data:`MEMORY_CHUNK` with a memory limit (its memory is looked at between chunks and every
+        :data:`MEMORY_POLL_S`, so a leak can overshoot the limit by at most a few runs' worth)."""
         most = self.options.worker_max_runs
-        return None if not most else max(1, most - w.answered)
+        left = None if not most else max(1, most - w.answered)
+        if self.options.worker_max_memory_mb:
+            left = MEMORY_CHUNK if left is None else min(left, MEMORY_CHUNK)
+        return left
 
     def map(self, items, take, chunk: int) -> None:
         """Run ``items`` (a list of (run id, values), or the pair of arrays run ids, values) in chunks of at

@@ -4,6 +4,8 @@
  *
  * Every fmi2DoStep allocates `leak_mb` MB, touches every page of it and never frees it: a worker that
  * runs it again and again grows by leak_mb per step (tests/test_faults_pool.py recycles it).
+ * With crash_above_mb > 0, fmi2DoStep aborts (SIGABRT) once the process has leaked more than that: a
+ * run that works on a fresh worker and crashes a worn one, as an allocation failure does.
  * While fail_lo <= k <= fail_hi, fmi2DoStep logs a message in UTF-8 with non-ASCII letters and signs
  * ("Überlast bei k = ...: F ≥ k·Δy") and returns fmi2Error (tests/test_portability.py reads it back
  * under LC_ALL=C).
@@ -21,10 +23,13 @@
 
 /* value references, as in modelDescription.xml */
 enum { VR_K = 0, VR_F = 1, VR_LEAK_MB = 2, VR_FAIL_LO = 3, VR_FAIL_HI = 4, VR_Y = 5, VR_Y_PEAK = 6,
-       N_REAL = 7 };
+       VR_CRASH_ABOVE_MB = 7, N_REAL = 8 };
 enum { VR_INT0 = 100, N_INT = 0 };
 
-static const double REAL_START[N_REAL] = {1e6, 411.0, 0.0, 0.0, -1.0, 0.0, 0.0};
+static const double REAL_START[N_REAL] = {1e6, 411.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0};
+
+/* bytes this process has leaked, over every instance */
+static double leaked_mb = 0.0;
 
 typedef struct {
     char *name;
@@ -145,7 +150,7 @@ fmi2Status fmi2GetString(fmi2Component c, const fmi2ValueReference vr[], size_t 
 fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2Real value[]) {
     Model *m = c;
     for (size_t k = 0; k < nvr; k++) {
-        if (vr[k] > VR_FAIL_HI) {
+        if (vr[k] >= N_REAL || vr[k] == VR_Y || vr[k] == VR_Y_PEAK) {
             logmsg(m, fmi2Error, "logStatusError", "variable %u cannot be set", (unsigned)vr[k]);
             return fmi2Error;
         }
@@ -232,6 +237,10 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real t, fmi2Real h, fmi2Boolean noSet
             return fmi2Error;
         }
         memset(p, 1, n);
+        leaked_mb += m->r[VR_LEAK_MB];
+    }
+    if (m->r[VR_CRASH_ABOVE_MB] > 0 && leaked_mb > m->r[VR_CRASH_ABOVE_MB]) {
+        abort();                                  /* as a C++ model does when an allocation fails */
     }
     if (k >= m->r[VR_FAIL_LO] && k <= m->r[VR_FAIL_HI]) {
         logmsg(m, fmi2Error, "logStatusError", "\xc3\x9c" "berlast bei k = %.17g: F \xe2\x89\xa5 k\xc2\xb7\xce\x94y", k);
