@@ -202,3 +202,30 @@ def test_a_large_description_goes_to_spawned_workers_with_the_variables_runs_use
     assert {v.name for v in lean.variables} == {"k", "F", "y_peak"} | set(spec.outputs)
     assert lean.variable("k") is not None and lean.variable("p_7") is None
     assert info.variable("p_7") is not None         # the parent's own reading is untouched
+
+
+def test_resume_with_retry_failed_reruns_only_the_failed_runs(tmp_path, leaky):
+    """A finished study with runs that failed on worn workers (retries: 0): --resume keeps them failed,
+    --resume --retry-failed runs exactly those again (on fresh workers they work) and keeps the rest."""
+    ks = np.geomspace(1e5, 1e8, 40)
+    text = study_text(leaky, ks, fixed="  leak_mb: 8\n  crash_above_mb: 100", execution="  retries: 0")
+    study = parse_study(text, tmp_path / "s.yaml")
+    first = run_study(study, tmp_path / "out", figures=False, progress=False)
+    n_failed = int((first.runs["status"] == "failed").sum())
+    assert n_failed >= 2
+    again = run_study(study, tmp_path / "out", resume=True, figures=False, progress=False)
+    assert again.summary["simulated_this_session"] == 0 and (again.runs["status"] == "failed").sum() == n_failed
+    fixed = run_study(study, tmp_path / "out", resume=True, retry_failed=True, figures=False, progress=False)
+    assert fixed.summary["simulated_this_session"] == n_failed
+    assert len(fixed.runs) == 40 and (fixed.runs["status"] == "ok").all()
+    exact(fixed.runs)
+    ok_before = first.runs[first.runs["status"] == "ok"].set_index("k")["y_max"]
+    pd.testing.assert_series_equal(fixed.runs.set_index("k").loc[ok_before.index, "y_max"], ok_before)
+    # a later plain resume sees the new rows, not the old failed lines still in runs.csv
+    last = run_study(study, tmp_path / "out", resume=True, figures=False, progress=False)
+    assert last.summary["simulated_this_session"] == 0 and (last.runs["status"] == "ok").all()
+
+
+def test_retry_failed_without_resume_is_refused(tmp_path):
+    from fmusa.cli import main
+    assert main(["sweep", str(tmp_path / "none.yaml"), "--out", str(tmp_path / "o"), "--retry-failed"]) == 2

@@ -190,6 +190,9 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted study in --out: runs already in runs.csv are not redone")
+    p.add_argument("--retry-failed", action="store_true",
+                   help="with --resume: run the failed runs of runs.csv again (a crash or memory fault that "
+                        "may not repeat); the runs that worked are kept")
     p.add_argument("--workers", type=_int_at_least(1), default=None,
                    help="local worker processes (default: all cores)")
     p.add_argument("--scheduler", default=None,
@@ -202,6 +205,8 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
 def cmd_sweep(args: argparse.Namespace) -> int:
     from fmusa.api import load_study, run_study     # load_study: with the applications' blocks checked
 
+    if args.retry_failed and not args.resume:
+        raise UsageError("--retry-failed reruns the failed runs of a study in --out: give it with --resume")
     study = load_study(args.study)
 
     def kept() -> set[Path]:
@@ -210,7 +215,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     before = kept()
     try:
         result = run_study(study, args.out, resume=args.resume, workers=args.workers, scheduler=args.scheduler,
-                           figures=not args.no_figures, progress=not args.quiet)
+                           figures=not args.no_figures, progress=not args.quiet, retry_failed=args.retry_failed)
     finally:   # said once it has happened (a study that fails to start moves nothing)
         for path in sorted(kept() - before):
             print(f"note: this study started afresh; the earlier runs are kept in {path} (use --resume to "

@@ -327,7 +327,8 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
         del sample
 
     fingerprint = getattr(runner, "fingerprint", None)
-    store = RunStore(out / RUNS_FILE, names, metrics, resume=resume, fingerprint=fingerprint)
+    store = RunStore(out / RUNS_FILE, names, metrics, resume=resume, fingerprint=fingerprint,
+                     retry_failed=bool(getattr(runner, "retry_failed", False)))
     simulated = 0
     try:
         t_eval = time.perf_counter()

@@ -56,8 +56,10 @@ class StudyRunner:
     """Evaluates study points through the store (cache, resume) and the evaluator (pool, cluster)."""
 
     def __init__(self, study: Study, out: Path, resume: bool, workers: int | None, scheduler: str | None,
-                 progress: bool = True) -> None:
+                 progress: bool = True, retry_failed: bool = False) -> None:
         self.study = study
+        #: --resume --retry-failed: the stored failed runs are run again (sensitivity stages follow it too)
+        self.retry_failed = retry_failed
         fmu_path = Path(study.fmu) if study.fmu else default_fmu_path()
         errors = check_fmu(study, fmu_path)
         if errors:
@@ -82,7 +84,7 @@ class StudyRunner:
         try:   # a scheduler that cannot be reached fails here, before an earlier runs.csv is moved aside
             self.evaluator.connect()
             self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
-                                  fingerprint=self.fingerprint)
+                                  fingerprint=self.fingerprint, retry_failed=retry_failed)
         except BaseException:
             self.evaluator.close()
             raise
@@ -124,7 +126,7 @@ class StudyRunner:
 
 def run_study(study: Study, out: str | Path, resume: bool = False, workers: int | None = None,
               scheduler: str | None = None, progress: bool = True,
-              extensions: Sequence[StudyExtension] = ()) -> SweepResult:
+              extensions: Sequence[StudyExtension] = (), retry_failed: bool = False) -> SweepResult:
     """Run every stage of ``study`` into ``out`` (runs.csv as runs finish, summary.json at the end) and
     then each extension's ``after_stages``. Draws nothing: :func:`fmusa.report.markdown.write_report`
     renders the result."""
@@ -132,7 +134,7 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
 
     out = writable_folder(out, "output folder (--out)")
     t0 = time.perf_counter()
-    runner = StudyRunner(study, out, resume, workers, scheduler, progress)
+    runner = StudyRunner(study, out, resume, workers, scheduler, progress, retry_failed=retry_failed)
     summary: dict[str, Any] = {"study": study.name, "study_file": str(study.path)}
     result = SweepResult(study, out, pd.DataFrame(), summary)
     try:

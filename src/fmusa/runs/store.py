@@ -161,7 +161,8 @@ _M64 = (1 << 64) - 1
 
 class RunStore:
     def __init__(self, path: str | os.PathLike, params: Sequence[str], metrics: Sequence[str],
-                 constraints: Iterable = (), resume: bool = False, fingerprint: dict | None = None) -> None:
+                 constraints: Iterable = (), resume: bool = False, fingerprint: dict | None = None,
+                 retry_failed: bool = False) -> None:
         self.path = Path(path)
         self.params = list(params)
         self.metrics = list(metrics)
@@ -189,6 +190,7 @@ class RunStore:
         self._lock = _lock_folder(self.path)
         #: where the runs of an earlier study went when this one started afresh (nothing is deleted)
         self.previous: Path | None = None
+        self.retried = 0
         #: what, besides the parameters, decided the stored runs (``<runs file>.study.json``)
         self.fingerprint = fingerprint
         meta = self.path.with_name(self.path.name + ".study.json")
@@ -196,6 +198,8 @@ class RunStore:
             _check_fingerprint(self.path, meta, fingerprint)
         if resume and self.path.exists() and self.path.stat().st_size > 0 and self._load():
             self._fh = open(self.path, "a", newline="", encoding="utf-8")
+            #: failed runs of the resumed study set aside to be run again (``retry_failed``)
+            self.retried = self._forget_failed() if retry_failed else 0
         else:
             if self.path.exists() and self.path.stat().st_size > 0:
                 self.previous = _keep_previous(self.path)
@@ -288,6 +292,7 @@ class RunStore:
             return
         U = self._bits(self._P[start:start + n])
         index = self._index
+        self._live[start:start + n] = True      # first: a key repeated within the block leaves its last row
         for j, h in enumerate(self._hashes(U)):
             row = start + j
             old = index.get(h)
@@ -303,7 +308,6 @@ class RunStore:
                 if prev is not None:
                     self._live[prev] = False
                 self._spill[k] = row
-        self._live[start:start + n] = True
 
     def _load(self) -> bool:
         with open(self.path, "r+b") as fh:   # a block cut short by a kill: drop its partial last line
@@ -346,6 +350,22 @@ class RunStore:
         self._insert(i, n)
         self.next_id = int(df["run_id"].max()) + 1 if n else 0
         return True
+
+    def _forget_failed(self) -> int:
+        """Take the stored failed runs out of the lookup, so that a resumed study runs them again (their
+        lines stay in runs.csv; a new row for the same parameters supersedes an old one on every later
+        load). Returns how many."""
+        rows = np.flatnonzero(self._live[:self._n] & (self._status[:self._n] != self._statuses.index("ok")))
+        if not len(rows):
+            return 0
+        U = self._bits(self._P[rows])
+        for row, h, u in zip(rows.tolist(), self._hashes(U), U):
+            if self._index.get(h) == row:
+                del self._index[h]
+            else:
+                self._spill.pop(u.tobytes(), None)
+        self._live[rows] = False
+        return len(rows)
 
     # ------------------------------------------------------------------ lookups
     @staticmethod
