@@ -387,6 +387,113 @@ def bench_sobol(runs: int, workers: int, fmu_path: Path | None = None, cheap: bo
     return json.loads(line[2:])
 
 
+#: The crash-heavy study of :func:`bench_start_methods`: runs whose every one segfaults its worker.
+CRASH_RUNS = 100
+
+
+def _child(code: str, env: dict, what: str) -> dict:
+    """Run ``code`` (which prints ``@@`` + JSON) in a fresh interpreter with ``env``; its JSON."""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8",
+                          errors="replace", env=env, cwd=str(REPO))
+    if proc.returncode != 0:
+        raise RuntimeError(f"{what} failed:\n{proc.stderr[-4000:]}")
+    return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("@@")][-1][2:])
+
+
+def paper_study_child() -> dict:
+    """The paper's study once (no figures), in THIS process: its wall time."""
+    from fmusa.study.loader import load_study
+    from fmusa.api import run_study
+
+    study = load_study(REPO / "studies" / "paper.yaml")
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-paper-") as tmp:
+        t0 = time.perf_counter()
+        res = run_study(study, tmp, figures=False, progress=False)
+        return {"wall_s": time.perf_counter() - t0, "runs": res.summary["runs"]}
+
+
+def crash_study_child(fmu: str, runs: int, workers: int) -> dict:
+    """A study of ``runs`` runs of tests/fmus/misbehave that each segfault their worker, in THIS process:
+    its wall time and how many runs failed (all of them, each on a fresh worker)."""
+    import dataclasses
+    from fmusa.study.loader import parse_study
+    from fmusa.api import run_study
+
+    ks = np.geomspace(3e6, 5e6, runs)
+    text = (f"name: crash_heavy\nfmu: {fmu}\nparameters:\n  k: {{variable: k, unit: N/m}}\nfixed:\n  F: 411.0\n"
+            f"  fault: 1\n  fault_kind: 1\n  fault_lo: 1.0\n  fault_hi: 1.0e9\nscenario:\n  stop_time: 1\n"
+            f"  step: 0.5\nmetrics:\n  y_max: {{output: y_peak, reduce: final, unit: m}}\nstages:\n  grid:\n"
+            f"    values:\n      k: [{', '.join(repr(float(k)) for k in ks)}]\nexecution:\n  workers: {workers}\n")
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-crash-") as tmp:
+        study = parse_study(text, Path(tmp) / "crash.yaml")
+        t0 = time.perf_counter()
+        res = run_study(study, Path(tmp) / "out", figures=False, progress=False)
+        return {"wall_s": time.perf_counter() - t0, "runs": res.summary["runs"], "failed": res.summary["failed"]}
+
+
+def _misbehave_fmu(folder: Path) -> Path | None:
+    """tests/fmus/misbehave built with gcc and zipped, or None without gcc or the sources (not Linux)."""
+    import shutil
+    import zipfile
+    import fmpy
+
+    src = REPO / "tests" / "fmus" / "misbehave"
+    if not (src.is_dir() and shutil.which("gcc") and sys.platform.startswith("linux")):
+        return None
+    tree = folder / "tree"
+    (tree / "binaries" / "linux64").mkdir(parents=True)
+    shutil.copy(src / "modelDescription.xml", tree / "modelDescription.xml")
+    subprocess.run(["gcc", "-std=c99", "-O1", "-shared", "-fPIC", "-I", str(Path(fmpy.__file__).parent / "c-code"),
+                    str(src / "misbehave.c"), "-o", str(tree / "binaries" / "linux64" / "Misbehave.so"), "-lm"],
+                   check=True, capture_output=True)
+    fmu = folder / "Misbehave.fmu"
+    with zipfile.ZipFile(fmu, "w", zipfile.ZIP_DEFLATED) as z:
+        for f in sorted(tree.rglob("*")):
+            if f.is_file():
+                z.write(f, f.relative_to(tree).as_posix())
+    return fmu
+
+
+def bench_start_methods(methods: tuple[str, ...] = ("fork", "spawn"), sobol_runs: int = 10000,
+                        workers: int | None = None) -> dict:
+    """The same studies with the pool's workers started by each of ``methods`` ($FMUSA_START_METHOD), each
+    in a fresh interpreter: the paper's study, the 6-DOF Sobol study of ``sobol_runs`` runs and a
+    crash-heavy study (:data:`CRASH_RUNS` runs, each segfaulting its worker). Issue 19's targets: spawn
+    within 1.5x of fork on the first two, within 5x on the third (``start_method_ratios``)."""
+    import multiprocessing as mp
+
+    workers = workers or os.cpu_count() or 1
+    out: dict = {"start_methods": {}, "start_methods_workers": workers, "start_methods_loadavg_1min": [_load()]}
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-sm-") as tmp:
+        crash_fmu = _misbehave_fmu(Path(tmp))
+        for m in methods:
+            if m not in mp.get_all_start_methods():
+                out["start_methods"][m] = {"note": f"not available on {sys.platform}"}
+                continue
+            env = {**os.environ, "FMUSA_START_METHOD": m}
+            row = {"paper_study_wall_s": _child("import json; from fmusa.bench import paper_study_child; "
+                                                "print('@@' + json.dumps(paper_study_child()))", env,
+                                                f"the paper study under {m}")["wall_s"]}
+            if sobol_runs > 0:
+                sob = _child(f"import json; from fmusa.bench import sobol_child; "
+                             f"print('@@' + json.dumps(sobol_child({int(sobol_runs)}, {int(workers)})))", env,
+                             f"the Sobol study under {m}")
+                row.update(sobol_wall_s=sob["wall_s"], sobol_runs=sob["runs"], sobol_runs_per_s=sob["runs_per_s"])
+            if crash_fmu is not None:
+                cr = _child(f"import json; from fmusa.bench import crash_study_child; print('@@' + json.dumps("
+                            f"crash_study_child({str(crash_fmu)!r}, {CRASH_RUNS}, {int(workers)})))", env,
+                            f"the crash-heavy study under {m}")
+                row.update(crash_study_wall_s=cr["wall_s"], crash_study_failed=cr["failed"])
+            out["start_methods"][m] = row
+            out["start_methods_loadavg_1min"].append(_load())
+    base = out["start_methods"].get("fork", {})
+    out["start_method_ratios"] = {
+        m: {k: row[k] / base[k] for k in ("paper_study_wall_s", "sobol_wall_s", "crash_study_wall_s")
+            if k in row and base.get(k)}
+        for m, row in out["start_methods"].items() if m != "fork"}
+    return out
+
+
 def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int = 1) -> dict:
     """Where one run of the 6-DOF Sobol study spends its time, in-process on ``samples`` of the
     study's Sobol points: the FMU's parts (reset + set + initialisation, the doStep that integrates,
@@ -610,6 +717,29 @@ def bench_diagnose(fmu_path: Path, workers: int | None = None) -> dict:
     return out
 
 
+def _print_start_methods(sm: dict) -> None:
+    for m, row in sm["start_methods"].items():
+        print(f"start method {m}: " + ", ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}"
+                                                 for k, v in row.items()))
+    for m, r in sm["start_method_ratios"].items():
+        print(f"{m} / fork: " + ", ".join(f"{k} {v:.2f}x" for k, v in r.items()))
+
+
+def _merge_into(path: Path, result: dict) -> None:
+    """Merge ``result`` into the JSON file ``path`` (kept keys of earlier runs), written whole by rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    merged = {}
+    if path.exists():
+        try:
+            merged = json.loads(path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError:
+            merged = {}
+    merged.update(result)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(merged, indent=2) + "\n", encoding="utf-8")
+    tmp.replace(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m fmusa.bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("out/bench/bench.json"))
@@ -626,8 +756,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=None, help="pool workers (default: all cores)")
     ap.add_argument("--no-diagnose", dest="diagnose", action="store_false",
                     help="skip the timings of `fmusa diagnose`")
+    ap.add_argument("--start-methods", default="fork,spawn", metavar="LIST",
+                    help="start methods to compare on the paper, Sobol and crash-heavy studies (empty: skip)")
+    ap.add_argument("--only-start-methods", action="store_true",
+                    help="measure only the start-method comparison and merge it into --out")
     args = ap.parse_args(argv)
     fmu_path = (args.fmu or default_fmu_path()).resolve()
+    methods = tuple(m.strip() for m in args.start_methods.split(",") if m.strip())
+    if args.only_start_methods:
+        sm = bench_start_methods(methods, args.sobol_runs, args.workers)
+        _print_start_methods(sm)
+        _merge_into(args.out, sm)
+        return 0
 
     import fmpy
 
@@ -737,6 +877,11 @@ def main(argv: list[str] | None = None) -> int:
                        f"runs: {max(0.0, prof['pooled_overhead_ms_per_run']):.2f} ms per run)")
         result["sobol_profile"] = prof
         print(("Sobol target met: " if result["sobol_target_met"] else "Sobol target missed: ") + prof["why"])
+
+    if methods:
+        sm = bench_start_methods(methods, args.sobol_runs, args.workers)
+        _print_start_methods(sm)
+        result.update(sm)
 
     result["limits_note"] = limits_note(result)
     print("limits: " + result["limits_note"])
