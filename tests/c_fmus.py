@@ -65,8 +65,8 @@ def leaky_description(extra: int = 0) -> str:
 """
 
 
-def build_leaky(root: Path, extra: int = 0, binary: Path | None = None) -> Path:
-    """tests/fmus/leaky built (or ``binary`` reused) and zipped as ``root``/Leaky.fmu."""
+def build_leaky(root: Path, extra: int = 0, binary: Path | None = None, defines: tuple[str, ...] = ()) -> Path:
+    """tests/fmus/leaky built (or ``binary`` reused; ``defines`` for gcc -D) and zipped as ``root``/Leaky.fmu."""
     if not sys.platform.startswith("linux"):
         pytest.skip("the test FMUs are built as linux64 binaries")
     if shutil.which("gcc") is None:
@@ -77,7 +77,7 @@ def build_leaky(root: Path, extra: int = 0, binary: Path | None = None) -> Path:
     if binary is not None:
         shutil.copy(binary, so)
     else:
-        cmd = ["gcc", "-std=c99", "-Wall", "-O1", "-shared", "-fPIC", "-I", str(FMI_HEADERS),
+        cmd = ["gcc", "-std=c99", "-Wall", "-O1", "-shared", "-fPIC", *(f"-D{d}" for d in defines), "-I", str(FMI_HEADERS),
                str(LEAKY / "leaky.c"), "-o", str(so), "-lm"]
         proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", errors="replace")
         if proc.returncode != 0:

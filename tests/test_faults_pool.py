@@ -229,3 +229,25 @@ def test_resume_with_retry_failed_reruns_only_the_failed_runs(tmp_path, leaky):
 def test_retry_failed_without_resume_is_refused(tmp_path):
     from fmusa.cli import main
     assert main(["sweep", str(tmp_path / "none.yaml"), "--out", str(tmp_path / "o"), "--retry-failed"]) == 2
+
+
+def test_workers_that_die_before_they_are_ready_fail_the_runs_instead_of_looping(tmp_path):
+    """An FMU whose library ends any process that loads it (exit code 3): no worker ever says "ready";
+    after three in a row every run fails with the reason, and the study ends."""
+    from fmusa.runs.evaluator import Evaluator
+    from fmusa.study.plan import study_plan_spec
+
+    fmu = build_leaky(tmp_path / "fmu", defines=("LEAKY_EXIT_ON_LOAD",))
+    ks = np.geomspace(1e5, 1e8, 6)
+    study = parse_study(study_text(fmu, ks), tmp_path / "s.yaml")
+    got: list = []
+    t0 = time.monotonic()
+    with Evaluator(study_plan_spec(study, fmu), workers=2, isolate=True) as ev:
+        ev.map_batches((np.arange(6), ks.reshape(-1, 1)), got.append)
+    results = [r for b in got for r in b.results()]
+    assert sorted(r.run_id for r in results) == list(range(6))
+    import re
+    assert all(r.status == "failed" and re.fullmatch(
+        r"no worker process could load the FMU \(the worker process exited with code 3, [34] times in a row\)",
+        r.message) for r in results), [r.message for r in results]
+    assert time.monotonic() - t0 < 60

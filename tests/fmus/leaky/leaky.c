@@ -21,6 +21,13 @@
 
 #include "fmi2Functions.h"
 
+#ifdef LEAKY_EXIT_ON_LOAD
+#include <unistd.h>
+/* built with -DLEAKY_EXIT_ON_LOAD: the process that loads the library exits at once (code 3), as a
+   binary with a missing dependency or a broken static initialiser can */
+__attribute__((constructor)) static void exit_on_load(void) { _exit(3); }
+#endif
+
 /* value references, as in modelDescription.xml */
 enum { VR_K = 0, VR_F = 1, VR_LEAK_MB = 2, VR_FAIL_LO = 3, VR_FAIL_HI = 4, VR_Y = 5, VR_Y_PEAK = 6,
        VR_CRASH_ABOVE_MB = 7, N_REAL = 8 };
