@@ -575,6 +575,19 @@ def _close_dask_pools() -> None:
     _DASK_FMUS.clear()
 
 
+def _dask_options(options: PoolOptions | None) -> PoolOptions:
+    """The pool options of a Dask worker: a Dask worker runs threads (its event loop, its executor), and
+    forking a threaded process can deadlock the child (Python 3.12+ warns of it), so where the platform's
+    default is fork and nothing was chosen, its supervised processes come from a fork server instead."""
+    import multiprocessing as mp
+
+    options = options or PoolOptions()
+    if (options.start_method is None and not os.environ.get(ENV_START_METHOD, "").strip()
+            and resolve_start_method() == "fork" and "forkserver" in mp.get_all_start_methods()):
+        options = replace(options, start_method="forkserver")
+    return options
+
+
 def _dask_pool(spec: PlanSpec, timeout_s: float | None, options: PoolOptions | None = None) -> WorkerPool:
     """This Dask worker thread's supervised pool (one worker process) for ``spec``, made once and kept among
     the thread's last :data:`DASK_KEEP`. The FMU is unpacked once per Dask worker process, so that supervised
@@ -582,6 +595,7 @@ def _dask_pool(spec: PlanSpec, timeout_s: float | None, options: PoolOptions | N
     import atexit
 
     thread = threading.get_ident()
+    options = _dask_options(options)
     key = (spec, timeout_s, options, thread)
     with _DASK_LOCK:
         if not _DASK_EXIT:
