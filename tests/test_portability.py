@@ -319,3 +319,17 @@ def test_sweep_resume_and_diagnose_under_a_c_locale(tmp_path, fmu_path):
     report = (dout / "report.md").read_text(encoding="utf-8")
     assert len(report) > 200 and "meßreihe" in report, report[:500]
     assert time.monotonic() - t0 < 300
+
+
+def test_the_cli_prints_what_an_ascii_console_cannot_encode_as_escapes():
+    """A result line with Δ, ≥ and Ü on a console in ASCII (LC_ALL=C, where stdout's error handler is
+    strict about such characters): printed with escapes, exit code 0, no UnicodeEncodeError."""
+    env = _env(LC_ALL="C", LANG="C", PYTHONUTF8="0", PYTHONPATH=str(SRC))
+    env.pop("PYTHONIOENCODING", None)
+    code = ("import sys\nimport fmusa.cli as c\n"
+            "def said(args):\n    print('\\u0394k \\u2265 0 for \\u00dcberlast')\n    return 0\n"
+            "c.cmd_sweep = said\n"
+            "sys.exit(c.main(['sweep', 'x.yaml', '--out', 'o']))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr.decode("utf-8", "replace")
+    assert r.stdout.decode("ascii").strip() == r"\u0394k \u2265 0 for \xdcberlast"
