@@ -36,12 +36,13 @@ def write_report(result: SweepResult) -> Path:
 
 
 def run_study(study: Study, out: str | Path, resume: bool = False, workers: int | None = None,
-              scheduler: str | None = None, figures: bool = True, progress: bool = True) -> SweepResult:
+              scheduler: str | None = None, figures: bool = True, progress: bool = True,
+              retry_failed: bool = False) -> SweepResult:
     """Every stage of ``study`` into ``out``: runs.csv and summary.json first, then (``figures``) the
     figures and report.md, drawn from the result without running the FMU again."""
     t0 = time.perf_counter()
     result = run_stages(study, out, resume=resume, workers=workers, scheduler=scheduler, progress=progress,
-                        extensions=extensions_for(study, report=figures))
+                        extensions=extensions_for(study, report=figures), retry_failed=retry_failed)
     if figures:     # runs.csv and summary.json are on disk already: a report that fails loses neither
         try:
             write_report(result)

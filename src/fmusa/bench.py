@@ -31,7 +31,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -262,16 +261,57 @@ def _six_dof(study_path: Path | None = None):
     return study, study.stages["sensitivity"]
 
 
-def _peak_rss_mb() -> float:
-    """This process's peak resident memory: VmHWM, which execve resets (``ru_maxrss`` keeps the peak of
-    the process that started this one, e.g. the whole benchmark's)."""
+def _rusage(who: str):
+    """``resource.getrusage`` (POSIX), or None where there is no ``resource`` module (Windows)."""
     try:
-        for line in Path("/proc/self/status").read_text().splitlines():
+        import resource
+    except ImportError:
+        return None
+    return resource.getrusage(getattr(resource, who))
+
+
+def _maxrss_mb(ru) -> float:
+    """``ru_maxrss`` in MB: kilobytes on Linux, bytes on macOS."""
+    return ru.ru_maxrss / (1024 * 1024 if sys.platform == "darwin" else 1024)
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory: on Linux VmHWM, which execve resets (``ru_maxrss`` keeps the
+    peak of the process that started this one, e.g. the whole benchmark's); elsewhere ``ru_maxrss``
+    (macOS) or psutil's peak working set (Windows)."""
+    try:
+        for line in Path("/proc/self/status").read_text(encoding="utf-8").splitlines():
             if line.startswith("VmHWM:"):
                 return int(line.split()[1]) / 1024
     except OSError:
         pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    ru = _rusage("RUSAGE_SELF")
+    if ru is not None:
+        return _maxrss_mb(ru)
+    import psutil
+    mem = psutil.Process().memory_info()
+    return getattr(mem, "peak_wset", mem.rss) / (1024 * 1024)
+
+
+def _children_peak_rss_mb() -> float | None:
+    """The largest peak resident memory of this process's ended children (POSIX ``RUSAGE_CHILDREN``), or
+    None where the system does not keep it (Windows)."""
+    ru = _rusage("RUSAGE_CHILDREN")
+    return None if ru is None else _maxrss_mb(ru)
+
+
+def _mb_text(mb: float | None) -> str:
+    return "n/a (not kept on this system)" if mb is None else f"{mb:.0f} MB"
+
+
+def _cpu_s() -> tuple[float, float]:
+    """(CPU seconds of this process, of its ended children): resource on POSIX, psutil elsewhere."""
+    me, kids = _rusage("RUSAGE_SELF"), _rusage("RUSAGE_CHILDREN")
+    if me is not None and kids is not None:
+        return me.ru_utime + me.ru_stime, kids.ru_utime + kids.ru_stime
+    import psutil
+    t = psutil.Process().cpu_times()
+    return t.user + t.system, getattr(t, "children_user", 0.0) + getattr(t, "children_system", 0.0)
 
 
 def cheap_six_dof(study):
@@ -305,27 +345,25 @@ def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str
     import SALib.sample.sobol  # noqa: F401
     rss_before = _peak_rss_mb()
     load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    _r = resource.getrusage(resource.RUSAGE_SELF)
-    cpu_before = _r.ru_utime + _r.ru_stime
+    cpu_before = _cpu_s()[0]
     with tempfile.TemporaryDirectory(prefix="fmusa-bench-sobol-") as tmp:
         t0 = time.perf_counter()
         res = run_sensitivity(study, stage, Path(tmp), runner, progress=False, resume=False, accuracy_samples=0)
         wall = time.perf_counter() - t0
         rss_study = _peak_rss_mb()         # the study's peak, before the benchmark reads runs.csv back
         import pandas as pd
-        secs = pd.read_csv(Path(tmp) / "sensitivity_runs.csv", usecols=["seconds"])["seconds"].to_numpy()
+        secs = pd.read_csv(Path(tmp) / "sensitivity_runs.csv", usecols=["seconds"], encoding="utf-8")["seconds"].to_numpy()
     s = res["summary"]
     ev = s["eval_wall_s"]
-    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu_workers = kids.ru_utime + kids.ru_stime
-    cpu_parent = me.ru_utime + me.ru_stime - cpu_before
+    cpu_me, cpu_workers = _cpu_s()
+    cpu_parent = cpu_me - cpu_before
     return {
         "runs": int(s["runs"]), "n": n, "k": k, "workers": workers, "failed": int(s["failed"]),
         "wall_s": ev, "wall_s_with_analysis": wall, "runs_per_s": s["runs"] / ev,
         "peak_rss_mb": {
             "parent": rss_study,
             "parent_before_study": rss_before,
-            "largest_worker": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
+            "largest_worker": _children_peak_rss_mb(),
         },
         "worker_s_per_run": {"mean_ms": float(secs.mean() * 1e3), "median_ms": float(np.median(secs) * 1e3),
                              "p90_ms": float(np.percentile(secs, 90) * 1e3),
@@ -346,11 +384,119 @@ def bench_sobol(runs: int, workers: int, fmu_path: Path | None = None, cheap: bo
     code = ("import json, sys; from fmusa.bench import sobol_child; "
             f"print('@@' + json.dumps(sobol_child({int(runs)}, {int(workers)}, None, "
             f"{str(fmu_path) if fmu_path else None!r}, {bool(cheap)!r})))")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8",
+                          errors="replace")
     if proc.returncode != 0:
         raise RuntimeError(f"Sobol benchmark ({runs} runs) failed:\n{proc.stderr[-4000:]}")
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("@@")][-1]
     return json.loads(line[2:])
+
+
+#: The crash-heavy study of :func:`bench_start_methods`: runs whose every one segfaults its worker.
+CRASH_RUNS = 100
+
+
+def _child(code: str, env: dict, what: str) -> dict:
+    """Run ``code`` (which prints ``@@`` + JSON) in a fresh interpreter with ``env``; its JSON."""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8",
+                          errors="replace", env=env, cwd=str(REPO))
+    if proc.returncode != 0:
+        raise RuntimeError(f"{what} failed:\n{proc.stderr[-4000:]}")
+    return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("@@")][-1][2:])
+
+
+def paper_study_child() -> dict:
+    """The paper's study once (no figures), in THIS process: its wall time."""
+    from fmusa.study.loader import load_study
+    from fmusa.api import run_study
+
+    study = load_study(REPO / "studies" / "paper.yaml")
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-paper-") as tmp:
+        t0 = time.perf_counter()
+        res = run_study(study, tmp, figures=False, progress=False)
+        return {"wall_s": time.perf_counter() - t0, "runs": res.summary["runs"]}
+
+
+def crash_study_child(fmu: str, runs: int, workers: int) -> dict:
+    """A study of ``runs`` runs of tests/fmus/misbehave that each segfault their worker, in THIS process:
+    its wall time and how many runs failed (all of them, each on a fresh worker)."""
+    import dataclasses
+    from fmusa.study.loader import parse_study
+    from fmusa.api import run_study
+
+    ks = np.geomspace(3e6, 5e6, runs)
+    text = (f"name: crash_heavy\nfmu: {fmu}\nparameters:\n  k: {{variable: k, unit: N/m}}\nfixed:\n  F: 411.0\n"
+            f"  fault: 1\n  fault_kind: 1\n  fault_lo: 1.0\n  fault_hi: 1.0e9\nscenario:\n  stop_time: 1\n"
+            f"  step: 0.5\nmetrics:\n  y_max: {{output: y_peak, reduce: final, unit: m}}\nstages:\n  grid:\n"
+            f"    values:\n      k: [{', '.join(repr(float(k)) for k in ks)}]\nexecution:\n  workers: {workers}\n")
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-crash-") as tmp:
+        study = parse_study(text, Path(tmp) / "crash.yaml")
+        t0 = time.perf_counter()
+        res = run_study(study, Path(tmp) / "out", figures=False, progress=False)
+        return {"wall_s": time.perf_counter() - t0, "runs": res.summary["runs"], "failed": res.summary["failed"]}
+
+
+def _misbehave_fmu(folder: Path) -> Path | None:
+    """tests/fmus/misbehave built with gcc and zipped, or None without gcc or the sources (not Linux)."""
+    import shutil
+    import zipfile
+    import fmpy
+
+    src = REPO / "tests" / "fmus" / "misbehave"
+    if not (src.is_dir() and shutil.which("gcc") and sys.platform.startswith("linux")):
+        return None
+    tree = folder / "tree"
+    (tree / "binaries" / "linux64").mkdir(parents=True)
+    shutil.copy(src / "modelDescription.xml", tree / "modelDescription.xml")
+    subprocess.run(["gcc", "-std=c99", "-O1", "-shared", "-fPIC", "-I", str(Path(fmpy.__file__).parent / "c-code"),
+                    str(src / "misbehave.c"), "-o", str(tree / "binaries" / "linux64" / "Misbehave.so"), "-lm"],
+                   check=True, capture_output=True)
+    fmu = folder / "Misbehave.fmu"
+    with zipfile.ZipFile(fmu, "w", zipfile.ZIP_DEFLATED) as z:
+        for f in sorted(tree.rglob("*")):
+            if f.is_file():
+                z.write(f, f.relative_to(tree).as_posix())
+    return fmu
+
+
+def bench_start_methods(methods: tuple[str, ...] = ("fork", "spawn"), sobol_runs: int = 10000,
+                        workers: int | None = None) -> dict:
+    """The same studies with the pool's workers started by each of ``methods`` ($FMUSA_START_METHOD), each
+    in a fresh interpreter: the paper's study, the 6-DOF Sobol study of ``sobol_runs`` runs and a
+    crash-heavy study (:data:`CRASH_RUNS` runs, each segfaulting its worker). Issue 19's targets: spawn
+    within 1.5x of fork on the first two, within 5x on the third (``start_method_ratios``)."""
+    import multiprocessing as mp
+
+    workers = workers or os.cpu_count() or 1
+    out: dict = {"start_methods": {}, "start_methods_workers": workers, "start_methods_loadavg_1min": [_load()]}
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-sm-") as tmp:
+        crash_fmu = _misbehave_fmu(Path(tmp))
+        for m in methods:
+            if m not in mp.get_all_start_methods():
+                out["start_methods"][m] = {"note": f"not available on {sys.platform}"}
+                continue
+            env = {**os.environ, "FMUSA_START_METHOD": m}
+            row = {"paper_study_wall_s": _child("import json; from fmusa.bench import paper_study_child; "
+                                                "print('@@' + json.dumps(paper_study_child()))", env,
+                                                f"the paper study under {m}")["wall_s"]}
+            if sobol_runs > 0:
+                sob = _child(f"import json; from fmusa.bench import sobol_child; "
+                             f"print('@@' + json.dumps(sobol_child({int(sobol_runs)}, {int(workers)})))", env,
+                             f"the Sobol study under {m}")
+                row.update(sobol_wall_s=sob["wall_s"], sobol_runs=sob["runs"], sobol_runs_per_s=sob["runs_per_s"])
+            if crash_fmu is not None:
+                cr = _child(f"import json; from fmusa.bench import crash_study_child; print('@@' + json.dumps("
+                            f"crash_study_child({str(crash_fmu)!r}, {CRASH_RUNS}, {int(workers)})))", env,
+                            f"the crash-heavy study under {m}")
+                row.update(crash_study_wall_s=cr["wall_s"], crash_study_failed=cr["failed"])
+            out["start_methods"][m] = row
+            out["start_methods_loadavg_1min"].append(_load())
+    base = out["start_methods"].get("fork", {})
+    out["start_method_ratios"] = {
+        m: {k: row[k] / base[k] for k in ("paper_study_wall_s", "sobol_wall_s", "crash_study_wall_s")
+            if k in row and base.get(k)}
+        for m, row in out["start_methods"].items() if m != "fork"}
+    return out
 
 
 def profile_six_dof(samples: int = 100, fmu_path: Path | None = None, seed: int = 1) -> dict:
@@ -721,6 +867,29 @@ def bench_fmi3(runs: int = 20, fmu_path: Path | None = None) -> dict:
     return out
 
 
+def _print_start_methods(sm: dict) -> None:
+    for m, row in sm["start_methods"].items():
+        print(f"start method {m}: " + ", ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}"
+                                                 for k, v in row.items()))
+    for m, r in sm["start_method_ratios"].items():
+        print(f"{m} / fork: " + ", ".join(f"{k} {v:.2f}x" for k, v in r.items()))
+
+
+def _merge_into(path: Path, result: dict) -> None:
+    """Merge ``result`` into the JSON file ``path`` (kept keys of earlier runs), written whole by rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    merged = {}
+    if path.exists():
+        try:
+            merged = json.loads(path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError:
+            merged = {}
+    merged.update(result)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(merged, indent=2) + "\n", encoding="utf-8")
+    tmp.replace(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m fmusa.bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("out/bench/bench.json"))
@@ -741,8 +910,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="worker counts of the paper study on the slow stand-in FMU, e.g. 1,2,4,16 (0 skips it)")
     ap.add_argument("--no-slow-fmu-sequential", dest="slow_sequential", action="store_false",
                     help="skip the sequential search on the slow FMU (~190 s)")
+    ap.add_argument("--start-methods", default="fork,spawn", metavar="LIST",
+                    help="start methods to compare on the paper, Sobol and crash-heavy studies (empty: skip)")
+    ap.add_argument("--only-start-methods", action="store_true",
+                    help="measure only the start-method comparison and merge it into --out")
     args = ap.parse_args(argv)
     fmu_path = (args.fmu or default_fmu_path()).resolve()
+    methods = tuple(m.strip() for m in args.start_methods.split(",") if m.strip())
+    if args.only_start_methods:
+        sm = bench_start_methods(methods, args.sobol_runs, args.workers)
+        _print_start_methods(sm)
+        _merge_into(args.out, sm)
+        return 0
 
     import fmpy
 
@@ -808,7 +987,7 @@ def main(argv: list[str] | None = None) -> int:
         big = bench_sobol(args.sobol_runs, workers, args.fmu)
         print(f"Sobol 6-DOF: {big['runs']} runs in {big['wall_s']:.1f} s = {big['runs_per_s']:.1f} runs/s on "
               f"{workers} workers; peak RSS parent {big['peak_rss_mb']['parent']:.0f} MB, largest worker "
-              f"{big['peak_rss_mb']['largest_worker']:.0f} MB")
+              f"{_mb_text(big['peak_rss_mb']['largest_worker'])}")
         result.update({
             "sobol_runs": big["runs"],
             "sobol_wall_s": big["wall_s"],
@@ -822,7 +1001,7 @@ def main(argv: list[str] | None = None) -> int:
             small = bench_sobol(args.sobol_small_runs, workers, args.fmu)
             print(f"Sobol 6-DOF: {small['runs']} runs in {small['wall_s']:.1f} s = {small['runs_per_s']:.1f} "
                   f"runs/s; peak RSS parent {small['peak_rss_mb']['parent']:.0f} MB, largest worker "
-                  f"{small['peak_rss_mb']['largest_worker']:.0f} MB")
+                  f"{_mb_text(small['peak_rss_mb']['largest_worker'])}")
             result.update({
                 "sobol_small_runs": small["runs"],
                 "sobol_small_wall_s": small["wall_s"],
@@ -858,18 +1037,23 @@ def main(argv: list[str] | None = None) -> int:
         result["sobol_profile"] = prof
         print(("Sobol target met: " if result["sobol_target_met"] else "Sobol target missed: ") + prof["why"])
 
+    if methods:
+        sm = bench_start_methods(methods, args.sobol_runs, args.workers)
+        _print_start_methods(sm)
+        result.update(sm)
+
     result["limits_note"] = limits_note(result)
     print("limits: " + result["limits_note"])
     args.out.parent.mkdir(parents=True, exist_ok=True)
     merged = {}
     if args.out.exists():
         try:
-            merged = json.loads(args.out.read_text())
+            merged = json.loads(args.out.read_text(encoding="utf-8"))
         except json.JSONDecodeError:
             merged = {}
     merged.update(result)
     tmp = args.out.with_suffix(args.out.suffix + ".tmp")
-    tmp.write_text(json.dumps(merged, indent=2) + "\n")
+    tmp.write_text(json.dumps(merged, indent=2) + "\n", encoding="utf-8")
     tmp.replace(args.out)
 
     print(f"reused instance: median {med:.3f} ms, p90 {result['fmu_run_ms_p90']:.3f} ms "

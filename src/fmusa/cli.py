@@ -91,7 +91,7 @@ def cmd_pullout(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "pullout.csv"
     png_path = out / "pullout.png"
-    df.to_csv(csv_path, index=False, float_format="%.10g")
+    df.to_csv(csv_path, index=False, float_format="%.10g", encoding="utf-8")
     plot_pullout(df, effective, png_path)
     last = df.iloc[-1]
     print(f"{_load_case(effective)}: c_y = {_fmt(effective['c_y'])} N/m, "
@@ -190,6 +190,9 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted study in --out: runs already in runs.csv are not redone")
+    p.add_argument("--retry-failed", action="store_true",
+                   help="with --resume: run the failed runs of runs.csv again (a crash or memory fault that "
+                        "may not repeat); the runs that worked are kept")
     p.add_argument("--workers", type=_int_at_least(1), default=None,
                    help="local worker processes (default: all cores)")
     p.add_argument("--scheduler", default=None,
@@ -202,6 +205,8 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
 def cmd_sweep(args: argparse.Namespace) -> int:
     from fmusa.api import load_study, run_study     # load_study: with the applications' blocks checked
 
+    if args.retry_failed and not args.resume:
+        raise UsageError("--retry-failed reruns the failed runs of a study in --out: give it with --resume")
     study = load_study(args.study)
 
     def kept() -> set[Path]:
@@ -210,7 +215,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     before = kept()
     try:
         result = run_study(study, args.out, resume=args.resume, workers=args.workers, scheduler=args.scheduler,
-                           figures=not args.no_figures, progress=not args.quiet)
+                           figures=not args.no_figures, progress=not args.quiet, retry_failed=args.retry_failed)
     finally:   # said once it has happened (a study that fails to start moves nothing)
         for path in sorted(kept() - before):
             print(f"note: this study started afresh; the earlier runs are kept in {path} (use --resume to "
@@ -613,11 +618,25 @@ def _command_word(argv: list[str]) -> str:
     return next((a for a in argv if not a.startswith("-")), "")
 
 
+def _printable_console() -> None:
+    """Make stdout and stderr print what their encoding cannot hold as escapes (``\\u0394`` for Δ) rather
+    than end the command with UnicodeEncodeError: a Windows console in cp1252, or ``LC_ALL=C`` on POSIX,
+    cannot encode the Δ, ≥ or Ü of a message. Files fmusa writes are UTF-8 whatever the console."""
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None and (getattr(stream, "encoding", "") or "").lower().replace("-", "") != "utf8":
+            try:
+                reconfigure(errors="backslashreplace")
+            except (ValueError, OSError):   # a stream that cannot be reconfigured (detached, closed)
+                pass
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand. A :class:`~fmusa.errors.FmusaError` is the user's to fix: one line on stderr
     and its ``exit_code`` (2, or 1 when an FMU could not be found, built or run); any other exception
     propagates with its traceback, as the bug it is."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    _printable_console()
     parser = build_parser(_command_word(argv))
     args = parser.parse_args(argv)
     try:

@@ -70,7 +70,7 @@ def _cached(cache_dir: Path | None, name: str, key: str) -> Fit | None:
     if path is None or not path.exists():
         return None
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(path.read_text(encoding="utf-8"))
         return fit_from_json(d) if d.get("key") == key else None
     except (ValueError, KeyError):
         return None
@@ -80,7 +80,7 @@ def _save(cache_dir: Path, name: str, fit: Fit, key: str) -> None:
     """Write a fit atomically, so an interrupted run leaves no half-written cache file."""
     cache_dir.mkdir(parents=True, exist_ok=True)
     tmp = cache_dir / f"{name}.json.tmp"
-    tmp.write_text(json.dumps(fit_to_json(fit, key)))
+    tmp.write_text(json.dumps(fit_to_json(fit, key)), encoding="utf-8")
     tmp.replace(cache_dir / f"{name}.json")
 
 

@@ -370,6 +370,12 @@ def _derive_time(path: Path, spec: ColumnSpec, drive: str, x: np.ndarray,
     return dt * i, dt
 
 
+
+def _text_name(name: str) -> str:
+    """A file name as text: under an ASCII locale (``LC_ALL=C``) Python hands non-ASCII bytes of a name
+    over as surrogates, which no report, figure or JSON file can hold; they are read back as UTF-8."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
 def load_experiment(path, drive: str, spec: ColumnSpec = ColumnSpec(), zero_drive: bool = True,
                     zero_time: bool = True) -> Experiment:
     """Read, check and convert one CSV file into an :class:`Experiment` (SI units).
@@ -440,7 +446,7 @@ def load_experiment(path, drive: str, spec: ColumnSpec = ColumnSpec(), zero_driv
         "zero_time": zero_time, "time_shift": time_shift,
         "downsampled_from": None, "block": None,
     }
-    return Experiment(name=path.stem, path=path, drive=drive, t=t - time_shift,
+    return Experiment(name=_text_name(path.stem), path=path, drive=drive, t=t - time_shift,
                       displacement=si["displacement"], force=si["force"], meta=meta)
 
 
@@ -486,7 +492,7 @@ def _unique_names(paths: list[Path]) -> list[str]:
     out = []
     for name in names:
         seen[name] = seen.get(name, 0) + 1
-        out.append(name if seen[name] == 1 else f"{name}-{seen[name]}")
+        out.append(_text_name(name if seen[name] == 1 else f"{name}-{seen[name]}"))
     return out
 
 

@@ -503,5 +503,6 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
         parts.append(fig_txt)
     parts.append("## Files\n\n- `diagnosis.json`: every number of this report\n- `figures/`: the figures above\n")
     path = out_dir / "report.md"
-    path.write_text("\n".join(p.rstrip() + "\n" for p in parts if p))
+    # surrogateescape: a file path given under an ASCII locale goes back as the bytes it was
+    path.write_text("\n".join(p.rstrip() + "\n" for p in parts if p), encoding="utf-8", errors="surrogateescape")
     return path

@@ -181,7 +181,7 @@ def _plain(x: Any) -> Any:
 
 def write_json(diag: dict, path: str | os.PathLike) -> None:
     """diagnosis.json: everything but the in-memory fits."""
-    Path(path).write_text(json.dumps(_plain(diag), indent=2))
+    Path(path).write_text(json.dumps(_plain(diag), indent=2), encoding="utf-8")
 
 
 def run_diagnosis(experiments: Sequence, drive: str, out_dir: str | os.PathLike, **kw) -> dict:

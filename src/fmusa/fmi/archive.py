@@ -45,6 +45,22 @@ def max_fmu_bytes() -> int:
 
 
 def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` still runs, through psutil on every platform (``os.kill(pid, 0)`` would send
+    Ctrl+C on Windows, and a dead pid there raises an error instead of saying so). Without psutil: on POSIX
+    the signal-0 probe, elsewhere "alive" (a folder kept is harmless, one removed under a live study is not)."""
+    try:
+        import psutil
+    except ImportError:
+        psutil = None
+    if psutil is not None:
+        try:
+            return psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+        except psutil.NoSuchProcess:
+            return False
+        except Exception:  # noqa: BLE001 - access denied and the like: it exists
+            return True
+    if os.name != "posix":
+        return True
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -60,7 +76,7 @@ def remove_orphans(root: str | os.PathLike | None = None) -> list[Path]:
     base = Path(root or tempfile.gettempdir())
     for d in base.glob(PREFIX + "*"):
         try:
-            pid = int((d / OWNER_FILE).read_text().strip())
+            pid = int((d / OWNER_FILE).read_text(encoding="utf-8").strip())
         except (OSError, ValueError):
             continue       # not (yet) ours to judge: a folder being created has no owner file for a moment
         if pid != os.getpid() and not _pid_alive(pid):
@@ -87,7 +103,7 @@ def extract_fmu(fmu: str | os.PathLike, dest: str | os.PathLike | None = None,
     if made_here:
         remove_orphans()
         folder = Path(tempfile.mkdtemp(prefix=PREFIX))
-        (folder / OWNER_FILE).write_text(str(os.getpid()))
+        (folder / OWNER_FILE).write_text(str(os.getpid()), encoding="utf-8")
     else:
         folder = Path(dest)
         folder.mkdir(parents=True, exist_ok=True)

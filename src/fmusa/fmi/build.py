@@ -41,7 +41,8 @@ def compile_sources(unzipdir: str | os.PathLike, info: FMUInfo | None = None,
     def run(cmd: list[str], cwd=None) -> bool:
         log.append("$ " + " ".join(cmd))
         try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, timeout=600)
+            proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", errors="replace", cwd=cwd,
+                                  timeout=600)
         except (OSError, subprocess.TimeoutExpired) as exc:
             log.append(str(exc))
             return False

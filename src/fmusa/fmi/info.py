@@ -239,6 +239,10 @@ def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo
     if not path.exists():
         raise FMUNotFoundError(f"FMU not found: {path}")
     key = None
+    if _ADOPTED and path.is_dir():
+        adopted = _adopted(path)
+        if adopted is not None and (adopted.fmi_version == "2.0" or not require_fmi2):
+            return adopted
     if path.is_file():
         st = path.stat()
         key = (str(path.resolve()), st.st_size, st.st_mtime_ns, require_fmi2)
@@ -248,6 +252,35 @@ def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo
     if key is not None:
         _INFO_CACHE[key] = info
     return info
+
+
+#: FMU folders read by another process (a pool's parent): folder -> (its modelDescription.xml's size and
+#: modification time, the FMUInfo)
+_ADOPTED: dict[str, tuple[tuple[int, int], "FMUInfo"]] = {}
+
+
+def _stamp(folder: Path) -> tuple[int, int]:
+    st = (folder / "modelDescription.xml").stat()
+    return st.st_size, st.st_mtime_ns
+
+
+def adopt_fmu_info(info: "FMUInfo") -> None:
+    """Take ``info`` (what another process read from the unpacked FMU folder ``info.path``) as
+    :func:`read_fmu_info`'s answer for that folder while its modelDescription.xml keeps its size and
+    modification time: a worker process started by spawn then parses no description (seconds for one of
+    200k variables)."""
+    try:
+        _ADOPTED[str(Path(info.path).resolve())] = (_stamp(Path(info.path)), info)
+    except OSError:
+        pass
+
+
+def _adopted(folder: Path) -> "FMUInfo | None":
+    hit = _ADOPTED.get(str(folder.resolve()))
+    try:
+        return hit[1] if hit is not None and hit[0] == _stamp(folder) else None
+    except OSError:
+        return None
 
 
 #: Parsed model descriptions by the SHA-256 of their modelDescription.xml: an FMU unpacked for a study has

@@ -99,7 +99,8 @@ def _evaluator(spec: PlanSpec, runner, study, **overrides) -> Evaluator:
     kw = {"workers": getattr(ev, "workers", None) or study.execution.workers,
           "scheduler": getattr(ev, "scheduler", None) or study.execution.scheduler,
           "isolate": getattr(ev, "isolate", study.fmu is not None),
-          "timeout_s": getattr(ev, "timeout_s", study.execution.timeout_s)}
+          "timeout_s": getattr(ev, "timeout_s", study.execution.timeout_s),
+          "pool": getattr(ev, "pool_options", None) or study.execution.pool_options()}
     kw.update(overrides)
     return Evaluator(spec, **kw)
 
@@ -326,7 +327,8 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
         del sample
 
     fingerprint = getattr(runner, "fingerprint", None)
-    store = RunStore(out / RUNS_FILE, names, metrics, resume=resume, fingerprint=fingerprint)
+    store = RunStore(out / RUNS_FILE, names, metrics, resume=resume, fingerprint=fingerprint,
+                     retry_failed=bool(getattr(runner, "retry_failed", False)))
     simulated = 0
     try:
         t_eval = time.perf_counter()
@@ -373,7 +375,7 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
                 summary[method], rows = analyse_sobol(problem, Yg, ok_names, stage.seed)
                 cols = ["metric", "parameter", "S1", "S1_conf", "ST", "ST_conf"]
             frames[method] = pd.DataFrame(rows, columns=cols)
-            frames[method].to_csv(out / f"sensitivity_{method}.csv", index=False)
+            frames[method].to_csv(out / f"sensitivity_{method}.csv", index=False, encoding="utf-8")
 
         all_keys = keys[stage.methods[0]] if len(stage.methods) == 1 else np.concatenate(
             [keys[m] for m in stage.methods])

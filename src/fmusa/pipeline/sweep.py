@@ -58,8 +58,10 @@ class StudyRunner:
     """Evaluates study points through the store (cache, resume) and the evaluator (pool, cluster)."""
 
     def __init__(self, study: Study, out: Path, resume: bool, workers: int | None, scheduler: str | None,
-                 progress: bool = True) -> None:
+                 progress: bool = True, retry_failed: bool = False) -> None:
         self.study = study
+        #: --resume --retry-failed: the stored failed runs are run again (sensitivity stages follow it too)
+        self.retry_failed = retry_failed
         fmu_path = Path(study.fmu) if study.fmu else default_fmu_path()
         errors = check_fmu(study, fmu_path)
         if errors:
@@ -79,18 +81,20 @@ class StudyRunner:
         # any FMU but our own runs in supervised workers: a crash or hang then costs one run
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
                                    scheduler=scheduler or study.execution.scheduler,
-                                   isolate=study.fmu is not None, timeout_s=study.execution.timeout_s)
+                                   isolate=study.fmu is not None, timeout_s=study.execution.timeout_s,
+                                   pool=study.execution.pool_options())
         try:   # a scheduler that cannot be reached fails here, before an earlier runs.csv is moved aside
             self.evaluator.connect()
             # the FMU loaded once, and how its runs must be made to equal runs on a fresh instance, before
             # anything is written (a binary that cannot load stops the study here, nothing moved aside)
             a, b = check_points(study, spec)
             self.reuse = preflight(self.evaluator.check_spec(), a, b, isolate=self.evaluator.supervised_only,
-                                   timeout_s=study.execution.timeout_s, digest=str(self.fingerprint.get("fmu")))
+                                   timeout_s=study.execution.timeout_s, digest=str(self.fingerprint.get("fmu")),
+                                   start_method=study.execution.start_method)
             self.evaluator.set_reuse(self.reuse.mode)
             self.spec = replace(spec, reuse=self.reuse.mode)
             self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
-                                  fingerprint=self.fingerprint)
+                                  fingerprint=self.fingerprint, retry_failed=retry_failed)
         except BaseException:
             self.evaluator.close()
             raise
@@ -162,7 +166,7 @@ class StudyRunner:
 
 def run_study(study: Study, out: str | Path, resume: bool = False, workers: int | None = None,
               scheduler: str | None = None, progress: bool = True,
-              extensions: Sequence[StudyExtension] = ()) -> SweepResult:
+              extensions: Sequence[StudyExtension] = (), retry_failed: bool = False) -> SweepResult:
     """Run every stage of ``study`` into ``out`` (runs.csv as runs finish, summary.json at the end) and
     then each extension's ``after_stages``. Draws nothing: :func:`fmusa.report.markdown.write_report`
     renders the result."""
@@ -170,7 +174,7 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
 
     out = writable_folder(out, "output folder (--out)")
     t0 = time.perf_counter()
-    runner = StudyRunner(study, out, resume, workers, scheduler, progress)
+    runner = StudyRunner(study, out, resume, workers, scheduler, progress, retry_failed=retry_failed)
     summary: dict[str, Any] = {"study": study.name, "study_file": str(study.path),
                                "fmu_runs": runner.reuse.as_dict()}
     result = SweepResult(study, out, pd.DataFrame(), summary)
@@ -288,7 +292,7 @@ def _grid_axes(study: Study) -> list[str]:
 def write_summary(result: SweepResult) -> Path:
     """``<out>/summary.json`` from ``result.summary`` (written before any figure, and again by the report)."""
     path = Path(result.out) / "summary.json"
-    path.write_text(json.dumps(jsonable(result.summary), indent=2))
+    path.write_text(json.dumps(jsonable(result.summary), indent=2), encoding="utf-8")
     return path
 
 

@@ -11,7 +11,7 @@ from fmusa.errors import FmusaError
 from fmusa.fmi.archive import extract_fmu
 from fmusa.fmi.build import compile_sources
 from fmusa.fmi.info import read_fmu_info, select_interface
-from fmusa.runs.pool import WorkerPool, run_chunk_supervised
+from fmusa.runs.pool import ENV_START_METHOD, PoolOptions, WorkerPool, resolve_start_method, run_chunk_supervised
 from fmusa.runs.scheduler import connect_scheduler
 from fmusa.runs.spec import PlanSpec, RunBatch, RunResult, as_arrays, release_plan, run_batch
 from fmusa.runs.timelimit import in_process_fixed
@@ -28,8 +28,13 @@ class Evaluator:
     """
 
     def __init__(self, spec: PlanSpec, workers: int | None = None, scheduler: str | None = None,
-                 pool_threshold: int = 400, isolate: bool = False, timeout_s: float | None = 60.0) -> None:
+                 pool_threshold: int = 400, isolate: bool = False, timeout_s: float | None = 60.0,
+                 pool: PoolOptions | None = None) -> None:
         self.spec = spec
+        #: how supervised workers start and are kept (execution.start_method, worker_max_runs, …)
+        self.pool_options = pool or PoolOptions()
+        if not scheduler:       # a start method this platform lacks is an error now, before anything runs
+            resolve_start_method(self.pool_options.start_method)
         self.workers = workers or os.cpu_count() or 1
         self.scheduler = scheduler
         self.pool_threshold = pool_threshold
@@ -185,10 +190,15 @@ class Evaluator:
             # each task runs its chunk in a supervised process on its Dask worker (crash, hang, error: a
             # failed run, never a dead worker); a task Dask itself loses fails its runs with the reason
             futures, chunks = [], {}
+            # the start method chosen here (study or environment) holds on the Dask workers too; none
+            # chosen: each Dask worker's platform default
+            opts = self.pool_options
+            if opts.start_method is None and os.environ.get(ENV_START_METHOD, "").strip():
+                opts = replace(opts, start_method=os.environ[ENV_START_METHOD].strip())
             size = self._chunk_size(len(ids), n)
             for i in range(0, len(ids), size):
                 c = (ids[i:i + size], values[i:i + size])
-                fut = self._client.submit(run_chunk_supervised, self.spec, c, self.timeout_s, pure=False)
+                fut = self._client.submit(run_chunk_supervised, self.spec, c, self.timeout_s, opts, pure=False)
                 futures.append(fut)
                 chunks[fut.key] = c
             for fut in as_completed(futures):
@@ -201,7 +211,7 @@ class Evaluator:
         elif (self.isolate or (self.workers > 1 and len(ids) >= self.pool_threshold)
               or (here := self._in_process()) is None):
             if self._pool is None:
-                self._pool = WorkerPool(self._local_spec(), self.workers, self.timeout_s)
+                self._pool = WorkerPool(self._local_spec(), self.workers, self.timeout_s, self.pool_options)
             # chunks of 200 runs at least keep the pipes quiet; a batch smaller than 200 per worker (a
             # search's round) is spread over all workers
             size = max(self._chunk_size(len(ids), self.workers), min(200, -(-len(ids) // self.workers)))

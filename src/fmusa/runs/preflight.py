@@ -293,13 +293,15 @@ def _child(conn, spec: PlanSpec, a, b, timeout_s) -> None:
         conn.close()
 
 
-def _isolated_once(spec: PlanSpec, a, b, timeout_s: float | None) -> tuple[object, int, float]:
+def _isolated_once(spec: PlanSpec, a, b, timeout_s: float | None, start_method: str | None
+                   ) -> tuple[object, int, float]:
     """One run of :func:`check_reuse` in a child process: (what it sent last, or "timeout" or None for a
     crash; how many of its runs had started; the limit in force when it stopped)."""
     import multiprocessing as mp
 
-    method = os.environ.get("FMUSA_START_METHOD") or None
-    ctx = mp.get_context(method)
+    from fmusa.runs.pool import resolve_start_method
+
+    ctx = mp.get_context(resolve_start_method(start_method))
     recv, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(send, spec, list(a), list(b), timeout_s), name="fmusa-preflight",
                        daemon=True)
@@ -329,21 +331,22 @@ def _isolated_once(spec: PlanSpec, a, b, timeout_s: float | None) -> tuple[objec
         proc.join(5)
         recv.close()
     if msg is None:
-        msg = ("crash", proc.exitcode)
+        from fmusa.runs.pool import exit_reason
+        msg = ("crash", exit_reason(proc.exitcode))
     return msg, started, limit
 
 
 def check_reuse_isolated(spec: PlanSpec, a: Sequence[float], b: Sequence[float],
-                         timeout_s: float | None) -> ReuseVerdict:
+                         timeout_s: float | None, start_method: str | None = None) -> ReuseVerdict:
     """:func:`check_reuse` in a child process: an FMU that crashes or hangs costs the check, not the study.
     When one of the check's two points outlasts the time limit of a run, the check is made again with the
     other point alone (its rerun after itself still shows a state the reset does not restore); a check that
     crashes or hangs again gives ``fresh`` (always right) and says why."""
     t0 = time.perf_counter()
-    msg, started, limit = _isolated_once(spec, a, b, timeout_s)
+    msg, started, limit = _isolated_once(spec, a, b, timeout_s, start_method)
     if msg == "timeout" and started in (1, 2) and list(a) != list(b):
         other = list(b) if started == 1 else list(a)        # the first run is a, the second b
-        msg, started, limit = _isolated_once(spec, other, other, timeout_s)
+        msg, started, limit = _isolated_once(spec, other, other, timeout_s, start_method)
     if isinstance(msg, tuple) and msg[0] == "ok":
         verdict = msg[1]
         verdict.where = "a child process"
@@ -358,7 +361,7 @@ def check_reuse_isolated(spec: PlanSpec, a: Sequence[float], b: Sequence[float],
         why = (f"a run of the reset check did not finish within {limit:g} s" if started else
                f"the FMU did not load within {limit:g} s")
     else:
-        why = f"the FMU crashed during the reset check (its process exited with code {msg[1]})"
+        why = f"during the reset check {msg[1]}"
     return ReuseVerdict("fresh", f"{why}; every run gets a new instance (always right, costs an instantiation)",
                         [], None, time.perf_counter() - t0, where="a child process")
 
@@ -422,7 +425,8 @@ def _write_cached(key: str, verdict: ReuseVerdict) -> None:
 
 
 def preflight(spec: PlanSpec, a: Sequence[float], b: Sequence[float], *, isolate: bool,
-              timeout_s: float | None = None, digest: str | None = None, cache: bool = True) -> ReuseVerdict:
+              timeout_s: float | None = None, digest: str | None = None, cache: bool = True,
+              start_method: str | None = None) -> ReuseVerdict:
     """Load the FMU and find how its runs must be made (:func:`check_reuse`), in a child process when
     ``isolate`` (an FMU not our own; else on this process's RunPlan for ``spec``, which its runs here then
     use), the verdict cached under the FMU's ``digest`` and the run set-up."""
@@ -432,7 +436,7 @@ def preflight(spec: PlanSpec, a: Sequence[float], b: Sequence[float], *, isolate
         if hit is not None:
             _confirm_loads(spec, isolate)
             return replace(hit, cached=True, check_s=0.0)
-    verdict = (check_reuse_isolated(spec, a, b, timeout_s) if isolate
+    verdict = (check_reuse_isolated(spec, a, b, timeout_s, start_method) if isolate
                else check_reuse(spec, a, b, shared=True, timeout_s=timeout_s))
     if key is not None and math.isfinite(verdict.check_s) and verdict.tried:
         _write_cached(key, verdict)

@@ -11,6 +11,7 @@ flush. A block cut short by a kill leaves a partial last line; resuming drops it
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import math
 import os
@@ -43,20 +44,50 @@ class StoreBusyError(UsageError):
     """Another process writes the same runs file."""
 
 
+def _try_lock(fh) -> None:
+    """Lock the open file ``fh`` for this process alone, without waiting: ``fcntl.flock`` on POSIX,
+    ``msvcrt.locking`` (its first byte) on Windows. BlockingIOError when another process holds it; any
+    other OSError when the file system cannot lock files at all."""
+    try:
+        import fcntl
+    except ImportError:
+        fcntl = None
+    if fcntl is not None:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return
+    import msvcrt
+    fh.seek(0)
+    try:
+        msvcrt.locking(fh.fileno(), msvcrt.LK_NBLCK, 1)
+    except PermissionError as exc:     # Windows: the region is locked by another process
+        raise BlockingIOError(exc.errno, str(exc)) from None
+
+
+#: errnos of a lock that another process holds (rather than one the file system refuses)
+_HELD = {errno.EAGAIN, errno.EACCES, getattr(errno, "EWOULDBLOCK", errno.EAGAIN)}
+
+
 def _lock_folder(path: Path):
     """An exclusive lock on ``<runs file>.lock`` for as long as the store is open: two studies writing the
     same runs.csv would interleave their rows. Released by the system when the process dies."""
-    import fcntl
-
-    fh = open(path.with_name(path.name + ".lock"), "a+")
+    lock = path.with_name(path.name + ".lock")
+    fh = open(lock, "a+", encoding="utf-8")
     try:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        fh.seek(0)
-        owner = fh.read().strip() or "another process"
+        _try_lock(fh)
+    except OSError as exc:
+        held = isinstance(exc, BlockingIOError) or exc.errno in _HELD
+        try:
+            fh.seek(0)
+            owner = fh.read().strip() if held else ""
+        except OSError:        # Windows: the holder's locked byte cannot be read
+            owner = ""
         fh.close()
-        raise StoreBusyError(f"{path}: another fmusa study ({owner}) is writing to this folder; wait for it to "
-                             f"finish, or give this study another --out") from None
+        if not held:
+            raise StoreBusyError(f"{lock}: the file system of this folder cannot lock files "
+                                 f"({exc.strerror or exc}), so fmusa cannot keep two studies from writing "
+                                 f"the same runs.csv; give --out a folder on a local disk") from None
+        raise StoreBusyError(f"{path}: another fmusa study ({owner or 'another process'}) is writing to this "
+                             f"folder; wait for it to finish, or give this study another --out") from None
     fh.seek(0)
     fh.truncate()
     fh.write(f"pid {os.getpid()}")
@@ -66,9 +97,10 @@ def _lock_folder(path: Path):
 
 
 #: the lock files this process holds: a forked worker closes its copies at once, so that it cannot keep a
-#: lock alive after this process dies (one hook for all of them, registered once)
+#: lock alive after this process dies (one hook for all of them, registered once, where fork exists)
 _LOCKS: "weakref.WeakSet" = weakref.WeakSet()
-os.register_at_fork(after_in_child=lambda: [fh.close() for fh in list(_LOCKS)])
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=lambda: [fh.close() for fh in list(_LOCKS)])
 
 
 def _numbers(path: Path, df: pd.DataFrame, columns: Sequence[str]) -> np.ndarray:
@@ -93,7 +125,7 @@ def _check_fingerprint(path: Path, meta: Path, fingerprint: dict | None) -> None
     if fingerprint is None or not meta.exists():
         return
     try:
-        old = json.loads(meta.read_text())
+        old = json.loads(meta.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return
     new = json.loads(json.dumps(fingerprint))         # the same JSON form as stored
@@ -129,7 +161,8 @@ _M64 = (1 << 64) - 1
 
 class RunStore:
     def __init__(self, path: str | os.PathLike, params: Sequence[str], metrics: Sequence[str],
-                 constraints: Iterable = (), resume: bool = False, fingerprint: dict | None = None) -> None:
+                 constraints: Iterable = (), resume: bool = False, fingerprint: dict | None = None,
+                 retry_failed: bool = False) -> None:
         self.path = Path(path)
         self.params = list(params)
         self.metrics = list(metrics)
@@ -157,23 +190,26 @@ class RunStore:
         self._lock = _lock_folder(self.path)
         #: where the runs of an earlier study went when this one started afresh (nothing is deleted)
         self.previous: Path | None = None
+        self.retried = 0
         #: what, besides the parameters, decided the stored runs (``<runs file>.study.json``)
         self.fingerprint = fingerprint
         meta = self.path.with_name(self.path.name + ".study.json")
         if resume and self.path.exists() and self.path.stat().st_size > 0:
             _check_fingerprint(self.path, meta, fingerprint)
         if resume and self.path.exists() and self.path.stat().st_size > 0 and self._load():
-            self._fh = open(self.path, "a", newline="")
+            self._fh = open(self.path, "a", newline="", encoding="utf-8")
+            #: failed runs of the resumed study set aside to be run again (``retry_failed``)
+            self.retried = self._forget_failed() if retry_failed else 0
         else:
             if self.path.exists() and self.path.stat().st_size > 0:
                 self.previous = _keep_previous(self.path)
                 if meta.exists():
                     meta.replace(self.previous.with_name(self.previous.name + ".study.json"))
-            self._fh = open(self.path, "w", newline="")
+            self._fh = open(self.path, "w", newline="", encoding="utf-8")
             csv.writer(self._fh).writerow(self.columns)
             self._fh.flush()
         if fingerprint is not None:
-            meta.write_text(json.dumps(fingerprint, indent=1, sort_keys=True))
+            meta.write_text(json.dumps(fingerprint, indent=1, sort_keys=True), encoding="utf-8")
         self._writer = csv.writer(self._fh)
         n_num = len(self.params) + len(self.metrics)
         self._num_fmt = ",".join([FLOAT] * n_num)
@@ -256,6 +292,7 @@ class RunStore:
             return
         U = self._bits(self._P[start:start + n])
         index = self._index
+        self._live[start:start + n] = True      # first: a key repeated within the block leaves its last row
         for j, h in enumerate(self._hashes(U)):
             row = start + j
             old = index.get(h)
@@ -271,7 +308,6 @@ class RunStore:
                 if prev is not None:
                     self._live[prev] = False
                 self._spill[k] = row
-        self._live[start:start + n] = True
 
     def _load(self) -> bool:
         with open(self.path, "r+b") as fh:   # a block cut short by a kill: drop its partial last line
@@ -289,7 +325,7 @@ class RunStore:
                 fh.truncate(pos)
         if pos == 0:                           # not even the header survived: start afresh
             return False
-        df = pd.read_csv(self.path, keep_default_na=True,
+        df = pd.read_csv(self.path, keep_default_na=True, encoding="utf-8",
                          dtype={"stage": str, "status": str, "message": str})
         missing = [c for c in self.columns if c not in df.columns]
         if missing:
@@ -314,6 +350,22 @@ class RunStore:
         self._insert(i, n)
         self.next_id = int(df["run_id"].max()) + 1 if n else 0
         return True
+
+    def _forget_failed(self) -> int:
+        """Take the stored failed runs out of the lookup, so that a resumed study runs them again (their
+        lines stay in runs.csv; a new row for the same parameters supersedes an old one on every later
+        load). Returns how many."""
+        rows = np.flatnonzero(self._live[:self._n] & (self._status[:self._n] != self._statuses.index("ok")))
+        if not len(rows):
+            return 0
+        U = self._bits(self._P[rows])
+        for row, h, u in zip(rows.tolist(), self._hashes(U), U):
+            if self._index.get(h) == row:
+                del self._index[h]
+            else:
+                self._spill.pop(u.tobytes(), None)
+        self._live[rows] = False
+        return len(rows)
 
     # ------------------------------------------------------------------ lookups
     @staticmethod

@@ -13,6 +13,7 @@ from yaml.constructor import ConstructorError, SafeConstructor
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 
+from fmusa.runs.worker import START_METHODS
 from fmusa.study.schema import (
     Constraint, DISTRIBUTIONS, Execution, FMUOptions, FixedValue, GridStage, INTERFACES, METHODS, Metric, Parameter, REDUCTIONS, RegressionStage, RoiStage, SAMPLED_REDUCTIONS, SOLVERS, STAGE_NAMES, Scenario, SearchStage, SensitivityParameter, SensitivityStage, Study, StudyError, IDENTIFIER,
 )
@@ -834,7 +835,8 @@ def _parse_execution(p: _Parser, top: _Map) -> Execution:
     if node is None:
         return Execution()
     m = p.mapping(node, "execution", "execution")
-    m.allow(("workers", "scheduler", "timeout_s", "check_fmu_steps"))
+    m.allow(("workers", "scheduler", "timeout_s", "check_fmu_steps", "start_method", "worker_max_runs",
+             "worker_max_memory_mb", "retries"))
     snode = m.opt("scheduler")
     scheduler = None if snode is None else p.string(snode, "scheduler", "execution",
                                                     "scheduler: tcp://127.0.0.1:8786")
@@ -842,11 +844,19 @@ def _parse_execution(p: _Parser, top: _Map) -> Execution:
     check_steps = None
     if cnode is not None and not (isinstance(cnode.value, str) and cnode.value.strip().lower() == "auto"):
         check_steps = p.boolean(cnode, "check_fmu_steps", "execution", "check_fmu_steps: auto  (or true, false)")
+    mnode = m.opt("start_method")
+    start_method = None if mnode is None else p.choice(mnode, "start_method", "execution", START_METHODS,
+                                                       "start method")
     return Execution(
         workers=m.int_("workers", None, "workers: 4  (or null for all cores)", minimum=1),
         scheduler=scheduler,
         timeout_s=m.num("timeout_s", 60.0, "timeout_s: 60", positive=True),
-        check_fmu_steps=check_steps)
+        check_fmu_steps=check_steps,
+        start_method=start_method,
+        worker_max_runs=m.int_("worker_max_runs", None, "worker_max_runs: 1000  (or null: never)", minimum=1),
+        worker_max_memory_mb=m.num("worker_max_memory_mb", None, "worker_max_memory_mb: 2000  (or null: no limit)",
+                                   positive=True),
+        retries=m.int_("retries", 1, "retries: 1  (0: a run whose worker died fails at once)", minimum=0))
 
 
 _INTERFACE_ALIASES = {"auto": "auto", "cosimulation": "co-simulation", "cs": "co-simulation",

@@ -296,6 +296,20 @@ class Execution:
     scheduler: str | None = None
     timeout_s: float = 60.0
     check_fmu_steps: bool | None = None
+    #: spawn | forkserver | fork; None: $FMUSA_START_METHOD, else the platform's default
+    start_method: str | None = None
+    #: a worker is replaced by a fresh one after this many runs (None: never)
+    worker_max_runs: int | None = None
+    #: a worker is replaced past this resident memory in MB (None: never); its run in progress is retried
+    worker_max_memory_mb: float | None = None
+    #: times a run whose worker died (crash, memory) is tried again on a fresh worker
+    retries: int = 1
+
+    def pool_options(self):
+        """These settings as the supervised pool takes them (:class:`fmusa.runs.pool.PoolOptions`)."""
+        from fmusa.runs.pool import PoolOptions
+        return PoolOptions(start_method=self.start_method, worker_max_runs=self.worker_max_runs,
+                           worker_max_memory_mb=self.worker_max_memory_mb, retries=self.retries)
 
 
 @dataclass(frozen=True)

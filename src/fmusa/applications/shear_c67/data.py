@@ -113,7 +113,7 @@ def load_raw(path_or_row: str | Path | Mapping) -> tuple[np.ndarray, np.ndarray]
     path = Path(path_or_row["path"] if isinstance(path_or_row, (Mapping, pd.Series)) else path_or_row)
     parse_name(path)
     try:
-        df = pd.read_csv(path, usecols=["disp_x_mm", "Fx_N"])
+        df = pd.read_csv(path, usecols=["disp_x_mm", "Fx_N"], encoding="utf-8")
     except ValueError as e:
         raise MeasuredDataError(f"{path}: {e}; expected the columns disp_x_mm and Fx_N") from None
     df = df.dropna()
@@ -140,7 +140,7 @@ def authors_bilinear(root: str | os.PathLike) -> pd.DataFrame:
     path = data_root(root) / "test_info.csv"
     if not path.is_file():
         raise MeasuredDataError(f"{path}: file not found; it comes with the shear-c67 data")
-    df = pd.read_csv(path)
+    df = pd.read_csv(path, encoding="utf-8")
     missing = [c for c in _BILINEAR if c not in df.columns]
     if missing:
         raise MeasuredDataError(f"{path}:1: columns {', '.join(missing)} not in the header; "

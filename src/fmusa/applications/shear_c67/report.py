@@ -548,5 +548,5 @@ def write_report(summary: dict, cmp_: pd.DataFrame, out: Path, figs: list[Path])
     for p in figs:
         L.append(f"![{p.stem}](figures/{p.name})\n")
     path = Path(out) / "report.md"
-    path.write_text("\n".join(L))
+    path.write_text("\n".join(L), encoding="utf-8")
     return path

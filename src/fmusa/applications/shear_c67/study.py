@@ -197,8 +197,8 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     data["diagnosed_tests"] = int(tests.specimen.isin(chosen).sum())
     summary = summarize(groups, cmp_, data)
     summary["rate_models"] = rate_models
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
-    cmp_.drop(columns=["model_k1_ci"]).to_csv(out / "bilinear_comparison.csv", index=False)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default), encoding="utf-8")
+    cmp_.drop(columns=["model_k1_ci"]).to_csv(out / "bilinear_comparison.csv", index=False, encoding="utf-8")
     figs = shear_report.write_figures(summary, cmp_, out)
     shear_report.write_report(summary, cmp_, out, figs)
     return summary

@@ -1,0 +1,94 @@
+"""The worker side of the supervised pool (:mod:`fmusa.runs.pool`): what runs in each worker process.
+
+This module imports only the standard library at its top, so that a worker started by ``spawn`` or
+``forkserver`` (Windows and macOS, or ``execution.start_method``) loads no more than a run needs: the spec
+and the model description arrive pickled (:func:`main` unpickles them once it has set itself up), and
+:mod:`fmusa.runs.spec` brings numpy, fmpy and the FMI layer. A worker loads its FMU and tells the parent
+"ready" before it is given a run, so its start-up is never charged to a run's time limit.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import sys
+import threading
+
+PR_SET_PDEATHSIG = 1          # linux/prctl.h
+
+#: The start methods a pool can use (each platform offers some of them; see fmusa.runs.pool).
+START_METHODS = ("spawn", "forkserver", "fork")
+
+#: the parent's ends of the pipes of the workers started before this one: a forked worker closes its
+#: copies at once, so that a worker never keeps a sibling's parent-death pipe open (see :func:`main`)
+PARENT_ENDS: list = []
+
+
+def _kernel_death_signal() -> None:
+    """Linux's fast path: the kernel kills this process with SIGKILL when its parent thread ends
+    (``prctl(PR_SET_PDEATHSIG)``). Anything that goes wrong here (not Linux, no libc by that name, a ctypes
+    that refuses ``CDLL(None)`` as Windows' does with TypeError) leaves the pipe watch alone in charge."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+        import signal
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    except Exception:  # noqa: BLE001 - any failure: the pipe watch still ends the worker
+        pass
+
+
+def watch_parent(death) -> None:
+    """End this process as soon as its parent dies, however it dies (``kill -9`` too), on every platform:
+    ``death`` is the reading end of a pipe whose only writing end the parent holds and never writes to, so
+    reading it returns (EOF) exactly when the parent is gone. A worker deep in an FMU call or blocked on its
+    own pipe would otherwise live on. No ``getppid``: under forkserver the parent is the fork server."""
+    _kernel_death_signal()
+
+    def watch() -> None:
+        try:
+            death.recv_bytes()
+        except BaseException:  # noqa: BLE001 - EOF (the parent is gone) or a broken pipe: the same
+            pass
+        os._exit(1)
+
+    threading.Thread(target=watch, name="fmusa-parent-watch", daemon=True).start()
+
+
+def main(conn, death, started, payload: bytes) -> None:
+    """A pool worker. ``payload`` (pickled by the parent): (the PlanSpec, the parent's FMU info for the
+    spec's unpacked FMU or None, run limit). The worker loads the FMU, says ``("ready", pid)``, then
+    receives chunks (run ids, study values) and sends back RunBatches, one message per chunk (more for a
+    chunk that takes longer than half a second). Before each run it counts up ``started`` and stamps its
+    start time, so the parent knows which run crashed or hangs, and since when. ``None`` ends it."""
+    import faulthandler
+    import signal
+
+    for end in PARENT_ENDS:        # forked: the copies of earlier workers' parent-side pipe ends
+        try:
+            end.close()
+        except Exception:  # noqa: BLE001 - already closed
+            pass
+    PARENT_ENDS.clear()
+    watch_parent(death)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # the parent decides when to stop
+    faulthandler.disable()   # a crashing FMU is reported by the parent, not by a Python stack dump
+    spec, info = pickle.loads(payload)
+    if info is not None:     # the parent's reading of the model description: not parsed again here
+        from fmusa.fmi.info import adopt_fmu_info
+        adopt_fmu_info(info)
+    from fmusa.runs.spec import plan_for, run_batch
+
+    try:                     # load and instantiate now, before the first run is timed
+        plan_for(spec)
+    except Exception:  # noqa: BLE001 - run_batch fails each run with the reason
+        pass
+    conn.send(("ready", os.getpid()))
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        ids, values = msg
+        conn.send(run_batch(spec, ids, values, started, emit=conn.send))
