@@ -91,7 +91,10 @@ def cmd_pullout(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "pullout.csv"
     png_path = out / "pullout.png"
-    df.to_csv(csv_path, index=False, float_format="%.10g")
+    from fmusa.files import atomic_path
+
+    with atomic_path(csv_path) as tmp:
+        df.to_csv(tmp, index=False, float_format="%.10g")
     plot_pullout(df, effective, png_path)
     last = df.iloc[-1]
     print(f"{_load_case(effective)}: c_y = {_fmt(effective['c_y'])} N/m, "
@@ -176,8 +179,13 @@ def plot_pullout(df, params: dict, path: Path) -> None:
                    title=f"max |y| = {df['y_max'].iloc[-1] * 1e3:.4g} mm")
     axes[2].legend(loc="best", fontsize=9, title_fontsize=9,
                    title=f"max |$\\dot y$| = {df['v_y_max'].iloc[-1] * 1e3:.4g} mm/s{rest}")
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    from fmusa.files import atomic_path
+
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=120)
+    finally:
+        plt.close(fig)
 
 
 # ---------------------------------------------------------------------------- sweep

@@ -18,6 +18,7 @@ import numpy as np
 
 from fmusa.diagnose.calibrate import Fit, fit_candidate
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
+from fmusa.files import atomic_write
 
 __all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits"]
 
@@ -70,7 +71,7 @@ def _cached(cache_dir: Path | None, name: str, key: str) -> Fit | None:
     if path is None or not path.exists():
         return None
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(path.read_text(encoding="utf-8"))
         return fit_from_json(d) if d.get("key") == key else None
     except (ValueError, KeyError):
         return None
@@ -78,10 +79,7 @@ def _cached(cache_dir: Path | None, name: str, key: str) -> Fit | None:
 
 def _save(cache_dir: Path, name: str, fit: Fit, key: str) -> None:
     """Write a fit atomically, so an interrupted run leaves no half-written cache file."""
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    tmp = cache_dir / f"{name}.json.tmp"
-    tmp.write_text(json.dumps(fit_to_json(fit, key)))
-    tmp.replace(cache_dir / f"{name}.json")
+    atomic_write(cache_dir / f"{name}.json", json.dumps(fit_to_json(fit, key)))
 
 
 def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,

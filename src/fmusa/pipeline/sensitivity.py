@@ -42,6 +42,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
+from fmusa.files import atomic_path
 from fmusa.runs.evaluator import Evaluator
 from fmusa.runs.spec import PlanSpec
 from fmusa.fmi.info import default_fmu_path
@@ -102,6 +103,18 @@ def _evaluator(spec: PlanSpec, runner, study, **overrides) -> Evaluator:
           "timeout_s": getattr(ev, "timeout_s", study.execution.timeout_s)}
     kw.update(overrides)
     return Evaluator(spec, **kw)
+
+
+def stage_fingerprint(runner, spec: PlanSpec, names: Sequence[str]) -> dict | None:
+    """What decides the runs of ``spec`` (the sensitivity parameters' variables, not the study's; the
+    reference runs' tolerance), with the FMU digest of the study runner's fingerprint; None for a runner
+    without one (its stores are not checked)."""
+    base = getattr(runner, "fingerprint", None)
+    if base is None:
+        return None
+    from fmusa.study.plan import spec_fingerprint
+
+    return spec_fingerprint(spec, names, base.get("fmu", ""))
 
 
 # ---------------------------------------------------------------------------- evaluation
@@ -247,7 +260,7 @@ def accuracy_check(study, stage, spec: PlanSpec, store: RunStore, keys: Sequence
     report["reference_via"] = (["fixed rtol"] if override else []) + (
         ["experiment tolerance"] if changes else [])
     ref_store = RunStore(out / ACCURACY_FILE, list(stage.parameters), list(metrics), resume=resume,
-                         fingerprint=getattr(runner, "fingerprint", None))
+                         fingerprint=stage_fingerprint(runner, ref_spec, list(stage.parameters)))
     t0 = time.perf_counter()
     timeout = getattr(getattr(runner, "evaluator", None), "timeout_s", study.execution.timeout_s)
     try:   # a reference run costs ~100 study runs: a longer per-run limit
@@ -325,7 +338,7 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
             X[method] = sample
         del sample
 
-    fingerprint = getattr(runner, "fingerprint", None)
+    fingerprint = stage_fingerprint(runner, spec, names)
     store = RunStore(out / RUNS_FILE, names, metrics, resume=resume, fingerprint=fingerprint)
     simulated = 0
     try:
@@ -373,7 +386,8 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
                 summary[method], rows = analyse_sobol(problem, Yg, ok_names, stage.seed)
                 cols = ["metric", "parameter", "S1", "S1_conf", "ST", "ST_conf"]
             frames[method] = pd.DataFrame(rows, columns=cols)
-            frames[method].to_csv(out / f"sensitivity_{method}.csv", index=False)
+            with atomic_path(out / f"sensitivity_{method}.csv") as tmp:
+                frames[method].to_csv(tmp, index=False)
 
         all_keys = keys[stage.methods[0]] if len(stage.methods) == 1 else np.concatenate(
             [keys[m] for m in stage.methods])

@@ -24,7 +24,7 @@ from fmusa.analysis.regression import fit_by_level
 from fmusa.analysis.roi import grid_findings, Region, automatic_region, manual_region
 from fmusa.runs.store import RunStore
 from fmusa.analysis.search import SearchResult, nested_binary_search
-from fmusa.files import writable_folder
+from fmusa.files import atomic_write, writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
 from fmusa.pipeline.sampling_check import sampling_summary
@@ -227,7 +227,7 @@ def _grid_axes(study: Study) -> list[str]:
 def write_summary(result: SweepResult) -> Path:
     """``<out>/summary.json`` from ``result.summary`` (written before any figure, and again by the report)."""
     path = Path(result.out) / "summary.json"
-    path.write_text(json.dumps(jsonable(result.summary), indent=2))
+    atomic_write(path, json.dumps(jsonable(result.summary), indent=2))
     return path
 
 
