@@ -48,6 +48,10 @@ def writable_folder(path: str | os.PathLike, what: str = "output folder") -> Pat
     return folder
 
 
+#: this process's umask, read once (setting it is the only way to read it)
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
 #: errno values of a full disk or an exhausted quota
 _FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EFBIG}
 
@@ -95,6 +99,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         try:
+            os.chmod(tmp, 0o666 & ~_UMASK)     # mkstemp's 0600 would make every output private
             yield tmp
             _fsync(tmp)
             os.replace(tmp, path)
