@@ -607,18 +607,93 @@ def _command_word(argv: list[str]) -> str:
     return next((a for a in argv if not a.startswith("-")), "")
 
 
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread like KeyboardInterrupt, so that every ``finally`` (workers
+    stopped, files closed) runs before the command exits with 143."""
+
+
+def _stop_on_signals() -> dict:
+    """SIGINT and SIGTERM raise (KeyboardInterrupt, :class:`Terminated`) once; a second one while the
+    command cleans up is ignored, so the cleanup is not cut short (it is bounded: workers are killed).
+    Returns the handlers it replaced (restored by :func:`main` when the command ends)."""
+    import signal
+
+    previous: dict = {}
+
+    def handler(signum, frame):
+        for s in (signal.SIGINT, getattr(signal, "SIGTERM", None)):
+            if s is not None:
+                try:
+                    signal.signal(s, signal.SIG_IGN)
+                except (OSError, ValueError):
+                    pass
+        raise Terminated() if signum != signal.SIGINT else KeyboardInterrupt()
+
+    for s in (signal.SIGINT, getattr(signal, "SIGTERM", None)):
+        if s is None:
+            continue
+        try:
+            old = signal.getsignal(s)
+            if old in (signal.SIG_DFL, signal.default_int_handler):
+                signal.signal(s, handler)
+                previous[s] = old
+        except (OSError, ValueError):     # not the main thread, or a platform without it
+            pass
+    return previous
+
+
+def _complete_lines(path: Path) -> int:
+    """Data rows of a runs file (complete lines after the header; a torn last line is not one)."""
+    try:
+        with open(path, "rb") as fh:
+            n = sum(chunk.count(b"\n") for chunk in iter(lambda: fh.read(1 << 20), b""))
+    except OSError:
+        return 0
+    return max(0, n - 1)
+
+
+def interrupted_message(args: argparse.Namespace) -> str:
+    """What an interrupted command kept and how to continue: the runs on disk for ``sweep``, the cached
+    fits for ``diagnose`` (reused by the same command)."""
+    out = getattr(args, "out", None)
+    out = Path(out) if out is not None else None
+    if args.command == "sweep" and out is not None:
+        n = _complete_lines(out / "runs.csv")
+        m = _complete_lines(out / "sensitivity_runs.csv")
+        extra = f" and {m} in sensitivity_runs.csv" if m else ""
+        return f"interrupted: {n} runs kept in runs.csv{extra}; rerun with --resume to continue"
+    if args.command in ("diagnose", "diagnose-shear") and out is not None:
+        fits = sorted(out.rglob("fits/*.json")) if out.is_dir() else []
+        return (f"interrupted: {len(fits)} fits kept in {out}; rerun the same command to continue (the kept "
+                f"fits are reused)")
+    return "interrupted"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand. A :class:`~fmusa.errors.FmusaError` is the user's to fix: one line on stderr
     and its ``exit_code`` (2, or 1 when an FMU could not be found, built or run); any other exception
-    propagates with its traceback, as the bug it is."""
+    propagates with its traceback, as the bug it is. Ctrl-C and SIGTERM stop the command (its workers
+    too) and print one line of what was kept: exit 130 and 143, as a shell reports those signals."""
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(_command_word(argv))
     args = parser.parse_args(argv)
+    previous = _stop_on_signals()
     try:
         return int(args.func(args) or 0)
     except FmusaError as exc:
         print(f"fmusa {args.command}: {exc}", file=sys.stderr)
         return exc.exit_code
+    except (KeyboardInterrupt, Terminated) as exc:
+        print(f"fmusa {args.command}: {interrupted_message(args)}", file=sys.stderr, flush=True)
+        return 143 if isinstance(exc, Terminated) else 130
+    finally:
+        import signal
+
+        for s, old in previous.items():
+            try:
+                signal.signal(s, old)
+            except (OSError, ValueError):
+                pass
 
 
 if __name__ == "__main__":
