@@ -221,8 +221,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
                            figures=not args.no_figures, progress=not args.quiet)
     finally:   # said once it has happened (a study that fails to start moves nothing)
         for path in sorted(kept() - before):
-            print(f"note: this study started afresh; the earlier runs are kept in {path} (use --resume to "
-                  f"continue a study instead)", file=sys.stderr)
+            tag = path.stem.rpartition(".")[2]
+            aside = sorted(p.name for p in args.out.glob(f"*.{tag}*") if p != path and not p.name.startswith("runs."))
+            also = f" (and its {', '.join(aside)})" if aside else ""
+            print(f"note: this study started afresh; the earlier runs are kept in {path}{also} (use --resume "
+                  f"to continue a study instead)", file=sys.stderr)
     s = result.summary
     # runs.csv's runs and the sensitivity stage's (sensitivity_runs.csv)
     sens = s.get("sensitivity") or {}

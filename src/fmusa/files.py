@@ -16,7 +16,7 @@ from typing import Iterator
 from fmusa.errors import FmusaError
 
 __all__ = ["OutputError", "DiskFullError", "writable_folder", "atomic_path", "atomic_write", "write_error",
-           "free_space"]
+           "free_space", "move_aside"]
 
 
 class OutputError(FmusaError, OSError):
@@ -148,3 +148,27 @@ def _fsync_folder(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def move_aside(folder: str | os.PathLike, names: tuple[str, ...], tag: str) -> list[Path]:
+    """Move the files and folders ``names`` of ``folder`` that exist to ``<stem>.<tag><suffix>`` (e.g.
+    report.md → report.previous-2.md, figures → figures.previous-2), so that an earlier study's outputs
+    are kept beside its runs rather than mixed with a new study's. Returns the new paths."""
+    folder = Path(folder)
+    moved = []
+    for name in names:
+        src = folder / name
+        if not src.exists():
+            continue
+        stem, suffix = (src.stem, src.suffix) if src.is_file() else (src.name, "")
+        target = folder / f"{stem}.{tag}{suffix}"
+        n = 1
+        while target.exists():       # never over an earlier copy
+            n += 1
+            target = folder / f"{stem}.{tag}.{n}{suffix}"
+        try:
+            os.replace(src, target)
+        except OSError as exc:
+            raise write_error(target, exc) from None
+        moved.append(target)
+    return moved

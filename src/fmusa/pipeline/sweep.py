@@ -24,11 +24,15 @@ from fmusa.analysis.regression import fit_by_level
 from fmusa.analysis.roi import grid_findings, Region, automatic_region, manual_region
 from fmusa.runs.store import RunStore
 from fmusa.analysis.search import SearchResult, nested_binary_search
-from fmusa.files import atomic_write, writable_folder
+from fmusa.files import atomic_write, move_aside, writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
 from fmusa.pipeline.sampling_check import sampling_summary
 from fmusa.study.plan import check_fmu, grid_points, run_fingerprint, study_plan_spec
+
+
+#: What an earlier study in the same ``--out`` leaves besides its runs: moved aside with them by a fresh start.
+EARLIER_OUTPUTS = ("report.md", "summary.json", "figures", "sensitivity_morris.csv", "sensitivity_sobol.csv")
 
 
 @dataclass
@@ -82,6 +86,9 @@ class StudyRunner:
             self.evaluator.connect()
             self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
                                   fingerprint=self.fingerprint)
+            if self.store.previous is not None:     # the earlier study's report and figures go with its runs
+                tag = self.store.previous.stem.rpartition(".")[2]           # previous-<n>
+                move_aside(out, EARLIER_OUTPUTS, tag)
         except BaseException:
             self.evaluator.close()
             raise
