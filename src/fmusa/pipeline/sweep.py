@@ -156,7 +156,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                 grid_df = runner.store.frame("grid")
                 summary["grid"] = {"points": len(pts), "axes": {k: [float(x) for x in v]
                                                                 for k, v in stage.points().items()},
-                                   **grid_findings(grid_df, _grid_axes(study), list(study.metrics))}
+                                   **grid_findings(grid_df, _grid_axes(study), list(study.metrics),
+                                                   study.constraints)}
             elif name == "roi":
                 search_stage = study.stages.get("search")
                 if search_stage is None:
@@ -170,7 +171,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                                          f"before stages.roi (or give roi.manual)")
                     # the grid runs where the search will run: the other parameters at their defaults
                     at = {k: v for k, v in runner.defaults.items() if k not in (inner, outer)}
-                    result.region = automatic_region(grid_df, inner, outer, at)
+                    result.region = automatic_region(grid_df, inner, outer, at, study.constraints,
+                                                     list(study.parameters))
                 summary["roi"] = result.region.as_dict()
             elif name == "search":
                 if result.region is None:

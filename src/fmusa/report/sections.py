@@ -197,6 +197,11 @@ def grid_section(ctx: ReportContext, heading: str = "### Grid", sig: Sig = _sig3
     best = best_grid_point(ctx, g)
     if best:
         out += "\n" + best
+    found = (ctx.result.summary or {}).get("grid") or {}
+    for info in (found.get("inert_parameters") or {}).values():     # not a reason to widen the grid
+        out += f"\n**A parameter that does nothing.** {info['message']}.\n"
+    if found.get("infeasible"):
+        out += f"\n**No feasible grid point.** {found['infeasible']}.\n"
     return out + note
 
 
