@@ -46,6 +46,7 @@ from fmusa.files import atomic_path
 from fmusa.runs.evaluator import Evaluator
 from fmusa.runs.spec import PlanSpec
 from fmusa.fmi.info import default_fmu_path
+from fmusa.runs.inflight import track_in_flight
 from fmusa.runs.store import RunStore
 from fmusa.runs.progress import progress_bar
 from fmusa.analysis.sensitivity import MORRIS_LEVELS, analyse_morris, analyse_sobol, draw_samples, salib_problem, to_physical
@@ -164,6 +165,8 @@ def evaluate_keys(store: RunStore, evaluator: Evaluator, keys, stage_label: str,
     distinct = _distinct(todo)
     if len(distinct) < len(todo):
         todo = todo[distinct]
+    if getattr(evaluator, "marker", None) is not None:    # the label a run under way at a crash is stored under
+        evaluator.marker.stage = stage_label
     ids = store.new_ids(len(todo))
     store.reserve(len(todo))
 
@@ -344,8 +347,12 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
     try:
         t_eval = time.perf_counter()
         with _evaluator(spec, runner, study) as evaluator:
-            for method in stage.methods:
-                simulated += evaluate_keys(store, evaluator, keys[method], method, progress)
+            recovered = track_in_flight(store, evaluator, resume)    # runs a crashed session left under way
+            try:
+                for method in stage.methods:
+                    simulated += evaluate_keys(store, evaluator, keys[method], method, progress)
+            finally:
+                evaluator.marker.close()
         eval_wall = time.perf_counter() - t_eval
 
         summary: dict[str, Any] = {}
@@ -419,6 +426,7 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
         workers=ev_workers or None,
         scheduler=ev_scheduler,
         resumed=resume,
+        **({"recovered_runs": recovered} if recovered else {}),
         meta={
             "n": stage.n, "morris_trajectories": stage.morris_trajectories, "morris_levels": MORRIS_LEVELS,
             "seed": stage.seed, "calc_second_order": False,

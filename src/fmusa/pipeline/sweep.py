@@ -22,7 +22,9 @@ from fmusa.fmi.info import FMUCompileError, default_fmu_path
 from fmusa.fmi.build import prepare_fmu
 from fmusa.analysis.regression import fit_by_level
 from fmusa.analysis.roi import grid_findings, Region, automatic_region, manual_region
+from fmusa.runs.inflight import track_in_flight
 from fmusa.runs.store import RunStore
+from fmusa.runs.timelimit import own_fmu
 from fmusa.analysis.search import SearchResult, nested_binary_search
 from fmusa.files import atomic_write, move_aside, writable_folder
 from fmusa.study.schema import Study, StudyError
@@ -78,10 +80,11 @@ class StudyRunner:
         spec = self.spec = study_plan_spec(study, run_path)
         #: what besides the parameters decides a run: a resumed study reuses stored runs only while it holds
         self.fingerprint = run_fingerprint(study, fmu_path)
-        # any FMU but our own runs in supervised workers: a crash or hang then costs one run
+        # any FMU but our own (by its digest) runs in supervised workers: a crash or hang then costs one run
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
                                    scheduler=scheduler or study.execution.scheduler,
-                                   isolate=study.fmu is not None, timeout_s=study.execution.timeout_s)
+                                   isolate=study.fmu is not None or not own_fmu(fmu_path),
+                                   timeout_s=study.execution.timeout_s)
         try:   # a scheduler that cannot be reached fails here, before an earlier runs.csv is moved aside
             self.evaluator.connect()
             self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
@@ -89,6 +92,8 @@ class StudyRunner:
             if self.store.previous is not None:     # the earlier study's report and figures go with its runs
                 tag = self.store.previous.stem.rpartition(".")[2]           # previous-<n>
                 move_aside(out, EARLIER_OUTPUTS, tag)
+            #: runs under way when an earlier session's process ended: failed, or made again supervised
+            self.recovered = track_in_flight(self.store, self.evaluator, resume)
         except BaseException:
             self.evaluator.close()
             raise
@@ -101,6 +106,8 @@ class StudyRunner:
 
     def close(self) -> None:
         self.evaluator.close()
+        if self.evaluator.marker is not None:
+            self.evaluator.marker.close()
         self.store.close()
 
     def evaluate(self, points: list[dict[str, float]], stage: str) -> list[dict]:
@@ -112,6 +119,8 @@ class StudyRunner:
             if self.store.get(k) is None and k not in todo:
                 todo[k] = self.store.new_id()
         if todo:
+            if self.evaluator.marker is not None:     # the label a run under way at a crash is stored under
+                self.evaluator.marker.stage = stage
             bar = progress_bar(len(todo), stage, self.progress)
             items = [(rid, k) for k, rid in todo.items()]
             # results arrive as blocks (arrays) and go to runs.csv as one write each
@@ -209,6 +218,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
             ext.after_stages(result, runner)
             stage_times[ext.name] = time.perf_counter() - ts
             stage_runs[ext.name] = {"asked": runner.asked - asked0, "simulated": runner.simulated - simulated0}
+        if runner.recovered:
+            summary["recovered_runs"] = runner.recovered
         sampling = sampling_summary(study, runner.store.frame(), summary.get("optimum"), runner.spec)
         if sampling is not None:     # how the output sampling moves peaks and settling times
             summary["sampling"] = sampling

@@ -14,6 +14,7 @@ from fmusa.fmi.info import read_fmu_info, select_interface
 from fmusa.runs.pool import WorkerPool, run_chunk_supervised
 from fmusa.runs.scheduler import connect_scheduler
 from fmusa.runs.spec import PlanSpec, RunBatch, RunResult, as_arrays, release_plan, run_batch
+from fmusa.runs.inflight import InFlight
 from fmusa.runs.timelimit import in_process_fixed
 
 class Evaluator:
@@ -41,6 +42,9 @@ class Evaluator:
         self._local: PlanSpec | None = None     # the spec on the unpacked FMU, made once
         #: (spec, budget parameter set by fmusa) of runs made in this process; False: supervised only
         self._here: tuple[PlanSpec, str | None] | bool | None = None
+        #: where the runs made in this process are noted while they run (:mod:`fmusa.runs.inflight`), so that
+        #: a resume after a crash that took this process down does not make them here again
+        self.marker: InFlight | None = None
 
     def _local_spec(self) -> PlanSpec:
         """The spec with the FMU unpacked once, here, for this process and its workers: workers that
@@ -127,10 +131,11 @@ class Evaluator:
         self.map_batches(items, take, progress)
         return results
 
-    def map_batches(self, items, on_batch, progress=None) -> None:
+    def map_batches(self, items, on_batch, progress=None, supervised: bool = False) -> None:
         """Evaluate ``items`` (a list of (run id, study values), or the pair of arrays run ids, values):
         ``on_batch`` gets the results as RunBatches (arrays, one row per run) as they arrive, and
-        ``progress`` (a tqdm bar or None) is advanced by each batch."""
+        ``progress`` (a tqdm bar or None) is advanced by each batch. ``supervised``: in supervised
+        workers whatever the batch's size (runs that may crash)."""
         ids, values = as_arrays(items)
         if not len(ids):
             return
@@ -163,7 +168,7 @@ class Evaluator:
                     reason = f"the Dask task failed: {type(exc).__name__}: {str(exc).strip()}"[:2000]
                     batch = RunBatch.failed(*chunks[fut.key], n_metrics, reason)
                 take(batch)
-        elif (self.isolate or (self.workers > 1 and len(ids) >= self.pool_threshold)
+        elif (supervised or self.isolate or (self.workers > 1 and len(ids) >= self.pool_threshold)
               or (here := self._in_process()) is None):
             if self._pool is None:
                 self._pool = WorkerPool(self._local_spec(), self.workers, self.timeout_s)
@@ -171,6 +176,16 @@ class Evaluator:
         else:      # unsupervised: each run kept to timeout_s by the FMU's own budget
             spec, budget = here
             size = self._chunk_size(len(ids), 1)
+            marker = self.marker
             for i in range(0, len(ids), size):
-                take(run_batch(spec, ids[i:i + size], values[i:i + size], timeout_s=self.timeout_s,
-                               budget=budget))
+                if marker is None:
+                    take(run_batch(spec, ids[i:i + size], values[i:i + size], timeout_s=self.timeout_s,
+                                   budget=budget))
+                    continue
+                marker.begin(ids[i:i + size], values[i:i + size])     # left behind only if the process dies
+                try:
+                    batch = run_batch(spec, ids[i:i + size], values[i:i + size], timeout_s=self.timeout_s,
+                                      budget=budget)
+                    take(batch)
+                finally:     # an exception (Ctrl-C, a full disk) is not a crash: nothing left under way
+                    marker.end()
