@@ -162,41 +162,35 @@ INERT_CAUSES = ("the FMU ignores it: it may drop values set before fmi2SetupExpe
                 "run of the FMU at two of its values")
 
 
-def _same(a: np.ndarray, rtol: float = 1e-12) -> bool:
-    """Whether the values are all equal (NaN equal to NaN; relative ``rtol`` for round-off)."""
-    a = np.asarray(a, dtype=float)
-    nan = np.isnan(a)
-    if nan.any():
-        return bool(nan.all())
-    return bool(np.all(np.abs(a - a[0]) <= rtol * np.maximum(np.abs(a), np.abs(a[0]))))
-
-
 def inert_parameters(grid: pd.DataFrame, params: Sequence[str], metrics: Sequence[str]) -> dict[str, dict]:
     """The study parameters whose grid values change none of ``metrics`` (nor whether a run works), with
     the other parameters held: {name: {"values": n, "message": ...}}. A parameter with one grid value, or
-    whose values never meet at equal other values, is not judged."""
+    whose values never meet at equal other values, is not judged. Equal means NaN for NaN, else within a
+    relative 1e-12 (round-off)."""
     out: dict[str, dict] = {}
     if not len(grid):
         return out
     metrics = [m for m in metrics if m in grid]
-    status = (grid["status"] == "ok").to_numpy() if "status" in grid else np.ones(len(grid), bool)
-    for p in params:
-        values = np.unique(grid[p].to_numpy(dtype=float))
+    M = grid[metrics].to_numpy(dtype=float) if metrics else np.empty((len(grid), 0))
+    ok = (grid["status"] == "ok").to_numpy() if "status" in grid else np.ones(len(grid), bool)
+    P = grid[list(params)].to_numpy(dtype=float)
+    for j, p in enumerate(params):
+        values = np.unique(P[:, j])
         if len(values) < 2:
             continue
-        others = [q for q in params if q != p]
-        groups = grid.groupby(others, sort=False).indices if others else {(): np.arange(len(grid))}
-        judged = moved = False
-        for rows in groups.values():
-            rows = np.asarray(rows)
-            if len(np.unique(grid[p].to_numpy(dtype=float)[rows])) < 2:
-                continue
-            judged = True
-            if len(set(status[rows].tolist())) > 1 or any(not _same(grid[m].to_numpy(dtype=float)[rows])
-                                                          for m in metrics):
-                moved = True
-                break
-        if judged and not moved:
+        others = np.delete(P, j, axis=1)
+        if others.shape[1]:
+            _, first, group = np.unique(others, axis=0, return_index=True, return_inverse=True)
+            group = group.ravel()
+        else:
+            first, group = np.zeros(1, dtype=np.int64), np.zeros(len(P), dtype=np.int64)
+        pairs = np.unique(np.column_stack([group, P[:, j]]), axis=0)
+        if not (np.bincount(pairs[:, 0].astype(np.int64)) > 1).any():
+            continue              # no two of its values at the same other values: not judged
+        ref = first[group]
+        a, b = M, M[ref]
+        same = (np.isnan(a) & np.isnan(b)) | (np.abs(a - b) <= 1e-12 * np.maximum(np.abs(a), np.abs(b)))
+        if same.all() and (ok == ok[ref]).all():
             out[p] = {"values": int(len(values)),
                       "message": f"parameter '{p}' changes none of the metrics ({', '.join(metrics)}) across its "
                                  f"{len(values)} grid values ({_num(values[0])} … {_num(values[-1])}): "
