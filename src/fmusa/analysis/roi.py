@@ -231,10 +231,11 @@ def infeasible_message(grid: pd.DataFrame, constraints: Sequence, params: Sequen
     metrics = [m for m in grid.columns if m not in meta and m not in params and not str(m).startswith("ok_")]
     inert = inert_parameters(grid, params, metrics)
     failing = [c for c in constraints if not _holds(ok, c).any()]
-    parts, advice = [], []
+    parts, advice, no_value = [], [], []
     for c in failing:
         v = ok[c.metric].to_numpy(dtype=float)
         if np.isnan(v).all():
+            no_value.append(c.name)
             parts.append(f"constraint '{c.name}' ({_bound_text(c)}): {c.metric} is NaN in every one of the "
                          f"{len(ok)} grid runs that worked (no run gives it a value), so no grid can meet it; "
                          f"check metric '{c.metric}' (its output, reduce and missing_below) or drop the constraint")
@@ -252,7 +253,10 @@ def infeasible_message(grid: pd.DataFrame, constraints: Sequence, params: Sequen
                      + "; ".join(f"'{c.name}' at {int(_holds(ok, c).sum())} of {len(ok)}" for c in constraints))
     text = "no grid point meets every constraint: " + "; ".join(parts)
     good = [a for a in advice if a]
-    if good:
+    if no_value:      # a grid, however wide, cannot give that metric a value
+        text += (f". A wider grid cannot help while {', '.join(repr(n) for n in no_value)} "
+                 f"{'has' if len(no_value) == 1 else 'have'} no value in any run")
+    elif good:
         text += ". " + "; ".join(good)
     elif failing and any(not np.isnan(ok[c.metric].to_numpy(dtype=float)).all() for c in failing):
         text += (". No study parameter moves the failing metrics towards their bounds across the grid, so a "
