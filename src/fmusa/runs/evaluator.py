@@ -15,7 +15,7 @@ from fmusa.runs.pool import WorkerPool, run_chunk_supervised
 from fmusa.runs.scheduler import connect_scheduler
 from fmusa.runs.spec import PlanSpec, RunBatch, RunResult, as_arrays, release_plan, run_batch
 from fmusa.runs.inflight import InFlight
-from fmusa.runs.timelimit import in_process_fixed
+from fmusa.runs.timelimit import in_process_fixed, own_fmu
 
 class Evaluator:
     """Runs batches of parameter sets in this process, on supervised local workers, or on a Dask
@@ -69,6 +69,8 @@ class Evaluator:
         """(the spec runs in this process are made with, the FMU parameter fmusa set in it to keep each run
         within ``timeout_s``, or None when the study sets it), or None when a run here could outlast
         ``timeout_s``: then every run goes to supervised workers."""
+        if self._here is None and not own_fmu(self.spec.fmu_path):
+            self._here = False          # not our FMU: a crash or an exit inside it would end this process
         if self._here is None:
             local = self._local_spec()
             self._here = (local, None)
