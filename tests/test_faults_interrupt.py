@@ -131,3 +131,18 @@ def test_an_interrupted_diagnose_stops_within_a_second(tmp_path, fmu_path):
                         r"continue \(the kept fits are reused\)", lines[0]), lines[0]
     print(f"diagnose stopped {dt:.2f} s after Ctrl-C")
     assert dt < 1.0, f"diagnose took {dt:.2f} s to stop"
+
+
+def test_the_interrupt_line_counts_what_is_on_disk(tmp_path):
+    """The runs counted are the complete lines of runs.csv (a torn last one is not one) and of
+    sensitivity_runs.csv when that stage had started."""
+    import argparse
+
+    from fmusa.cli import interrupted_message
+
+    (tmp_path / "runs.csv").write_bytes(b"run_id,c\r\n0,1\r\n1,2\r\n2,")
+    args = argparse.Namespace(command="sweep", out=tmp_path)
+    assert interrupted_message(args) == "interrupted: 2 runs kept in runs.csv; rerun with --resume to continue"
+    (tmp_path / "sensitivity_runs.csv").write_bytes(b"run_id,p\r\n0,1\r\n")
+    assert interrupted_message(args) == ("interrupted: 2 runs kept in runs.csv and 1 in sensitivity_runs.csv; "
+                                         "rerun with --resume to continue")

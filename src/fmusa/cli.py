@@ -222,7 +222,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     finally:   # said once it has happened (a study that fails to start moves nothing)
         for path in sorted(kept() - before):
             tag = path.stem.rpartition(".")[2]
-            aside = sorted(p.name for p in args.out.glob(f"*.{tag}*") if p != path and not p.name.startswith("runs."))
+            aside = sorted(p.name for p in args.out.glob(f"*.{tag}*") if not p.name.startswith("runs.")
+                           and p.name.partition(f".{tag}")[2][:1] in ("", "."))     # not previous-10 for -1
             also = f" (and its {', '.join(aside)})" if aside else ""
             print(f"note: this study started afresh; the earlier runs are kept in {path}{also} (use --resume "
                   f"to continue a study instead)", file=sys.stderr)
