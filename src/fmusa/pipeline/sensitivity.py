@@ -101,7 +101,8 @@ def _evaluator(spec: PlanSpec, runner, study, **overrides) -> Evaluator:
     kw = {"workers": getattr(ev, "workers", None) or study.execution.workers,
           "scheduler": getattr(ev, "scheduler", None) or study.execution.scheduler,
           "isolate": getattr(ev, "isolate", study.fmu is not None),
-          "timeout_s": getattr(ev, "timeout_s", study.execution.timeout_s)}
+          "timeout_s": getattr(ev, "timeout_s", study.execution.timeout_s),
+          "own": getattr(ev, "own", None)}
     kw.update(overrides)
     return Evaluator(spec, **kw)
 

@@ -81,10 +81,11 @@ class StudyRunner:
         #: what besides the parameters decides a run: a resumed study reuses stored runs only while it holds
         self.fingerprint = run_fingerprint(study, fmu_path)
         # any FMU but our own (by its digest) runs in supervised workers: a crash or hang then costs one run
+        own = own_fmu(fmu_path)
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
                                    scheduler=scheduler or study.execution.scheduler,
-                                   isolate=study.fmu is not None or not own_fmu(fmu_path),
-                                   timeout_s=study.execution.timeout_s)
+                                   isolate=study.fmu is not None or not own,
+                                   timeout_s=study.execution.timeout_s, own=own)
         try:   # a scheduler that cannot be reached fails here, before an earlier runs.csv is moved aside
             self.evaluator.connect()
             self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,

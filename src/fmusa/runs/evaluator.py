@@ -29,12 +29,16 @@ class Evaluator:
     """
 
     def __init__(self, spec: PlanSpec, workers: int | None = None, scheduler: str | None = None,
-                 pool_threshold: int = 400, isolate: bool = False, timeout_s: float | None = 60.0) -> None:
+                 pool_threshold: int = 400, isolate: bool = False, timeout_s: float | None = 60.0,
+                 own: bool | None = None) -> None:
         self.spec = spec
         self.workers = workers or os.cpu_count() or 1
         self.scheduler = scheduler
         self.pool_threshold = pool_threshold
         self.isolate = isolate
+        #: whether the FMU is our own (:func:`fmusa.runs.timelimit.own_fmu` of the FMU as given, before a
+        #: build from its sources); None: judged from ``spec.fmu_path``
+        self.own = own
         self.timeout_s = timeout_s
         self._pool: WorkerPool | None = None
         self._client = None
@@ -69,7 +73,7 @@ class Evaluator:
         """(the spec runs in this process are made with, the FMU parameter fmusa set in it to keep each run
         within ``timeout_s``, or None when the study sets it), or None when a run here could outlast
         ``timeout_s``: then every run goes to supervised workers."""
-        if self._here is None and not own_fmu(self.spec.fmu_path):
+        if self._here is None and not (self.own if self.own is not None else own_fmu(self.spec.fmu_path)):
             self._here = False          # not our FMU: a crash or an exit inside it would end this process
         if self._here is None:
             local = self._local_spec()
