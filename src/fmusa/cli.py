@@ -678,6 +678,7 @@ def main(argv: list[str] | None = None) -> int:
     and its ``exit_code`` (2, or 1 when an FMU could not be found, built or run); any other exception
     propagates with its traceback, as the bug it is. Ctrl-C and SIGTERM stop the command (its workers
     too) and print one line of what was kept: exit 130 and 143, as a shell reports those signals."""
+    entry = argv is None          # the process's own command (console script, python -m fmusa.cli)
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(_command_word(argv))
     args = parser.parse_args(argv)
@@ -689,7 +690,21 @@ def main(argv: list[str] | None = None) -> int:
         return exc.exit_code
     except (KeyboardInterrupt, Terminated) as exc:
         print(f"fmusa {args.command}: {interrupted_message(args)}", file=sys.stderr, flush=True)
-        return 143 if isinstance(exc, Terminated) else 130
+        code = 143 if isinstance(exc, Terminated) else 130
+        if entry:     # everything is stopped and closed (the finally blocks ran): no second of interpreter
+            import os  # teardown (matplotlib, pandas, pool threads) between the line and the exit
+
+            sys.stdout.flush()
+            if "multiprocessing" in sys.modules:   # its finalizers (semaphores, queues), not the rest of exit
+                try:
+                    from multiprocessing import util
+
+                    util._run_finalizers()
+                except Exception:  # noqa: BLE001 - exiting anyway
+                    pass
+            sys.stderr.flush()
+            os._exit(code)
+        return code
     finally:
         import signal
 

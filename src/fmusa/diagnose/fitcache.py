@@ -121,6 +121,12 @@ def _kill_workers(ex: ProcessPoolExecutor) -> None:
             p.join(2)
         except (OSError, AttributeError, AssertionError):
             pass
+    queue = getattr(ex, "_call_queue", None)      # its feeder thread would be waited for at exit
+    if queue is not None:
+        try:
+            queue.cancel_join_thread()
+        except (OSError, AttributeError, ValueError):
+            pass
 
 
 def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
