@@ -15,13 +15,11 @@ import subprocess
 import sys
 import time
 import zipfile
-from pathlib import Path
 
 import pandas as pd
 import pytest
 
 from fmusa.api import parse_study, run_study
-from fmusa.fmi.info import default_fmu_path
 from fmusa.runs.inflight import CRASH_REASON, InFlight
 from fmusa.runs.timelimit import own_fmu
 from test_misbehaving_fmu import misbehave_fmu, quiet_worker_crashes  # noqa: F401 - fixtures
