@@ -47,8 +47,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         try:
             write_report(result)
         except OutputError as exc:
-            raise OutputError(f"{exc}. runs.csv and summary.json in {result.out} are complete; rerun with "
-                              f"--resume once the folder is writable, or with --no-figures") from None
+            raise type(exc)(f"{exc}. runs.csv and summary.json in {result.out} are complete; rerun with "
+                            f"--resume once the folder is writable, or with --no-figures") from None
         result.summary["wall_s_with_report"] = time.perf_counter() - t0
         write_summary(result)
     return result

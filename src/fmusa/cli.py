@@ -91,7 +91,10 @@ def cmd_pullout(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "pullout.csv"
     png_path = out / "pullout.png"
-    df.to_csv(csv_path, index=False, float_format="%.10g", encoding="utf-8")
+    from fmusa.files import atomic_path
+
+    with atomic_path(csv_path) as tmp:
+        df.to_csv(tmp, index=False, float_format="%.10g", encoding="utf-8")
     plot_pullout(df, effective, png_path)
     last = df.iloc[-1]
     print(f"{_load_case(effective)}: c_y = {_fmt(effective['c_y'])} N/m, "
@@ -176,8 +179,13 @@ def plot_pullout(df, params: dict, path: Path) -> None:
                    title=f"max |y| = {df['y_max'].iloc[-1] * 1e3:.4g} mm")
     axes[2].legend(loc="best", fontsize=9, title_fontsize=9,
                    title=f"max |$\\dot y$| = {df['v_y_max'].iloc[-1] * 1e3:.4g} mm/s{rest}")
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    from fmusa.files import atomic_path
+
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=120)
+    finally:
+        plt.close(fig)
 
 
 # ---------------------------------------------------------------------------- sweep
@@ -218,8 +226,12 @@ def cmd_sweep(args: argparse.Namespace) -> int:
                            figures=not args.no_figures, progress=not args.quiet, retry_failed=args.retry_failed)
     finally:   # said once it has happened (a study that fails to start moves nothing)
         for path in sorted(kept() - before):
-            print(f"note: this study started afresh; the earlier runs are kept in {path} (use --resume to "
-                  f"continue a study instead)", file=sys.stderr)
+            tag = path.stem.rpartition(".")[2]
+            aside = sorted(p.name for p in args.out.glob(f"*.{tag}*") if not p.name.startswith("runs.")
+                           and p.name.partition(f".{tag}")[2][:1] in ("", "."))     # not previous-10 for -1
+            also = f" (and its {', '.join(aside)})" if aside else ""
+            print(f"note: this study started afresh; the earlier runs are kept in {path}{also} (use --resume "
+                  f"to continue a study instead)", file=sys.stderr)
     s = result.summary
     # runs.csv's runs and the sensitivity stage's (sensitivity_runs.csv)
     sens = s.get("sensitivity") or {}
@@ -631,19 +643,109 @@ def _printable_console() -> None:
                 pass
 
 
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread like KeyboardInterrupt, so that every ``finally`` (workers
+    stopped, files closed) runs before the command exits with 143."""
+
+
+def _stop_on_signals() -> dict:
+    """SIGINT and SIGTERM raise (KeyboardInterrupt, :class:`Terminated`) once; a second one while the
+    command cleans up is ignored, so the cleanup is not cut short (it is bounded: workers are killed).
+    Returns the handlers it replaced (restored by :func:`main` when the command ends)."""
+    import signal
+
+    previous: dict = {}
+
+    def handler(signum, frame):
+        for s in (signal.SIGINT, getattr(signal, "SIGTERM", None)):
+            if s is not None:
+                try:
+                    signal.signal(s, signal.SIG_IGN)
+                except (OSError, ValueError):
+                    pass
+        raise Terminated() if signum != signal.SIGINT else KeyboardInterrupt()
+
+    for s in (signal.SIGINT, getattr(signal, "SIGTERM", None)):
+        if s is None:
+            continue
+        try:
+            old = signal.getsignal(s)
+            if old in (signal.SIG_DFL, signal.default_int_handler):
+                signal.signal(s, handler)
+                previous[s] = old
+        except (OSError, ValueError):     # not the main thread, or a platform without it
+            pass
+    return previous
+
+
+def _complete_lines(path: Path) -> int:
+    """Data rows of a runs file (complete lines after the header; a torn last line is not one)."""
+    try:
+        with open(path, "rb") as fh:
+            n = sum(chunk.count(b"\n") for chunk in iter(lambda: fh.read(1 << 20), b""))
+    except OSError:
+        return 0
+    return max(0, n - 1)
+
+
+def interrupted_message(args: argparse.Namespace) -> str:
+    """What an interrupted command kept and how to continue: the runs on disk for ``sweep``, the cached
+    fits for ``diagnose`` (reused by the same command)."""
+    out = getattr(args, "out", None)
+    out = Path(out) if out is not None else None
+    if args.command == "sweep" and out is not None:
+        n = _complete_lines(out / "runs.csv")
+        m = _complete_lines(out / "sensitivity_runs.csv")
+        extra = f" and {m} in sensitivity_runs.csv" if m else ""
+        return f"interrupted: {n} runs kept in runs.csv{extra}; rerun with --resume to continue"
+    if args.command in ("diagnose", "diagnose-shear") and out is not None:
+        fits = sorted(out.rglob("fits/*.json")) if out.is_dir() else []
+        return (f"interrupted: {len(fits)} fits kept in {out}; rerun the same command to continue (the kept "
+                f"fits are reused)")
+    return "interrupted"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand. A :class:`~fmusa.errors.FmusaError` is the user's to fix: one line on stderr
     and its ``exit_code`` (2, or 1 when an FMU could not be found, built or run); any other exception
-    propagates with its traceback, as the bug it is."""
+    propagates with its traceback, as the bug it is. Ctrl-C and SIGTERM stop the command (its workers
+    too) and print one line of what was kept: exit 130 and 143, as a shell reports those signals."""
+    entry = argv is None          # the process's own command (console script, python -m fmusa.cli)
     argv = sys.argv[1:] if argv is None else list(argv)
     _printable_console()
     parser = build_parser(_command_word(argv))
     args = parser.parse_args(argv)
+    previous = _stop_on_signals()
     try:
         return int(args.func(args) or 0)
     except FmusaError as exc:
         print(f"fmusa {args.command}: {exc}", file=sys.stderr)
         return exc.exit_code
+    except (KeyboardInterrupt, Terminated) as exc:
+        print(f"fmusa {args.command}: {interrupted_message(args)}", file=sys.stderr, flush=True)
+        code = 143 if isinstance(exc, Terminated) else 130
+        if entry:     # everything is stopped and closed (the finally blocks ran): no second of interpreter
+            import os  # teardown (matplotlib, pandas, pool threads) between the line and the exit
+
+            sys.stdout.flush()
+            if "multiprocessing" in sys.modules:   # its finalizers (semaphores, queues), not the rest of exit
+                try:
+                    from multiprocessing import util
+
+                    util._run_finalizers()
+                except Exception:  # noqa: BLE001 - exiting anyway
+                    pass
+            sys.stderr.flush()
+            os._exit(code)
+        return code
+    finally:
+        import signal
+
+        for s, old in previous.items():
+            try:
+                signal.signal(s, old)
+            except (OSError, ValueError):
+                pass
 
 
 if __name__ == "__main__":

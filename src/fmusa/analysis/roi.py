@@ -67,19 +67,25 @@ def feasibility_matrix(grid: pd.DataFrame, inner: str, outer: str) -> tuple[np.n
 
 
 def automatic_region(grid: pd.DataFrame, inner: str, outer: str | None = None,
-                     at: Mapping[str, float] | None = None) -> Region:
+                     at: Mapping[str, float] | None = None, constraints: Sequence = (),
+                     params: Sequence[str] | None = None) -> Region:
     """The region by the module's rules from the grid runs at ``at`` (the study parameters the search does
-    not vary; None: every run); ``outer`` None gives the inner range alone (rule 1)."""
+    not vary; None: every run); ``outer`` None gives the inner range alone (rule 1). ``constraints`` and
+    ``params`` (the study's) make the error of a grid without a feasible point say which constraints fail,
+    by how much, and along which parameter widening could help (:func:`infeasible_message`)."""
     grid = _at_point(grid, at)
+    axes = [n for n in (inner, outer) if n]
+    why = (lambda: infeasible_message(grid, constraints, list(params or axes))) if constraints else None
     if len(grid) and "status" in grid and (grid["status"] != "ok").all():
         first = grid["message"].iloc[0] if "message" in grid else ""
         raise StudyError(f"all {len(grid)} grid runs failed, so there is no region of interest; the first "
                          f"says: {first} (every run's reason is in runs.csv, column message)")
     if outer is None:
-        return _inner_only(grid, inner)
+        return _inner_only(grid, inner, why)
     xs, zs, feas = feasibility_matrix(grid, inner, outer)
     if not feas.any():
-        raise StudyError(f"no grid point meets every constraint: widen the grid of {inner} and {outer} "
+        raise StudyError(why() if why else
+                         f"no grid point meets every constraint: widen the grid of {inner} and {outer} "
                          f"or relax the constraints (see runs.csv, columns ok_*)")
     notes = []
     x_min = np.array([xs[np.argmax(row)] if row.any() else np.inf for row in feas])
@@ -99,13 +105,14 @@ def automatic_region(grid: pd.DataFrame, inner: str, outer: str | None = None,
     return Region(inner, outer, (x_lo, float(best)), (z_lo, z_hi), "automatic", tuple(notes))
 
 
-def _inner_only(grid: pd.DataFrame, inner: str) -> Region:
+def _inner_only(grid: pd.DataFrame, inner: str, why=None) -> Region:
     """Rule 1 in one dimension: the grid neighbours that bracket the smallest feasible grid value."""
     xs = np.sort(grid[inner].unique())
     ok = (grid["feasible"].astype(bool) & (grid["status"] == "ok")).to_numpy()
     feasible_xs = np.sort(grid.loc[ok, inner].unique())
     if not len(feasible_xs):
-        raise StudyError(f"no grid point meets every constraint: widen the grid of {inner} or relax the "
+        raise StudyError(why() if why else
+                         f"no grid point meets every constraint: widen the grid of {inner} or relax the "
                          f"constraints (see runs.csv, columns ok_*)")
     best = float(feasible_xs[0])
     j_best = int(np.searchsorted(xs, best))
@@ -127,14 +134,174 @@ def manual_region(manual: Mapping[str, Sequence[float]], inner: str, outer: str 
     return Region(inner, outer, tuple(map(float, manual[inner])), outer_range, "manual")
 
 
-def grid_findings(grid: pd.DataFrame, axes: Sequence[str], metrics: Sequence[str]) -> dict:
+def grid_findings(grid: pd.DataFrame, axes: Sequence[str], metrics: Sequence[str],
+                  constraints: Sequence = ()) -> dict:
     """What the grid found, for summary.json: how many runs meet every constraint, how many failed, and the
     feasible point with the smallest value of ``axes[0]`` (ties: of the next axis), the point a search for
-    the smallest feasible parameters refines (None when no run is feasible)."""
+    the smallest feasible parameters refines (None when no run is feasible). Also the parameters that
+    change no metric (``inert_parameters``, :func:`inert_parameters`) and, when no run is feasible, why
+    (``infeasible``, :func:`infeasible_message`)."""
     ok = grid[grid["status"] == "ok"] if "status" in grid else grid
     feasible = ok[ok["feasible"].astype(bool)] if "feasible" in ok else ok
     out: dict = {"feasible": int(len(feasible)), "failed": int(len(grid) - len(ok)), "best": None}
     if len(feasible) and axes:
         best = feasible.sort_values(list(axes)).iloc[0]
         out["best"] = {**{a: float(best[a]) for a in axes}, **{m: float(best[m]) for m in metrics if m in best}}
+    inert = inert_parameters(grid, axes, metrics)
+    if inert:
+        out["inert_parameters"] = inert
+    if constraints and len(ok) and not len(feasible):
+        out["infeasible"] = infeasible_message(grid, constraints, axes)
     return out
+
+
+#: Why a study parameter may change no metric at all.
+INERT_CAUSES = ("the FMU ignores it: it may drop values set before fmi2SetupExperiment (some exporters do), "
+                "it may be the wrong variable (one that no metric's output depends on), or a structural "
+                "parameter the FMU reads only when it is instantiated; check it with `fmusa inspect` and a "
+                "run of the FMU at two of its values")
+
+
+def inert_parameters(grid: pd.DataFrame, params: Sequence[str], metrics: Sequence[str]) -> dict[str, dict]:
+    """The study parameters whose grid values change none of ``metrics`` (nor whether a run works), with
+    the other parameters held: {name: {"values": n, "message": ...}}. A parameter with one grid value, or
+    whose values never meet at equal other values, is not judged. Equal means NaN for NaN, else within a
+    relative 1e-12 (round-off)."""
+    out: dict[str, dict] = {}
+    if not len(grid):
+        return out
+    metrics = [m for m in metrics if m in grid]
+    M = grid[metrics].to_numpy(dtype=float) if metrics else np.empty((len(grid), 0))
+    ok = (grid["status"] == "ok").to_numpy() if "status" in grid else np.ones(len(grid), bool)
+    P = grid[list(params)].to_numpy(dtype=float)
+    for j, p in enumerate(params):
+        values = np.unique(P[:, j])
+        if len(values) < 2:
+            continue
+        others = np.delete(P, j, axis=1)
+        if others.shape[1]:
+            _, first, group = np.unique(others, axis=0, return_index=True, return_inverse=True)
+            group = group.ravel()
+        else:
+            first, group = np.zeros(1, dtype=np.int64), np.zeros(len(P), dtype=np.int64)
+        pairs = np.unique(np.column_stack([group, P[:, j]]), axis=0)
+        if not (np.bincount(pairs[:, 0].astype(np.int64)) > 1).any():
+            continue              # no two of its values at the same other values: not judged
+        ref = first[group]
+        a, b = M, M[ref]
+        same = (np.isnan(a) & np.isnan(b)) | (np.abs(a - b) <= 1e-12 * np.maximum(np.abs(a), np.abs(b)))
+        if same.all() and (ok == ok[ref]).all():
+            out[p] = {"values": int(len(values)),
+                      "message": f"parameter '{p}' changes none of the metrics ({', '.join(metrics)}) across its "
+                                 f"{len(values)} grid values ({_num(values[0])} … {_num(values[-1])}): "
+                                 f"{INERT_CAUSES}"}
+    return out
+
+
+def _num(x: float) -> str:
+    return f"{float(x):.4g}"
+
+
+def _bound_text(c) -> str:
+    parts = ([f"{c.metric} <= {_num(c.max)}"] if c.max is not None else []) + (
+        [f"{c.metric} >= {_num(c.min)}"] if c.min is not None else [])
+    return " and ".join(parts) or f"{c.metric} has a value"
+
+
+def _excess(c, v: np.ndarray) -> np.ndarray:
+    """How far each value is past the constraint's bounds (0 inside; NaN for no value)."""
+    v = np.asarray(v, dtype=float)
+    e = np.zeros_like(v)
+    if c.max is not None:
+        e = np.maximum(e, v - c.max)
+    if c.min is not None:
+        e = np.maximum(e, c.min - v)
+    return np.where(np.isnan(v), np.nan, e)
+
+
+def infeasible_message(grid: pd.DataFrame, constraints: Sequence, params: Sequence[str]) -> str:
+    """Why no grid point meets every constraint: each constraint no run meets, with its nearest value and
+    how far past the bound it is (or that its metric has no value in any run, which no grid can mend), and
+    a wider grid recommended only along a parameter that moves that metric towards its bound (parameters
+    that change no metric are named as such)."""
+    ok = grid[grid["status"] == "ok"] if "status" in grid else grid
+    if not len(ok):
+        return "no grid point meets every constraint: every grid run failed (see runs.csv, column message)"
+    meta = {"run_id", "stage", "status", "message", "seconds", "feasible"}
+    metrics = [m for m in grid.columns if m not in meta and m not in params and not str(m).startswith("ok_")]
+    inert = inert_parameters(grid, params, metrics)
+    failing = [c for c in constraints if not _holds(ok, c).any()]
+    parts, advice, no_value = [], [], []
+    for c in failing:
+        v = ok[c.metric].to_numpy(dtype=float)
+        if np.isnan(v).all():
+            no_value.append(c.name)
+            parts.append(f"constraint '{c.name}' ({_bound_text(c)}): {c.metric} is NaN in every one of the "
+                         f"{len(ok)} grid runs that worked (no run gives it a value), so no grid can meet it; "
+                         f"check metric '{c.metric}' (its output, reduce and missing_below) or drop the constraint")
+            continue
+        e = _excess(c, v)
+        i = int(np.nanargmin(e))
+        bound = c.max if c.max is not None and v[i] > c.max else c.min
+        rel = f" ({100 * e[i] / abs(bound):.3g} % past it)" if bound else ""
+        at = ", ".join(f"{p} = {_num(ok[p].iloc[i])}" for p in params if p in ok)
+        parts.append(f"constraint '{c.name}' ({_bound_text(c)}) is met by none of the {len(ok)} grid runs: "
+                     f"nearest {c.metric} = {_num(v[i])} at {at}, {_num(e[i])} past its bound{rel}")
+        advice.append(_widen_advice(ok, c, [p for p in params if p in ok and p not in inert]))
+    if not failing:
+        parts.append("each constraint is met at some grid point, but no point meets all of them at once: "
+                     + "; ".join(f"'{c.name}' at {int(_holds(ok, c).sum())} of {len(ok)}" for c in constraints))
+    text = "no grid point meets every constraint: " + "; ".join(parts)
+    good = [a for a in advice if a]
+    if no_value:      # a grid, however wide, cannot give that metric a value
+        text += (f". A wider grid cannot help while {', '.join(repr(n) for n in no_value)} "
+                 f"{'has' if len(no_value) == 1 else 'have'} no value in any run")
+    elif good:
+        text += ". " + "; ".join(good)
+    elif failing and any(not np.isnan(ok[c.metric].to_numpy(dtype=float)).all() for c in failing):
+        text += (". No study parameter moves the failing metrics towards their bounds across the grid, so a "
+                 "wider grid will not help: relax the constraints, or check the model and the metrics")
+    for p, info in inert.items():
+        text += f". Note: {info['message']}"
+    return text + " (see runs.csv, columns ok_*)"
+
+
+def _holds(ok: pd.DataFrame, c) -> np.ndarray:
+    col = f"ok_{c.name}"
+    if col in ok:
+        return ok[col].astype(bool).to_numpy()
+    e = _excess(c, ok[c.metric].to_numpy(dtype=float))
+    return np.nan_to_num(e, nan=1.0) <= 0
+
+
+#: A wider grid is advised along a parameter only when, across its grid, the failing metric comes nearer
+#: its bound by at least this fraction of the distance left (else it would take a grid many times wider).
+WIDEN_MIN_GAIN = 0.01
+
+
+def _widen_advice(ok: pd.DataFrame, c, params: Sequence[str]) -> str:
+    """Where to widen the grid for constraint ``c``: along each parameter whose best value of the metric
+    (over the others) comes nearer the bound towards one end of its grid (by :data:`WIDEN_MIN_GAIN` of
+    the distance left, at least), beyond that end; "" for none."""
+    e_all = _excess(c, ok[c.metric].to_numpy(dtype=float))
+    tips = []
+    for p in params:
+        x = ok[p].to_numpy(dtype=float)
+        xs = np.unique(x)
+        if len(xs) < 2:
+            continue
+        best = np.array([np.nanmin(e_all[x == v]) if np.isfinite(e_all[x == v]).any() else np.nan for v in xs])
+        if np.isnan(best[[0, -1]]).any():
+            continue
+        lo, hi = best[0], best[-1]
+        if abs(lo - hi) < WIDEN_MIN_GAIN * min(lo, hi):     # across its whole grid it hardly moves the metric
+            continue
+        if hi < lo and hi <= np.nanmin(best):
+            tips.append(f"widen the grid of {p} above {_num(xs[-1])} (towards its top {c.metric} comes nearer its "
+                        f"bound: {_num(lo)} → {_num(hi)} past it)")
+        elif lo < hi and lo <= np.nanmin(best):
+            tips.append(f"widen the grid of {p} below {_num(xs[0])} (towards its bottom {c.metric} comes nearer "
+                        f"its bound: {_num(hi)} → {_num(lo)} past it)")
+    if not tips:
+        return ""
+    return f"For '{c.name}': " + ", or ".join(tips)

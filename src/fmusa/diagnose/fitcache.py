@@ -7,6 +7,7 @@ computes only what is missing.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import multiprocessing as mp
@@ -18,6 +19,7 @@ import numpy as np
 
 from fmusa.diagnose.calibrate import Fit, fit_candidate
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
+from fmusa.files import atomic_write
 
 __all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits"]
 
@@ -78,10 +80,53 @@ def _cached(cache_dir: Path | None, name: str, key: str) -> Fit | None:
 
 def _save(cache_dir: Path, name: str, fit: Fit, key: str) -> None:
     """Write a fit atomically, so an interrupted run leaves no half-written cache file."""
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    tmp = cache_dir / f"{name}.json.tmp"
-    tmp.write_text(json.dumps(fit_to_json(fit, key)), encoding="utf-8")
-    tmp.replace(cache_dir / f"{name}.json")
+    atomic_write(cache_dir / f"{name}.json", json.dumps(fit_to_json(fit, key)))
+
+
+def _ignore_sigint() -> None:
+    """A fit worker leaves Ctrl-C to the parent (which stops it), instead of printing a traceback."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored in this process while the block starts workers: a spawned worker inherits that, so
+    a Ctrl-C during its start-up (before :func:`_ignore_sigint`) cannot print its traceback."""
+    import signal
+
+    try:
+        old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:      # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _kill_workers(ex: ProcessPoolExecutor) -> None:
+    """Stop the executor's processes at once: its shutdown would wait for the running fits (seconds)."""
+    procs = list((getattr(ex, "_processes", None) or {}).values())
+    ex.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        try:
+            p.kill()
+        except (OSError, AttributeError):
+            pass
+    for p in procs:
+        try:
+            p.join(2)
+        except (OSError, AttributeError, AssertionError):
+            pass
+    queue = getattr(ex, "_call_queue", None)      # its feeder thread would be waited for at exit
+    if queue is not None:
+        try:
+            queue.cancel_join_thread()
+        except (OSError, AttributeError, ValueError):
+            pass
 
 
 def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
@@ -106,14 +151,21 @@ def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
             print(f"  fitted {name}: {what}", flush=True)
 
     if workers > 1 and len(todo) > 1:
-        with ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn")) as ex:
-            futs = {ex.submit(_fit_job, j): j[1] for j in todo}
+        ex = ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn"),
+                                 initializer=_ignore_sigint)
+        try:
+            with _sigint_ignored():    # the workers start with Ctrl-C ignored (kept across their exec)
+                futs = {ex.submit(_fit_job, j): j[1] for j in todo}
             for fut in as_completed(futs):
                 try:
                     r = fut.result()
                 except Exception as exc:  # a worker that died (e.g. the FMU crashed the process)
                     r = f"{type(exc).__name__}: {exc}"
                 keep(futs[fut], r)
+        except BaseException:     # Ctrl-C, SIGTERM: stop the fits now (the saved ones stay), not after them
+            _kill_workers(ex)
+            raise
+        ex.shutdown(wait=True)
     else:
         for j in todo:
             keep(j[1], _fit_job(j))

@@ -25,6 +25,7 @@ import numpy as np
 from fmusa.diagnose.views import (by_loading_direction, delta_text, experiment_motion, natural, p_text, ratio_text,
                                   residual_series, response_channel)
 from fmusa.format import fmt
+from fmusa.files import atomic_write
 
 __all__ = ["write_report", "EFFECT_MEANING", "PARAM_MEANING", "CAPTIONS"]
 
@@ -504,5 +505,5 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
     parts.append("## Files\n\n- `diagnosis.json`: every number of this report\n- `figures/`: the figures above\n")
     path = out_dir / "report.md"
     # surrogateescape: a file path given under an ASCII locale goes back as the bytes it was
-    path.write_text("\n".join(p.rstrip() + "\n" for p in parts if p), encoding="utf-8", errors="surrogateescape")
+    atomic_write(path, "\n".join(p.rstrip() + "\n" for p in parts if p), errors="surrogateescape")
     return path

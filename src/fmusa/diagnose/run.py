@@ -28,6 +28,7 @@ from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
 from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members,
                                  indistinguishable, nested_p_value, protocol_features, rank_candidates)
 from fmusa.diagnose.units import check_units, model_scale
+from fmusa.files import atomic_write
 
 __all__ = ["diagnose", "response_range", "write_json", "run_diagnosis"]
 
@@ -181,7 +182,7 @@ def _plain(x: Any) -> Any:
 
 def write_json(diag: dict, path: str | os.PathLike) -> None:
     """diagnosis.json: everything but the in-memory fits."""
-    Path(path).write_text(json.dumps(_plain(diag), indent=2), encoding="utf-8")
+    atomic_write(path, json.dumps(_plain(diag), indent=2))
 
 
 def run_diagnosis(experiments: Sequence, drive: str, out_dir: str | os.PathLike, **kw) -> dict:

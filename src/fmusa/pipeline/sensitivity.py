@@ -42,9 +42,11 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
+from fmusa.files import atomic_path
 from fmusa.runs.evaluator import Evaluator
 from fmusa.runs.spec import PlanSpec
 from fmusa.fmi.info import default_fmu_path
+from fmusa.runs.inflight import track_in_flight
 from fmusa.runs.store import RunStore
 from fmusa.runs.progress import progress_bar
 from fmusa.analysis.sensitivity import MORRIS_LEVELS, analyse_morris, analyse_sobol, draw_samples, salib_problem, to_physical
@@ -100,9 +102,22 @@ def _evaluator(spec: PlanSpec, runner, study, **overrides) -> Evaluator:
           "scheduler": getattr(ev, "scheduler", None) or study.execution.scheduler,
           "isolate": getattr(ev, "isolate", study.fmu is not None),
           "timeout_s": getattr(ev, "timeout_s", study.execution.timeout_s),
-          "pool": getattr(ev, "pool_options", None) or study.execution.pool_options()}
+          "pool": getattr(ev, "pool_options", None) or study.execution.pool_options(),
+          "own": getattr(ev, "own", None)}
     kw.update(overrides)
     return Evaluator(spec, **kw)
+
+
+def stage_fingerprint(runner, spec: PlanSpec, names: Sequence[str]) -> dict | None:
+    """What decides the runs of ``spec`` (the sensitivity parameters' variables, not the study's; the
+    reference runs' tolerance), with the FMU digest of the study runner's fingerprint; None for a runner
+    without one (its stores are not checked)."""
+    base = getattr(runner, "fingerprint", None)
+    if base is None:
+        return None
+    from fmusa.study.plan import spec_fingerprint
+
+    return spec_fingerprint(spec, names, base.get("fmu", ""))
 
 
 # ---------------------------------------------------------------------------- evaluation
@@ -152,6 +167,8 @@ def evaluate_keys(store: RunStore, evaluator: Evaluator, keys, stage_label: str,
     distinct = _distinct(todo)
     if len(distinct) < len(todo):
         todo = todo[distinct]
+    if getattr(evaluator, "marker", None) is not None:    # the label a run under way at a crash is stored under
+        evaluator.marker.stage = stage_label
     ids = store.new_ids(len(todo))
     store.reserve(len(todo))
 
@@ -248,7 +265,7 @@ def accuracy_check(study, stage, spec: PlanSpec, store: RunStore, keys: Sequence
     report["reference_via"] = (["fixed rtol"] if override else []) + (
         ["experiment tolerance"] if changes else [])
     ref_store = RunStore(out / ACCURACY_FILE, list(stage.parameters), list(metrics), resume=resume,
-                         fingerprint=getattr(runner, "fingerprint", None))
+                         fingerprint=stage_fingerprint(runner, ref_spec, list(stage.parameters)))
     t0 = time.perf_counter()
     timeout = getattr(getattr(runner, "evaluator", None), "timeout_s", study.execution.timeout_s)
     try:   # a reference run costs ~100 study runs: a longer per-run limit
@@ -326,15 +343,19 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
             X[method] = sample
         del sample
 
-    fingerprint = getattr(runner, "fingerprint", None)
+    fingerprint = stage_fingerprint(runner, spec, names)
     store = RunStore(out / RUNS_FILE, names, metrics, resume=resume, fingerprint=fingerprint,
                      retry_failed=bool(getattr(runner, "retry_failed", False)))
     simulated = 0
     try:
         t_eval = time.perf_counter()
         with _evaluator(spec, runner, study) as evaluator:
-            for method in stage.methods:
-                simulated += evaluate_keys(store, evaluator, keys[method], method, progress)
+            recovered = track_in_flight(store, evaluator, resume)    # runs a crashed session left under way
+            try:
+                for method in stage.methods:
+                    simulated += evaluate_keys(store, evaluator, keys[method], method, progress)
+            finally:
+                evaluator.marker.close()
         eval_wall = time.perf_counter() - t_eval
 
         summary: dict[str, Any] = {}
@@ -375,7 +396,8 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
                 summary[method], rows = analyse_sobol(problem, Yg, ok_names, stage.seed)
                 cols = ["metric", "parameter", "S1", "S1_conf", "ST", "ST_conf"]
             frames[method] = pd.DataFrame(rows, columns=cols)
-            frames[method].to_csv(out / f"sensitivity_{method}.csv", index=False, encoding="utf-8")
+            with atomic_path(out / f"sensitivity_{method}.csv") as tmp:
+                frames[method].to_csv(tmp, index=False, encoding="utf-8")
 
         all_keys = keys[stage.methods[0]] if len(stage.methods) == 1 else np.concatenate(
             [keys[m] for m in stage.methods])
@@ -407,6 +429,7 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
         workers=ev_workers or None,
         scheduler=ev_scheduler,
         resumed=resume,
+        **({"recovered_runs": recovered} if recovered else {}),
         meta={
             "n": stage.n, "morris_trajectories": stage.morris_trajectories, "morris_levels": MORRIS_LEVELS,
             "seed": stage.seed, "calc_second_order": False,

@@ -22,15 +22,21 @@ from fmusa.fmi.info import FMUCompileError, default_fmu_path
 from fmusa.fmi.build import prepare_fmu
 from fmusa.analysis.regression import fit_by_level
 from fmusa.analysis.roi import grid_findings, Region, automatic_region, manual_region
+from fmusa.runs.inflight import track_in_flight
 from fmusa.runs.store import RunStore
+from fmusa.runs.timelimit import own_fmu
 from fmusa.analysis.search import SearchResult, nested_binary_search, search_in_rounds
-from fmusa.files import writable_folder
+from fmusa.files import atomic_write, move_aside, writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
 from fmusa.pipeline.sampling_check import sampling_summary
 from fmusa.pipeline.solver_check import implausible_runs, solver_summary
 from fmusa.study.plan import check_fmu, check_points, grid_points, run_fingerprint, study_plan_spec
 from fmusa.runs.preflight import preflight
+
+
+#: What an earlier study in the same ``--out`` leaves besides its runs: moved aside with them by a fresh start.
+EARLIER_OUTPUTS = ("report.md", "summary.json", "figures", "sensitivity_morris.csv", "sensitivity_sobol.csv")
 
 
 @dataclass
@@ -78,11 +84,13 @@ class StudyRunner:
         spec = study_plan_spec(study, run_path)
         #: what besides the parameters decides a run: a resumed study reuses stored runs only while it holds
         self.fingerprint = run_fingerprint(study, fmu_path)
-        # any FMU but our own runs in supervised workers: a crash or hang then costs one run
+        # any FMU but our own (by its digest) runs in supervised workers: a crash or hang then costs one run
+        own = own_fmu(fmu_path)
         self.evaluator = Evaluator(spec, workers=workers or study.execution.workers,
                                    scheduler=scheduler or study.execution.scheduler,
-                                   isolate=study.fmu is not None, timeout_s=study.execution.timeout_s,
-                                   pool=study.execution.pool_options())
+                                   isolate=study.fmu is not None or not own,
+                                   timeout_s=study.execution.timeout_s, pool=study.execution.pool_options(),
+                                   own=own)
         try:   # a scheduler that cannot be reached fails here, before an earlier runs.csv is moved aside
             self.evaluator.connect()
             # the FMU loaded once, and how its runs must be made to equal runs on a fresh instance, before
@@ -95,6 +103,11 @@ class StudyRunner:
             self.spec = replace(spec, reuse=self.reuse.mode)
             self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,
                                   fingerprint=self.fingerprint, retry_failed=retry_failed)
+            if self.store.previous is not None:     # the earlier study's report and figures go with its runs
+                tag = self.store.previous.stem.rpartition(".")[2]           # previous-<n>
+                move_aside(out, EARLIER_OUTPUTS, tag)
+            #: runs under way when an earlier session's process ended: failed, or made again supervised
+            self.recovered = track_in_flight(self.store, self.evaluator, resume)
         except BaseException:
             self.evaluator.close()
             raise
@@ -109,6 +122,8 @@ class StudyRunner:
 
     def close(self) -> None:
         self.evaluator.close()
+        if self.evaluator.marker is not None:
+            self.evaluator.marker.close()
         self.store.close()
 
     def evaluate(self, points: list[dict[str, float]], stage: str) -> list[dict]:
@@ -120,6 +135,8 @@ class StudyRunner:
             if self.store.get(k) is None and k not in todo:
                 todo[k] = self.store.new_id()
         if todo:
+            if self.evaluator.marker is not None:     # the label a run under way at a crash is stored under
+                self.evaluator.marker.stage = stage
             bar = progress_bar(len(todo), stage, self.progress)
             items = [(rid, k) for k, rid in todo.items()]
             # results arrive as blocks (arrays) and go to runs.csv as one write each
@@ -199,7 +216,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                     grid_df.loc[grid_df["run_id"].isin(bad), "status"] = "implausible"
                 summary["grid"] = {"points": len(pts), "axes": {k: [float(x) for x in v]
                                                                 for k, v in stage.points().items()},
-                                   **grid_findings(grid_df, _grid_axes(study), list(study.metrics))}
+                                   **grid_findings(grid_df, _grid_axes(study), list(study.metrics),
+                                                   study.constraints)}
             elif name == "roi":
                 search_stage = study.stages.get("search")
                 if search_stage is None:
@@ -213,7 +231,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                                          f"before stages.roi (or give roi.manual)")
                     # the grid runs where the search will run: the other parameters at their defaults
                     at = {k: v for k, v in runner.defaults.items() if k not in (inner, outer)}
-                    result.region = automatic_region(grid_df, inner, outer, at)
+                    result.region = automatic_region(grid_df, inner, outer, at, study.constraints,
+                                                     list(study.parameters))
                 summary["roi"] = result.region.as_dict()
             elif name == "search":
                 if result.region is None:
@@ -243,6 +262,8 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
             ext.after_stages(result, runner)
             stage_times[ext.name] = time.perf_counter() - ts
             stage_runs[ext.name] = _stage_runs(runner, asked0, simulated0, rounds0)
+        if runner.recovered:
+            summary["recovered_runs"] = runner.recovered
         sampling = sampling_summary(study, runner.store.frame(), summary.get("optimum"), runner.spec)
         if sampling is not None:     # how the output sampling moves peaks and settling times
             summary["sampling"] = sampling
@@ -292,7 +313,7 @@ def _grid_axes(study: Study) -> list[str]:
 def write_summary(result: SweepResult) -> Path:
     """``<out>/summary.json`` from ``result.summary`` (written before any figure, and again by the report)."""
     path = Path(result.out) / "summary.json"
-    path.write_text(json.dumps(jsonable(result.summary), indent=2), encoding="utf-8")
+    atomic_write(path, json.dumps(jsonable(result.summary), indent=2))
     return path
 
 

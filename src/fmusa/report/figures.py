@@ -27,6 +27,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 
 from fmusa.format import fmt
+from fmusa.files import atomic_path
 
 __all__ = [
     "fmt", "RegionFrame", "Threshold", "grid_heatmap", "line_plot", "scatter_panels", "search_metric",
@@ -80,8 +81,11 @@ def unit_suffix(u: str) -> str:
 def save(fig, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
+    try:    # written whole or not at all (a full disk leaves the earlier figure, never half of one)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=DPI, bbox_inches="tight")
+    finally:
+        plt.close(fig)
     return path
 
 

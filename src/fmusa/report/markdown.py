@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
-from fmusa.files import writable_folder
+from fmusa.files import atomic_write, writable_folder
 from fmusa.report import fmu_sections
 from fmusa.report import sections as S
 from fmusa.report.context import ReportContext, ReportSection, Section
@@ -86,6 +86,6 @@ def write_report(result, sections: Sequence[ReportSection] = ()) -> Path:
     ctx = ReportContext(result, figdir)
     parts = _render(ctx, arrange_sections(sections))
     path = out / "report.md"
-    path.write_text("\n".join(p for p in parts if p), encoding="utf-8")
+    atomic_write(path, "\n".join(p for p in parts if p))
     result.summary["figures"] = [f"figures/{n}" for n in dict.fromkeys(n for n, _ in ctx.figures)]
     return path

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from fmusa.format import fmt
+from fmusa.files import OutputError
 from fmusa.report import figures as F
 from fmusa.report.context import ReportContext, figure_markdown, get, ok_mark, table, yes
 
@@ -196,6 +197,11 @@ def grid_section(ctx: ReportContext, heading: str = "### Grid", sig: Sig = _sig3
     best = best_grid_point(ctx, g)
     if best:
         out += "\n" + best
+    found = (ctx.result.summary or {}).get("grid") or {}
+    for info in (found.get("inert_parameters") or {}).values():     # not a reason to widen the grid
+        out += f"\n**A parameter that does nothing.** {info['message']}.\n"
+    if found.get("infeasible"):
+        out += f"\n**No feasible grid point.** {found['infeasible']}.\n"
     return out + note
 
 
@@ -572,9 +578,13 @@ def _sensitivity_figures(ctx: ReportContext, sens, summ) -> tuple[list[Path], st
     try:
         from fmusa.report.sensitivity_figures import plot_sensitivity
         return list(plot_sensitivity(sens, ctx.figdir)), ""
+    except OutputError:     # a full disk: the study's error, not a note
+        raise
     except Exception:  # noqa: BLE001 - older/other sensitivity results: our own bar charts
         try:
             return F.sensitivity_figures(summ, ctx.figdir), ""
+        except OutputError:
+            raise
         except Exception as exc:  # noqa: BLE001
             return [], f"The sensitivity figures could not be drawn ({type(exc).__name__}: {exc}).\n\n"
 

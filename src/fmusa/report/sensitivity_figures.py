@@ -9,6 +9,7 @@ from typing import Mapping
 import numpy as np
 
 from fmusa.analysis.sensitivity import MORRIS_LEVELS
+from fmusa.files import atomic_path
 
 
 def _tables(result: Mapping) -> tuple[dict, dict]:
@@ -83,8 +84,11 @@ def plot_sensitivity(result: Mapping, figdir: str | Path) -> list[Path]:
                      f"log-uniform inputs); bars: 95 % CI of μ*", fontsize=10)
         fig.tight_layout(rect=(0, 0, 1, 0.97))
         p = figdir / "sensitivity_morris.png"
-        fig.savefig(p, dpi=130)
-        plt.close(fig)
+        try:
+            with atomic_path(p) as tmp:
+                fig.savefig(tmp, dpi=130)
+        finally:
+            plt.close(fig)
         paths.append(p)
 
     sobol = summary.get("sobol") or {}
@@ -126,8 +130,11 @@ def plot_sensitivity(result: Mapping, figdir: str | Path) -> list[Path]:
                      f"bars: 95 % confidence intervals)", fontsize=10)
         fig.tight_layout(rect=(0, 0, 1, 0.97))
         p = figdir / "sensitivity_sobol.png"
-        fig.savefig(p, dpi=130)
-        plt.close(fig)
+        try:
+            with atomic_path(p) as tmp:
+                fig.savefig(tmp, dpi=130)
+        finally:
+            plt.close(fig)
         paths.append(p)
     return paths
 

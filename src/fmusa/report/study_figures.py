@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Callable, Mapping
 
 from fmusa.format import fmt
+from fmusa.files import OutputError
 from fmusa.report import figures as F
 from fmusa.report.context import ReportContext, get
 from fmusa.report.sections import figures_list_section, level_binding, search_outer
@@ -182,6 +183,8 @@ def draw_study_figures(ctx: ReportContext) -> None:
     for step in steps:
         try:
             made = step()
+        except OutputError:   # a full disk or a folder that cannot be written: the study's error, not a note
+            raise
         except Exception as exc:  # noqa: BLE001 - one figure must not cost the report
             ctx.notes.append(f"A figure could not be drawn: {type(exc).__name__}: {exc}")
             continue

@@ -14,7 +14,8 @@ from fmusa.fmi.info import read_fmu_info, select_interface
 from fmusa.runs.pool import ENV_START_METHOD, PoolOptions, WorkerPool, resolve_start_method, run_chunk_supervised
 from fmusa.runs.scheduler import connect_scheduler
 from fmusa.runs.spec import PlanSpec, RunBatch, RunResult, as_arrays, release_plan, run_batch
-from fmusa.runs.timelimit import in_process_fixed
+from fmusa.runs.inflight import InFlight
+from fmusa.runs.timelimit import in_process_fixed, own_fmu
 
 class Evaluator:
     """Runs batches of parameter sets in this process, on supervised local workers, or on a Dask
@@ -29,7 +30,7 @@ class Evaluator:
 
     def __init__(self, spec: PlanSpec, workers: int | None = None, scheduler: str | None = None,
                  pool_threshold: int = 400, isolate: bool = False, timeout_s: float | None = 60.0,
-                 pool: PoolOptions | None = None) -> None:
+                 pool: PoolOptions | None = None, own: bool | None = None) -> None:
         self.spec = spec
         #: how supervised workers start and are kept (execution.start_method, worker_max_runs, …)
         self.pool_options = pool or PoolOptions()
@@ -39,6 +40,9 @@ class Evaluator:
         self.scheduler = scheduler
         self.pool_threshold = pool_threshold
         self.isolate = isolate
+        #: whether the FMU is our own (:func:`fmusa.runs.timelimit.own_fmu` of the FMU as given, before a
+        #: build from its sources); None: judged from ``spec.fmu_path``
+        self.own = own
         self.timeout_s = timeout_s
         self._pool: WorkerPool | None = None
         self._client = None
@@ -46,6 +50,9 @@ class Evaluator:
         self._local: PlanSpec | None = None     # the spec on the unpacked FMU, made once
         #: (spec, budget parameter set by fmusa) of runs made in this process; False: supervised only
         self._here: tuple[PlanSpec, str | None] | bool | None = None
+        #: where the runs made in this process are noted while they run (:mod:`fmusa.runs.inflight`), so that
+        #: a resume after a crash that took this process down does not make them here again
+        self.marker: InFlight | None = None
 
     def _local_spec(self) -> PlanSpec:
         """The spec with the FMU unpacked once, here, for this process and its workers: workers that
@@ -98,6 +105,8 @@ class Evaluator:
         """(the spec runs in this process are made with, the FMU parameter fmusa set in it to keep each run
         within ``timeout_s``, or None when the study sets it), or None when a run here could outlast
         ``timeout_s``: then every run goes to supervised workers."""
+        if self._here is None and not (self.own if self.own is not None else own_fmu(self.spec.fmu_path)):
+            self._here = False          # not our FMU: a crash or an exit inside it would end this process
         if self._here is None:
             local = self._local_spec()
             self._here = (local, None)
@@ -167,10 +176,11 @@ class Evaluator:
         self.map_batches(items, take, progress)
         return results
 
-    def map_batches(self, items, on_batch, progress=None) -> None:
+    def map_batches(self, items, on_batch, progress=None, supervised: bool = False) -> None:
         """Evaluate ``items`` (a list of (run id, study values), or the pair of arrays run ids, values):
         ``on_batch`` gets the results as RunBatches (arrays, one row per run) as they arrive, and
-        ``progress`` (a tqdm bar or None) is advanced by each batch."""
+        ``progress`` (a tqdm bar or None) is advanced by each batch. ``supervised``: in supervised
+        workers whatever the batch's size (runs that may crash)."""
         ids, values = as_arrays(items)
         if not len(ids):
             return
@@ -208,7 +218,7 @@ class Evaluator:
                     reason = f"the Dask task failed: {type(exc).__name__}: {str(exc).strip()}"[:2000]
                     batch = RunBatch.failed(*chunks[fut.key], n_metrics, reason)
                 take(batch)
-        elif (self.isolate or (self.workers > 1 and len(ids) >= self.pool_threshold)
+        elif (supervised or self.isolate or (self.workers > 1 and len(ids) >= self.pool_threshold)
               or (here := self._in_process()) is None):
             if self._pool is None:
                 self._pool = WorkerPool(self._local_spec(), self.workers, self.timeout_s, self.pool_options)
@@ -219,6 +229,16 @@ class Evaluator:
         else:      # unsupervised: each run kept to timeout_s by the FMU's own budget
             spec, budget = here
             size = self._chunk_size(len(ids), 1)
+            marker = self.marker
             for i in range(0, len(ids), size):
-                take(run_batch(spec, ids[i:i + size], values[i:i + size], timeout_s=self.timeout_s,
-                               budget=budget))
+                if marker is None:
+                    take(run_batch(spec, ids[i:i + size], values[i:i + size], timeout_s=self.timeout_s,
+                                   budget=budget))
+                    continue
+                marker.begin(ids[i:i + size], values[i:i + size])     # left behind only if the process dies
+                try:
+                    batch = run_batch(spec, ids[i:i + size], values[i:i + size], timeout_s=self.timeout_s,
+                                      budget=budget)
+                    take(batch)
+                finally:     # an exception (Ctrl-C, a full disk) is not a crash: nothing left under way
+                    marker.end()

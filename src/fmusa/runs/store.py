@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from fmusa.errors import UsageError
+from fmusa.files import atomic_write, write_error
 from fmusa.runs.metrics import constraint_holds, constraint_table
 
 FLOAT = "%.17g"   # round-trips a double exactly, so reloaded keys match new ones
@@ -119,31 +120,45 @@ def _numbers(path: Path, df: pd.DataFrame, columns: Sequence[str]) -> np.ndarray
     return out
 
 
+def _changes(old, new, key: str = "") -> list[str]:
+    """Every entry that differs between two fingerprints, as ``key.sub: old → new`` (the FMU: ``changed``)."""
+    if old == new:
+        return []
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new), key=str):
+            out += _changes(old.get(k), new.get(k), f"{key}.{k}" if key else str(k))
+        return out
+    if key == "fmu":
+        return ["fmu: changed (another FMU, or the same one rebuilt)"]
+    return [f"{key}: {old!r} → {new!r}"]
+
+
 def _check_fingerprint(path: Path, meta: Path, fingerprint: dict | None) -> None:
-    """Refuse to resume when what decides a run (FMU, fixed values, scenario, metrics) has changed since
-    the stored runs were made: their metrics would be stale."""
-    if fingerprint is None or not meta.exists():
+    """Refuse to resume when what decides a run (FMU, parameters' variables and units, fixed values,
+    scenario, metrics, options) has changed since the stored runs were made: their metrics would be stale.
+    A fingerprint that is missing or cannot be read (cut short by a kill) refuses too: nothing says what
+    made the runs."""
+    if fingerprint is None:
         return
+    fix = (f"run without --resume (the old runs are kept as {path.stem}.previous-<n>{path.suffix}) or use "
+           f"another --out")
+    if not meta.exists():
+        raise UsageError(f"{path}: cannot resume: {meta.name}, the record of what made these runs (FMU, "
+                         f"parameters, scenario, metrics), is missing, so they may be stale; {fix}")
     try:
         old = json.loads(meta.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return
+        if not isinstance(old, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"{path}: cannot resume: {meta.name} cannot be read ({exc}; it was cut short or "
+                         f"edited), so nothing says what made these runs; {fix}") from None
     new = json.loads(json.dumps(fingerprint))         # the same JSON form as stored
-    changed = []
-    for key in sorted(set(old) | set(new)):
-        a, b = old.get(key), new.get(key)
-        if a == b:
-            continue
-        if isinstance(a, dict) and isinstance(b, dict):
-            changed += [f"{key}.{k}: {a.get(k)!r} → {b.get(k)!r}" for k in sorted(set(a) | set(b))
-                        if a.get(k) != b.get(k)]
-        else:
-            changed.append(f"{key}: changed" if key == "fmu" else f"{key}: {a!r} → {b!r}")
+    changed = _changes(old, new)
     if changed:
         raise UsageError(f"{path}: cannot resume: the study changed since these runs were made ("
                          + "; ".join(changed[:6]) + ("; …" if len(changed) > 6 else "")
-                         + "), so their metrics would be stale; run without --resume (the old runs are "
-                           "kept as runs.previous-<n>.csv) or use another --out")
+                         + f"), so their metrics would be stale; {fix}")
 
 
 def _keep_previous(path: Path) -> Path:
@@ -195,7 +210,7 @@ class RunStore:
         self.fingerprint = fingerprint
         meta = self.path.with_name(self.path.name + ".study.json")
         if resume and self.path.exists() and self.path.stat().st_size > 0:
-            _check_fingerprint(self.path, meta, fingerprint)
+            _check_fingerprint(self.path, meta, fingerprint)     # a matching record is not rewritten
         if resume and self.path.exists() and self.path.stat().st_size > 0 and self._load():
             self._fh = open(self.path, "a", newline="", encoding="utf-8")
             #: failed runs of the resumed study set aside to be run again (``retry_failed``)
@@ -205,11 +220,15 @@ class RunStore:
                 self.previous = _keep_previous(self.path)
                 if meta.exists():
                     meta.replace(self.previous.with_name(self.previous.name + ".study.json"))
-            self._fh = open(self.path, "w", newline="", encoding="utf-8")
-            csv.writer(self._fh).writerow(self.columns)
-            self._fh.flush()
-        if fingerprint is not None:
-            meta.write_text(json.dumps(fingerprint, indent=1, sort_keys=True), encoding="utf-8")
+            if fingerprint is not None:   # before the first run: a runs file never lacks its record
+                atomic_write(meta, json.dumps(fingerprint, indent=1, sort_keys=True))
+
+            def start():
+                fh = open(self.path, "w", newline="", encoding="utf-8")
+                csv.writer(fh).writerow(self.columns)
+                fh.flush()
+                return fh
+            self._fh = self._guard(start)
         self._writer = csv.writer(self._fh)
         n_num = len(self.params) + len(self.metrics)
         self._num_fmt = ",".join([FLOAT] * n_num)
@@ -470,8 +489,7 @@ class RunStore:
             self._messages[i] = message
         self._insert(i, 1)
         rec = self._record(i)
-        self._writer.writerow([self._fmt(rec[c]) for c in self.columns])
-        self._fh.flush()
+        self._guard(lambda: (self._writer.writerow([self._fmt(rec[c]) for c in self.columns]), self._fh.flush()))
         return rec
 
     def add_batch(self, stage: str, batch) -> None:
@@ -498,8 +516,16 @@ class RunStore:
             if msg:
                 self._messages[i + j] = msg
         self._insert(i, n)
-        self._fh.write(self._block(sl))
-        self._fh.flush()
+        text = self._block(sl)
+        self._guard(lambda: (self._fh.write(text), self._fh.flush()))
+
+    def _guard(self, write):
+        """``write()``, with an OSError (a full disk) as one line naming runs.csv and the free space; the
+        rows before are intact (a partial last line is dropped on resume)."""
+        try:
+            return write()
+        except OSError as exc:
+            raise write_error(self.path, exc, kept=f"the runs before are kept in {self.path.name}") from None
 
     def _block(self, sl: slice) -> str:
         """The rows ``sl`` as csv text, as the csv module writes them row by row."""
@@ -548,7 +574,10 @@ class RunStore:
 
     def close(self) -> None:
         if not self._fh.closed:
-            self._fh.close()
+            try:
+                self._fh.close()
+            except OSError:     # the rows a full disk refused: already reported by the write that failed
+                pass
         if self._lock is not None:
             self._lock.close()          # closing the file releases the lock
             self._lock = None

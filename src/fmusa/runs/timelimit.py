@@ -10,6 +10,8 @@ also stops at the first communication point past ``timeout_s``. Any other FMU, o
 """
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
 
 from fmusa.fmi.info import FMUInfo, FMUTimeLimitError, select_interface
@@ -62,3 +64,41 @@ def in_process_reason(exc: BaseException, seconds: float, timeout_s: float, budg
         return timeout_reason(timeout_s, f"the FMU stopped the run itself through its parameter {budget}, which "
                                          f"fmusa sets to execution.timeout_s", f"The FMU said: {message}")
     return None
+
+
+#: (resolved path, size, mtime) -> content digest of the FMUs looked at (hashing one costs ~1 ms)
+_DIGESTS: dict[tuple[str, int, int], str] = {}
+
+
+def _digest(path: Path) -> str | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _DIGESTS:
+        from fmusa.fmi.build import file_digest
+
+        _DIGESTS[key] = file_digest(path)
+    return _DIGESTS[key]
+
+
+def built_fmus() -> list[Path]:
+    """This repository's own built FMU (``make fmu``): dist/ScrewVertebra.fmu under the working directory
+    and above this package (an editable install), wherever ``$FMUSA_FMU`` points."""
+    from fmusa.fmi.info import FMU_NAME
+
+    places = [Path.cwd() / "dist" / FMU_NAME] + [p / "dist" / FMU_NAME for p in Path(__file__).resolve().parents]
+    return [p for p in dict.fromkeys(places) if p.is_file()]
+
+
+def own_fmu(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is this repository's own FMU, by its content: the same digest as the FMU ``make
+    fmu`` built (a copy of it anywhere counts; an FMU that merely declares our variables, such as
+    ``max_wall_s``, does not). Only such an FMU runs in the study's process: any other one may crash or exit
+    inside a call, which would end the study."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    mine = _digest(path)
+    return mine is not None and any(_digest(p) == mine for p in built_fmus())

@@ -169,8 +169,13 @@ class _Parser:
     def ident(self, node: Node, key: str, where: str, hint: str, what: str = "name") -> str:
         v = self.string(node, key, where, hint)
         if not IDENTIFIER.match(v):
-            raise self.error(node, f"{_key(key, where)}: {what} {v!r} is not an identifier; use "
-                                   f"letters, digits and '_' (not starting with a digit), e.g. {hint}")
+            wide = next((ch for ch in v if ord(ch) > 127), None)
+            if wide is not None:     # a letter to Python, but names are ASCII (columns, keys, other tools)
+                raise self.error(node, f"{_key(key, where)}: {what} {v!r} has the non-ASCII character "
+                                       f"{wide!r}; names are ASCII only: letters A-Z and a-z, digits and '_' "
+                                       f"(not starting with a digit), e.g. {hint}")
+            raise self.error(node, f"{_key(key, where)}: {what} {v!r} is not an identifier; use ASCII "
+                                   f"letters (A-Z, a-z), digits and '_' (not starting with a digit), e.g. {hint}")
         return v
 
     def number(self, node: Node, key: str, where: str, hint: str, *, positive: bool = False,

@@ -1,7 +1,9 @@
 """How a study becomes runs: the grid's points, the PlanSpec of every run, and the FMU checked against the study before any run."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -196,22 +198,54 @@ def grid_points(study: Study) -> list[dict[str, float]]:
     return [dict(zip(names, map(float, vals))) for vals in zip(*[m.ravel() for m in mesh])]
 
 
+def _plain(v):
+    """A fixed value, input or option as JSON keeps it (floats as floats, so 300 and 300.0 compare equal)."""
+    if isinstance(v, (bool, str)) or v is None:
+        return v
+    if isinstance(v, int):
+        return v
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return repr(v)
+
+
+def spec_fingerprint(spec: PlanSpec, names: Sequence[str], fmu: str) -> dict:
+    """Everything of ``spec`` that decides a run's metrics, keyed so that a change reads in the study's
+    words: ``fmu`` (the digest ``fmu``), ``parameters`` (study name → [FMU variable, scale, offset]),
+    ``fixed``, ``scenario``, ``metrics`` (name → [output, reduce, scale, offset, missing_below,
+    settle_tol]), ``fmu_options``; every other field of the spec (one added later, say) under ``other``,
+    so that nothing that decides a run is left out. The spec's FMU path is not in it (the digest is)."""
+    # ``reuse`` (how an instance is brought back between runs) decides nothing: the reset check makes every
+    # way it picks give the run of a fresh instance
+    known = {"fmu_path", "varied", "scale", "offset", "fixed", "inputs", "outputs", "stop_time", "step",
+             "rules", "interface", "solver", "relative_tolerance", "step_size", "refine_factor", "reuse"}
+    fp: dict = {
+        "fmu": fmu,
+        "parameters": {n: [v, float(a), float(b)] for n, v, a, b in zip(names, spec.varied, spec.scale,
+                                                                          spec.offset)},
+        "fixed": {k: _plain(v) for k, v in spec.fixed},
+        "scenario": {"stop_time": float(spec.stop_time), "step": _plain(spec.step),
+                     "inputs": {k: _plain(v) for k, v in spec.inputs},
+                     "refine_factor": _plain(spec.refine_factor)},
+        "metrics": {r.name: [spec.outputs[r.column], r.reduce, float(r.scale), float(r.offset),
+                             _plain(r.missing_below), _plain(r.settle_tol)] for r in spec.rules},
+        "fmu_options": [spec.interface, spec.solver, _plain(spec.relative_tolerance), _plain(spec.step_size)],
+    }
+    other = {f.name: _plain(getattr(spec, f.name)) for f in dataclasses.fields(spec) if f.name not in known}
+    if other:
+        fp["other"] = other
+    return fp
+
+
+def fmu_digest(fmu_path: str | Path) -> str:
+    """The FMU's content digest (a folder: its resolved path)."""
+    path = Path(fmu_path)
+    return file_digest(path) if path.is_file() else str(path.resolve())
+
 
 def run_fingerprint(study: Study, fmu_path: str | Path) -> dict:
-    """Everything besides the study parameters that decides a run's metrics: the FMU's content, the fixed
-    values, the scenario, how each metric is read, how the FMU runs. A resumed study may reuse a stored run
-    only while this is unchanged. Constraints are not in it: feasibility is recomputed from the metrics."""
-    path = Path(fmu_path)
-    return {
-        "fmu": file_digest(path) if path.is_file() else str(path.resolve()),
-        "parameters": {n: [p.variable, float(p.scale), float(p.offset)] for n, p in study.parameters.items()},
-        "fixed": {k: (v if isinstance(v, (bool, int, str)) else float(v)) for k, v in study.fixed.items()},
-        "scenario": {"stop_time": float(study.scenario.stop_time), "step": study.scenario.step,
-                     "inputs": {k: float(v) for k, v in study.scenario.inputs.items()},
-                     "refine_peaks": bool(study.scenario.refine_peaks),
-                     "refine_factor": int(study.scenario.refine_factor)},
-        "metrics": {m.name: [m.output, m.reduce, float(m.scale), float(m.offset), m.missing_below, m.settle_tol]
-                    for m in study.metrics.values()},
-        "fmu_options": [study.fmu_options.interface, study.fmu_options.solver,
-                        study.fmu_options.relative_tolerance, study.fmu_options.step_size],
-    }
+    """Everything besides the study parameters' values that decides a run's metrics (see
+    :func:`spec_fingerprint`): a resumed study may reuse a stored run only while this is unchanged.
+    Constraints are not in it: feasibility is recomputed from the metrics."""
+    return spec_fingerprint(study_plan_spec(study, fmu_path), list(study.parameters), fmu_digest(fmu_path))

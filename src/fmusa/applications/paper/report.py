@@ -19,6 +19,7 @@ from fmusa.applications.paper import figures as PF
 from fmusa.applications.paper.deviations import deviations_section, ramp_section
 from fmusa.applications.paper.physics import PaperScenario
 from fmusa.format import fmt
+from fmusa.files import OutputError
 from fmusa.report import figures as F
 from fmusa.report import sections as S
 from fmusa.report.context import ReportContext, Section, get, pct
@@ -410,6 +411,8 @@ def figures(ctx: ReportContext) -> str:
     for step in _figure_steps(ctx, pv):
         try:
             made = step()
+        except OutputError:   # a full disk or a folder that cannot be written: the study's error, not a note
+            raise
         except Exception as exc:  # noqa: BLE001 - one figure must not cost the report
             ctx.notes.append(f"A figure could not be drawn: {type(exc).__name__}: {exc}")
             continue

@@ -17,6 +17,7 @@ import pandas as pd
 from fmusa.applications.shear_c67.data import DIRECTION_NAMES
 from fmusa.diagnose.rank import Thresholds
 from fmusa.diagnose.views import natural
+from fmusa.files import atomic_path, atomic_write
 
 __all__ = ["write_figures", "write_report", "RATE_COLORS"]
 
@@ -42,8 +43,11 @@ def _rate_colors(rates) -> dict[float, str]:
 def _save(fig, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110)
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -548,5 +552,5 @@ def write_report(summary: dict, cmp_: pd.DataFrame, out: Path, figs: list[Path])
     for p in figs:
         L.append(f"![{p.stem}](figures/{p.name})\n")
     path = Path(out) / "report.md"
-    path.write_text("\n".join(L), encoding="utf-8")
+    atomic_write(path, "\n".join(L))
     return path

@@ -26,6 +26,7 @@ from fmusa.diagnose.calibrate import ModelRunner, calibrate, fit_candidate
 from fmusa.diagnose.effects import CANDIDATES, data_scales
 from fmusa.diagnose.measured import MeasuredDataError
 from fmusa.diagnose.run import run_diagnosis
+from fmusa.files import atomic_path, atomic_write
 
 __all__ = ["fit_bilinear_per_test", "rate_dependence", "run_shear_diagnosis", "describe_data", "summarize"]
 
@@ -197,8 +198,9 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     data["diagnosed_tests"] = int(tests.specimen.isin(chosen).sum())
     summary = summarize(groups, cmp_, data)
     summary["rate_models"] = rate_models
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default), encoding="utf-8")
-    cmp_.drop(columns=["model_k1_ci"]).to_csv(out / "bilinear_comparison.csv", index=False, encoding="utf-8")
+    atomic_write(out / "summary.json", json.dumps(summary, indent=2, default=_json_default))
+    with atomic_path(out / "bilinear_comparison.csv") as tmp:
+        cmp_.drop(columns=["model_k1_ci"]).to_csv(tmp, index=False, encoding="utf-8")
     figs = shear_report.write_figures(summary, cmp_, out)
     shear_report.write_report(summary, cmp_, out, figs)
     return summary
