@@ -98,7 +98,7 @@ class StudyRunner:
             a, b = check_points(study, spec)
             self.reuse = preflight(self.evaluator.check_spec(), a, b, isolate=self.evaluator.supervised_only,
                                    timeout_s=study.execution.timeout_s, digest=str(self.fingerprint.get("fmu")),
-                                   start_method=study.execution.start_method)
+                                   start_method=study.execution.start_method, name=str(fmu_path))
             self.evaluator.set_reuse(self.reuse.mode)
             self.spec = replace(spec, reuse=self.reuse.mode)
             self.store = RunStore(out / "runs.csv", self.params, self.metrics, study.constraints, resume=resume,

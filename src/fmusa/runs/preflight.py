@@ -33,6 +33,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fmusa.errors import FmusaError
+from fmusa.files import atomic_write
 from fmusa.fmi.info import FMUError, read_fmu_info, select_interface
 from fmusa.runs.spec import PlanSpec, plan_for, release_plan, runner_for
 
@@ -416,20 +417,29 @@ def _write_cached(key: str, verdict: ReuseVerdict) -> None:
     folder = cache_dir()
     _MEMORY[str(folder), key] = verdict
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = folder / f".reuse-{key}.{os.getpid()}.tmp"
-        tmp.write_text(json.dumps(verdict.as_dict()), encoding="utf-8")
-        os.replace(tmp, folder / f"reuse-{key}.json")
+        atomic_write(folder / f"reuse-{key}.json", json.dumps(verdict.as_dict()))
     except OSError:     # a cache that cannot be written costs the check next time, nothing else
         pass
 
 
 def preflight(spec: PlanSpec, a: Sequence[float], b: Sequence[float], *, isolate: bool,
               timeout_s: float | None = None, digest: str | None = None, cache: bool = True,
-              start_method: str | None = None) -> ReuseVerdict:
+              start_method: str | None = None, name: str | None = None) -> ReuseVerdict:
     """Load the FMU and find how its runs must be made (:func:`check_reuse`), in a child process when
     ``isolate`` (an FMU not our own; else on this process's RunPlan for ``spec``, which its runs here then
-    use), the verdict cached under the FMU's ``digest`` and the run set-up."""
+    use), the verdict cached under the FMU's ``digest`` and the run set-up. ``name``: the FMU as the user
+    gave it, which an error names (``spec.fmu_path`` may be the folder it was unpacked into)."""
+    try:
+        return _preflight(spec, a, b, isolate, timeout_s, digest, cache, start_method)
+    except (FMULoadError, FMUReuseError) as exc:
+        if name is None or str(exc).startswith(name):
+            raise
+        raise type(exc)(f"{name}{str(exc)[len(spec.fmu_path):]}" if str(exc).startswith(spec.fmu_path)
+                        else f"{name}: {exc}") from None
+
+
+def _preflight(spec: PlanSpec, a: Sequence[float], b: Sequence[float], isolate: bool, timeout_s: float | None,
+               digest: str | None, cache: bool, start_method: str | None) -> ReuseVerdict:
     key = _cache_key(spec, digest, a, b) if (cache and digest) else None
     if key is not None:
         hit = _read_cached(key)
