@@ -105,7 +105,7 @@ EFFECTS = ("none", "backlash_gap", "nonlinear_stiffness", "yield_softening", "co
 #: main parameter of every effect (sensor_offset: depends on the drive, see ``main_parameter``)
 MAIN_PARAMETER = {"none": None, "backlash_gap": "gap", "nonlinear_stiffness": "nl_ratio",
                   "yield_softening": "yield_F", "coulomb_friction": "fric_F",
-                  "viscoelastic_relaxation": "ve_tau", "interface_damage": "dmg_y0",
+                  "viscoelastic_relaxation": "ve_tau", "interface_damage": "dmg_F_res",
                   "sensor_offset": {"displacement": "F_offset", "force": "y_offset"}}
 
 DRIVES = ("displacement", "force")

@@ -20,7 +20,7 @@ __all__ = ["CANDIDATES", "SEPARATING_TESTS", "UNITS", "MAIN_PARAMETER", "Diagnos
            "equivalent_by_construction", "equivalent_parameters", "equivalent_intervals", "BASELINE_LOOK_ALIKES"]
 
 CANDIDATES = ("nonlinear_stiffness", "viscoelastic_relaxation", "coulomb_friction", "yield_softening",
-              "backlash_gap", "sensor_offset")
+              "backlash_gap", "sensor_offset", "interface_damage")
 
 # Which measurement tells two candidates apart when the data could not.
 SEPARATING_TESTS = {
@@ -55,6 +55,22 @@ SEPARATING_TESTS = {
         "unload to zero: a yield set remains in displacement, an offset stays constant in the channel",
     frozenset({"backlash_gap", "viscoelastic_relaxation"}):
         "hold the displacement: relaxation shows, slack does not",
+    frozenset({"interface_damage", "yield_softening"}):
+        "unload after the peak: a damaged interface unloads on the secant to the origin (no permanent set), "
+        "a yielded one with its elastic stiffness and keeps a set; on loading alone both soften past a force",
+    frozenset({"interface_damage", "coulomb_friction"}):
+        "unload after the peak: friction drops by twice its force at the reversal and opens a loop, a damaged "
+        "interface unloads on the secant to the origin without a jump",
+    frozenset({"interface_damage", "nonlinear_stiffness"}):
+        "unload after the peak and reload: a bend retraces loading, damage unloads on a lower secant and "
+        "reloads on it up to the largest displacement reached",
+    frozenset({"interface_damage", "viscoelastic_relaxation"}):
+        "hold the displacement or test at a second rate: relaxation depends on time, damage on the largest "
+        "displacement reached",
+    frozenset({"interface_damage", "backlash_gap"}):
+        "unload to zero and reload: slack shows at every reloading from zero, damage only lowers the secant",
+    frozenset({"interface_damage", "sensor_offset"}):
+        "read the channels at rest before loading, and unload: a damaged interface carries no force at zero",
     frozenset({"backlash_gap", "coulomb_friction"}):
         "reverse the motion at a load well above zero: friction drops by twice its force, slack does not",
 }
@@ -142,11 +158,13 @@ def equivalent_intervals(effect: str, params: dict, ci95: dict, other: str) -> d
 
 
 UNITS = {"c_y": "N/m", "d_y": "N.s/m", "gap": "m", "nl_ratio": "1", "nl_y_b": "m", "yield_ratio": "1",
-         "yield_F": "N", "fric_F": "N", "fric_x": "m", "ve_k": "N/m", "ve_tau": "s", "F_offset": "N", "y_offset": "m"}
+         "yield_F": "N", "fric_F": "N", "fric_x": "m", "ve_k": "N/m", "ve_tau": "s", "F_offset": "N", "y_offset": "m",
+         "dmg_y0": "m", "dmg_rate": "1/m", "dmg_F_res": "N"}
 
 MAIN_PARAMETER = {"nonlinear_stiffness": "nl_ratio", "viscoelastic_relaxation": "ve_tau",
                   "coulomb_friction": "fric_F", "yield_softening": "yield_F", "backlash_gap": "gap",
-                  "sensor_offset": None}   # F_offset or y_offset, by drive
+                  "sensor_offset": None,   # F_offset or y_offset, by drive
+                  "interface_damage": "dmg_F_res"}
 
 
 class DiagnoseError(FmusaError, ValueError):
@@ -237,6 +255,11 @@ def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
             taus = taus + (min(max(0.3 * sc.t_min, tau_lo), tau_hi),)
         return base + [Param("ve_k", 0.0, 20.0 * c0, (0.3 * c0, 1.0 * c0)),
                        Param("ve_tau", tau_lo, tau_hi, taus, log=True)]
+    if effect == "interface_damage":
+        # onset within the data, softening over 0.3 to 10 times the span past it, residual up to the peak
+        return base + [Param("dmg_y0", 0.05 * y_pk, 0.95 * y_pk, (0.3 * y_pk, 0.6 * y_pk), log=True),
+                       Param("dmg_rate", 0.1 / y_pk, 100.0 / y_pk, (3.0 / y_pk,), log=True),
+                       Param("dmg_F_res", 0.0, 1.2 * F_pk, (0.2 * F_pk,))]
     if effect == "sensor_offset":
         if drive == "displacement":
             return base + [Param("F_offset", -0.5 * F_pk, 0.5 * F_pk, (0.0,))]

@@ -174,7 +174,10 @@ def choose_effect(ranking: list[dict], th: Thresholds = Thresholds(),
 PROTOCOL_FEATURES = {
     "unloading": (frozenset({"nonlinear_stiffness", "yield_softening"}),
                   frozenset({"nonlinear_stiffness", "coulomb_friction"}),   # friction is yield (same equations)
-                  frozenset({"coulomb_friction", "sensor_offset"})),
+                  frozenset({"coulomb_friction", "sensor_offset"}),
+                  frozenset({"interface_damage", "yield_softening"}),
+                  frozenset({"interface_damage", "coulomb_friction"}),
+                  frozenset({"interface_damage", "nonlinear_stiffness"})),
     "several_rates_or_hold": (frozenset({"viscoelastic_relaxation", "nonlinear_stiffness"}),
                               frozenset({"viscoelastic_relaxation", "yield_softening"}),
                               frozenset({"viscoelastic_relaxation", "coulomb_friction"})),

@@ -42,6 +42,9 @@ PARAM_MEANING = {
     "ve_tau": "relaxation time of the Maxwell branch",
     "F_offset": "bias of the force channel",
     "y_offset": "bias of the displacement channel",
+    "dmg_y0": "onset displacement of the interface damage (largest displacement reached)",
+    "dmg_rate": "softening rate of the damage per displacement past the onset",
+    "dmg_F_res": "residual force of the failed interface (friction plateau)",
 }
 
 #: What each effect means physically (fmu/MODEL.md, "Effects beyond eq. 1").
@@ -56,6 +59,8 @@ EFFECT_MEANING = {
                        "a permanent set after unloading",
     "backlash_gap": "slack: no force until the displacement passes a gap",
     "sensor_offset": "a constant bias in the measured channel",
+    "interface_damage": "the interface fails: past an onset displacement its strength drops towards a residual "
+                        "(friction) force, and it unloads and reloads on the secant to the origin",
 }
 
 

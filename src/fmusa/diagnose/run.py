@@ -50,7 +50,15 @@ def _structure(fit: Fit, experiments: Sequence, drive: str) -> dict:
         offset += len(e.t)
     t_all = np.concatenate([e.t for e in experiments])
     r = np.concatenate([pr - e.response_signal for pr, e in zip(fit.predictions, experiments)])
-    return rs.residual_structure(t_all, r, segments=segments, unit="N" if drive == "displacement" else "m")
+    meas = np.concatenate([np.asarray(e.response_signal, float) for e in experiments])
+    # where a misfit is: along the drive channel, in mm or N
+    if drive == "displacement":
+        x, x_unit, x_name, resp = np.concatenate([e.displacement for e in experiments]) * 1e3, "mm", \
+            "displacement", "force"
+    else:
+        x, x_unit, x_name, resp = np.concatenate([e.force for e in experiments]), "N", "force", "displacement"
+    return rs.residual_structure(t_all, r, segments=segments, unit="N" if drive == "displacement" else "m",
+                                 x=x, x_unit=x_unit, x_name=x_name, measured=meas, response=resp)
 
 
 def _fit_summary(f: Fit) -> dict:
