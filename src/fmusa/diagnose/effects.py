@@ -16,7 +16,7 @@ import numpy as np
 from fmusa.errors import FmusaError
 
 __all__ = ["CANDIDATES", "SEPARATING_TESTS", "UNITS", "MAIN_PARAMETER", "DiagnoseError", "Param", "Scales",
-           "data_scales", "model_parameters", "main_parameter", "separating_test", "EQUIVALENT_BY_CONSTRUCTION",
+           "data_scales", "constant_rate", "model_parameters", "main_parameter", "separating_test", "EQUIVALENT_BY_CONSTRUCTION",
            "equivalent_by_construction", "equivalent_parameters", "equivalent_intervals", "BASELINE_LOOK_ALIKES"]
 
 CANDIDATES = ("nonlinear_stiffness", "viscoelastic_relaxation", "coulomb_friction", "yield_softening",
@@ -199,6 +199,8 @@ class Scales:
     t_min: float
     t_max: float
     dt_min: float
+    #: the damping the rate content of the data asks for: the least-squares d of F - c0 y on v, in [0, d_max]
+    d0: float = 0.0
 
 
 def data_scales(experiments: Sequence) -> Scales:
@@ -214,8 +216,37 @@ def data_scales(experiments: Sequence) -> Scales:
     c0 = abs(float(np.dot(ys, Fs) / np.dot(ys, ys)))
     durations = [float(e.t[-1] - e.t[0]) for e in experiments]
     dt_min = min(float(np.min(np.diff(e.t))) for e in experiments)
-    return Scales(y_pk=y_pk, F_pk=F_pk, v_pk=v_pk, c0=c0 if c0 > 0 else F_pk / y_pk,
-                  t_min=min(durations), t_max=max(durations), dt_min=dt_min)
+    c0 = c0 if c0 > 0 else F_pk / y_pk
+    # damping from the rate content: what of the force the secant spring leaves, projected on the velocity
+    vs = np.concatenate([np.gradient(e.displacement, e.t) for e in experiments])
+    vv = float(np.dot(vs, vs))
+    d0 = float(np.dot(Fs - c0 * ys, vs) / vv) if vv > 0 else 0.0
+    d0 = min(max(d0, 0.0), 2.0 * F_pk / v_pk) if math.isfinite(d0) else 0.0
+    return Scales(y_pk=y_pk, F_pk=F_pk, v_pk=v_pk, c0=c0, t_min=min(durations), t_max=max(durations),
+                  dt_min=dt_min, d0=d0)
+
+
+def constant_rate(experiments: Sequence, tol: float = 0.05) -> dict | None:
+    """Whether every test drives at one constant rate (one direction, the same rate in all): then the damping
+    force d_y*v is a constant, which no fit can tell from an offset or a friction force. Returns the rate
+    (SI, of the drive channel) and why, or None when the rate varies (a hold, an unloading, a second rate)."""
+    rates = []
+    for e in experiments:
+        u = np.asarray(e.drive_signal, float)
+        du = np.diff(u) / np.diff(e.t)
+        if du.size < 3:
+            return None
+        med = float(np.median(du))
+        if med == 0 or float(np.mean(np.abs(du - med) <= tol * abs(med))) < 0.9:
+            return None
+        rates.append(med)
+    if not rates or max(rates) - min(rates) > tol * max(abs(r) for r in rates):
+        return None
+    return {"rate": float(np.median(rates)),
+            "why": "the drive has one constant rate, so the damping force d_y*v is a constant that no fit can "
+                   "tell from a force offset (or a friction force): d_y is held at 0",
+            "identifying_test": "a test at a second rate (the damping force scales with it) or a hold (it "
+                                "vanishes)"}
 
 
 def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
@@ -228,8 +259,9 @@ def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
         return out
     c0, y_pk, F_pk = sc.c0, sc.y_pk, sc.F_pk
     d_max = 2.0 * F_pk / sc.v_pk
+    # starts: the secant stiffness of the data, the damping its rate content asks for (at least a trace)
     base = [Param("c_y", c0 / 100, c0 * 100, (c0,), log=True),
-            Param("d_y", 0.0, d_max, (0.001 * d_max,))]
+            Param("d_y", 0.0, d_max, (min(max(sc.d0, 0.001 * d_max), d_max),))]
     if effect == "none":
         return base
     if effect == "backlash_gap":

@@ -108,6 +108,15 @@ def _describe_structure(st: Mapping | None, unit: str, f: float) -> str:
         return str(st.get("description") or "white: no structure beyond noise")
     parts = []
     osc, drift = st.get("oscillation"), st.get("drift")
+    mis = st.get("misfit")
+    if mis:
+        xu = st.get("x_unit") or ""
+        parts.append(f"the model is {fmt(mis['size_low'] * f)}–{fmt(mis['size_high'] * f)} {unit} "
+                     f"{'above' if mis['sign'] > 0 else 'below'} the data from {fmt(mis['x_start'])} {xu} to "
+                     f"{fmt(mis['x_end'])} {xu} of {st.get('x_name') or 'displacement'}"
+                     + (f" (experiment {mis['experiment'] + 1})" if st.get("n_segments", 1) > 1 else "")
+                     + (f", where the measured {st.get('response') or 'response'} falls"
+                        if mis.get("response_falls") else ""))
     if osc:
         parts.append(f"an oscillation at {fmt(osc['frequency_hz'])} Hz (period {fmt(1 / osc['frequency_hz'])} s) "
                      f"of amplitude {fmt(osc['amplitude'] * f)} {unit}, "
@@ -117,7 +126,7 @@ def _describe_structure(st: Mapping | None, unit: str, f: float) -> str:
         parts.append(f"a drift of {drift['total_change'] * f:+.3g} {unit} {over} "
                      f"({fmt(drift['slope_per_s'] * f)} {unit}/s, {100 * drift['share_of_variance']:.0f} % of "
                      f"the residual variance)")
-    if not parts:
+    if not osc and not drift:
         rho, z = st.get("lag1_autocorrelation", float("nan")), st.get("runs_z", float("nan"))
         if (z < 0) or (rho > 0):
             parts.append(f"a slowly varying systematic error (lag-1 autocorrelation {rho:.2f}, runs test "
@@ -374,8 +383,8 @@ def _leftover_text(diag: Mapping, unit: str, f: float) -> str:
                 f"{unit} in all, p = {p_text(drift.get('p_value'))}) may be a sensor drift, temperature, or a slow "
                 "effect none of the candidates has.")
     if not osc and not drift:
-        out += (" It is neither a single oscillation nor a drift: a systematic error the candidates "
-                "do not describe, or two effects at once.")
+        out += (" It is neither an oscillation (none recurs over three periods or more) nor a drift: a "
+                "systematic error the candidates do not describe, or a further effect.")
     return out + "\n"
 
 
@@ -480,6 +489,35 @@ def _warnings_section(diag: Mapping) -> str:
                   "for the data as read.\n")
 
 
+def _fit_checks_section(diag: Mapping) -> str:
+    """What the fits could not decide or where they stopped: a parameter held (the damping under one constant
+    rate) and the test that would identify it, the baseline against the straight line through the data, and
+    every parameter left at a bound."""
+    lines = []
+    base = diag.get("baseline") or {}
+    for name, h in (base.get("held") or {}).items():
+        lines.append(f"- `{name}` held at {fmt(h.get('value', 0.0))}: {h.get('why', '')}. The test that would "
+                     f"identify it: {h.get('identifying_test', '')}.")
+    line = diag.get("straight_line")
+    if line:
+        _, unit, f = response_channel(diag)
+        c, u = natural("c_y", line["c_y"])
+        verdict = "not worse" if line.get("baseline_not_worse") else "WORSE (a fit that failed: see the caveats)"
+        lines.append(f"- The fitted baseline (RMSE {fmt(base.get('rmse', float('nan')) * f)} {unit}) is {verdict} "
+                     f"than the straight line through the origin with the secant stiffness {fmt(c)} {u} (RMSE "
+                     f"{fmt(line['rmse'] * f)} {unit}).")
+    for label, summary in (("baseline", base), ("extended model", diag.get("extended") or {})):
+        if label == "extended model" and diag.get("effect") == "none":
+            continue
+        for b in summary.get("at_bounds") or []:
+            v, u = natural(b["name"], b["value"])
+            lim, _ = natural(b["name"], b["limit"])
+            lines.append(f"- The {label}'s fit stopped at the {b['bound']} bound of `{b['name']}` ({fmt(v)} {u}, "
+                         f"bound {fmt(lim)} {u}): no optimum inside the range; the value is a limit, not an "
+                         f"estimate.")
+    return "## Fit checks\n\n" + "\n".join(lines) + "\n" if lines else ""
+
+
 def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) -> Path:
     """``out_dir/report.md``: the data, the named effect and why, parameters with intervals, the ranking, the
     residual diagnosis before and after, look-alike candidates, caveats and the figures."""
@@ -493,7 +531,7 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
              f"candidate effect ({len(diag.get('ranking') or [])} candidates); the effect is named only when "
              f"its gain is significant.\n",
              _warnings_section(diag),
-             _data_section(diag, experiments), _verdict_section(diag), _params_section(diag),
+             _data_section(diag, experiments), _verdict_section(diag), _params_section(diag), _fit_checks_section(diag),
              _ranking_section(diag), _residual_section(diag, experiments), _ties_section(diag),
              _caveats_section(diag)]
     if figures:

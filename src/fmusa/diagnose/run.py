@@ -21,8 +21,8 @@ import numpy as np
 
 from fmusa.diagnose import residuals as rs
 from fmusa.diagnose.calibrate import MIN_EXPERIMENTS_LEFT_OUT, Fit, unify_equivalent
-from fmusa.diagnose.effects import (CANDIDATES, UNITS, DiagnoseError, data_scales, equivalent_parameters,
-                                    main_parameter, model_parameters)
+from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, UNITS, DiagnoseError, data_scales,
+                                    equivalent_parameters, main_parameter, model_parameters)
 from fmusa.diagnose.fitcache import data_key, run_fits
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
 from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members,
@@ -68,7 +68,39 @@ def _fit_summary(f: Fit) -> dict:
            "aic": f.aic, "bic": f.bic, "k": f.k, "n": f.n}
     if f.mapped_from:
         out.update(mapped_from=f.mapped_from, own=f.own)
+    out["at_bounds"] = [dict(b, unit=UNITS.get(b["name"], "")) for b in f.at_bounds]
+    out["held"] = dict(f.held)
     return out
+
+
+def damping_look_alikes(base: Fit, members: Sequence[str], effect: str) -> list[dict]:
+    """With d_y held at 0 (a drive of one constant rate), a named effect that adds a constant force on such a
+    ramp (friction, a fast Maxwell branch, a force offset) may be the damping force: say so, with the test."""
+    if effect == "none" or "d_y" not in base.held:
+        return []
+    out = []
+    for m in members:
+        la = BASELINE_LOOK_ALIKES.get(m)
+        if la:
+            out.append({"effect": "damping d_y (held at 0)", "of": m,
+                        "reason": f"cannot tell, because {base.held['d_y']['why']}; and {la['why']}",
+                        "separating_test": la["separating_test"]})
+            break
+    return out
+
+
+def straight_line(experiments: Sequence, drive: str) -> dict:
+    """The straight line through the origin that fits the response best (the secant stiffness): a fitted
+    baseline must never be worse (it holds this line at d_y = 0)."""
+    ys = np.concatenate([np.asarray(e.displacement, float) for e in experiments])
+    Fs = np.concatenate([np.asarray(e.force, float) for e in experiments])
+    if drive == "displacement":
+        c = float(np.dot(ys, Fs) / np.dot(ys, ys))
+        r = c * ys - Fs
+    else:
+        c = float(np.dot(Fs, Fs) / np.dot(ys, Fs))
+        r = Fs / c - ys
+    return {"c_y": c, "rmse": float(np.sqrt(np.mean(r ** 2)))}
 
 
 def response_range(experiments: Sequence) -> float:
@@ -129,6 +161,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     base = results["none"]
     if not isinstance(base, Fit):
         raise FMURunError(f"the baseline could not be fitted: {base}")
+    line = straight_line(experiments, drive)
+    line["baseline_not_worse"] = bool(base.rmse <= line["rmse"] * (1 + 1e-3) + 1e-12 * sc.F_pk)
     # the same equations under two parametrisations are scored as one model
     fits = unify_equivalent({n: r for n, r in results.items() if n != "none" and isinstance(r, Fit)})
     ranking = rank_candidates(base, fits, thresholds, response_range(experiments))
@@ -156,11 +190,13 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "effect_params": {n: {"value": ext.params[n], "ci95": list(ext.ci95[n]), "unit": UNITS.get(n, "")}
                           for n in eff_names},
         "baseline": _fit_summary(base),
+        "straight_line": line,
         "extended": _fit_summary(ext),
         "gain": _gain(base, ext, effect),
         "ranking": ranking,
         "failed": {n: r for n, r in results.items() if not isinstance(r, Fit)},
-        "indistinguishable": indistinguishable(effect, ties, ranking, features, fits, drive),
+        "indistinguishable": indistinguishable(effect, ties, ranking, features, fits, drive)
+                             + damping_look_alikes(base, members, effect),
         "protocol": features,
         "residuals": {"baseline": res_base, "extended": res_ext},
         "leftover": res_ext.get("description", "") if res_ext.get("structured") else "",
