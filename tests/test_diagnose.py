@@ -44,7 +44,7 @@ CASES = [pytest.param(e, d, marks=pytest.mark.slow) if (e, d) == ("interface_dam
 def test_hidden_effect_is_named(effect, drive, fmu_path):
     seed = zlib.crc32(f"{effect}/{drive}".encode()) % 10_000
     e, truth = experiment(effect, drive, seed)
-    d = diagnose([e], drive, fmu_path=fmu_path, workers=2)
+    d = diagnose([e], drive, fmu_path=fmu_path, workers=2, chain=1)   # the chain: test_diagnose_chain.py
     ranking = {r["effect"]: (r["significant"], round(r["heldout_rmse_ratio"], 3), round(r["delta_bic"], 1))
                for r in d["ranking"]}
     # friction and yield are the same equations (EQUIVALENT_BY_CONSTRUCTION): both are named, as a group

@@ -246,7 +246,7 @@ def run_cell(cell: Cell, fmu: str, cache_root: str) -> dict:
     seed = seed_for(cell)
     exps, truth = _experiments(cell, seed)
     t0 = time.perf_counter()
-    d = diagnose(exps, cell.drive, fmu_path=fmu, workers=1, candidates=candidates(cell), max_starts=STARTS,
+    d = diagnose(exps, cell.drive, fmu_path=fmu, workers=1, candidates=candidates(cell), max_starts=STARTS, chain=1,
                  cache_dir=Path(cache_root) / re.sub(r"[^A-Za-z0-9]+", "_", cell.id))
     return {"cell": list(cell), "seed": seed, "seconds": time.perf_counter() - t0, "effect": d["effect"],
             "indistinguishable": [{k: i[k] for k in ("effect", "reason", "separating_test")}

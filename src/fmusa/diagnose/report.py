@@ -489,6 +489,41 @@ def _warnings_section(diag: Mapping) -> str:
                   "for the data as read.\n")
 
 
+def _chain_section(diag: Mapping) -> str:
+    """The chain of effects: each step's gain over the model before it, and the final model's parameters."""
+    steps = diag.get("chain") or []
+    if not steps:
+        return ""
+    _, unit, f = response_channel(diag)
+    rows = []
+    for i, s in enumerate(steps, 1):
+        g = s["gain"]
+        rows.append([str(i), f"`{s['effect']}`", f"{fmt(s['rmse'] * f)}", f"{fmt(s['heldout_rmse'] * f)}",
+                     ratio_text(g.get("rmse_ratio")), ratio_text(g.get("heldout_rmse_ratio")),
+                     delta_text(g.get("delta_bic")), p_text(g.get("p_value"))])
+    out = "## Chain of effects\n\n"
+    if len(steps) == 1:
+        out += (f"After `{steps[0]['effect']}`, every remaining candidate was tried on top of it: none passed the "
+                f"tests (significant and mattering against the model with `{steps[0]['effect']}`), so the chain "
+                f"stops at one effect.\n\n")
+    else:
+        out += ("After the first effect, every remaining candidate was tried on top of the model so far; the best "
+                "addition was kept while it passed the same tests as the first (significant and mattering). "
+                "Gains are against the model of the step before (the first against the baseline).\n\n")
+    out += _table(["step", "effect", f"RMSE [{unit}]", f"held-out RMSE [{unit}]", "RMSE ratio",
+                   "held-out ratio", "ΔBIC", "p"], rows) + "\n"
+    final = diag.get("final") or {}
+    if len(steps) > 1 and final.get("params"):
+        prow = []
+        for n, v in final["params"].items():
+            val, u = natural(n, v["value"])
+            lo, hi = natural(n, v["ci95"][0])[0], natural(n, v["ci95"][1])[0]
+            prow.append([f"`{n}`", PARAM_MEANING.get(n, ""), u or "–", f"{fmt(val, 4)} [{fmt(lo, 3)}, {fmt(hi, 3)}]"])
+        out += (f"\nFinal model: baseline + {' + '.join(f'`{e}`' for e in final['effects'])}:\n\n"
+                + _table(["parameter", "meaning", "unit", "value [95 %]"], prow) + "\n")
+    return out
+
+
 def _fit_checks_section(diag: Mapping) -> str:
     """What the fits could not decide or where they stopped: a parameter held (the damping under one constant
     rate) and the test that would identify it, the baseline against the straight line through the data, and
@@ -531,7 +566,7 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
              f"candidate effect ({len(diag.get('ranking') or [])} candidates); the effect is named only when "
              f"its gain is significant.\n",
              _warnings_section(diag),
-             _data_section(diag, experiments), _verdict_section(diag), _params_section(diag), _fit_checks_section(diag),
+             _data_section(diag, experiments), _verdict_section(diag), _params_section(diag), _chain_section(diag), _fit_checks_section(diag),
              _ranking_section(diag), _residual_section(diag, experiments), _ties_section(diag),
              _caveats_section(diag)]
     if figures:
