@@ -470,8 +470,9 @@ def _caveats_section(diag: Mapping) -> str:
     if diag["data"].get("heldout", "").startswith("4 contiguous"):
         out += ("- Held-out blocks are stretches of the tests the fit saw the rest of: a prediction into a "
                 "stretch the fit did not see, not a new test.\n")
-    out += ("- Every candidate is one effect added to the baseline; two effects at once are not fitted, and "
-            "the named effect is the single one that explains most.\n")
+    out += ("- Every candidate of the ranking is one effect added to the baseline, and the named effect is the "
+            "single one that explains most; further effects are tried on top of it in the chain (see Chain of "
+            "effects), one at a time, the best addition first.\n")
     if structured and "extended" not in structured:
         out += "- The baseline's residuals were structured; the extension removed that structure.\n"
     return out
