@@ -154,17 +154,22 @@ def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, floa
 
 
 def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence, sc: Scales,
-              max_starts: int = 6, max_nfev: int = 60, held: Sequence[str] = ()) -> Fit:
+              max_starts: int = 6, max_nfev: int = 60, held: Sequence[str] = (),
+              start: dict | None = None) -> Fit:
     """Multi-start bounded least squares of the response channel on all experiments jointly.
 
     ``held``: parameters of the model that are not fitted; ``model`` must have been built without them
-    (their values in its ``fixed``), and the fit's params, intervals and k leave them out."""
+    (their values in its ``fixed``), and the fit's params, intervals and k leave them out. ``start``: a first
+    start in natural units (e.g. from a direct fit of the data), tried before the generic ones."""
     params = [p for p in model_parameters(effect, drive, sc) if p.name not in held]
     scale = _response_scale(drive, sc)
     masks = [np.ones(len(e.t), bool) for e in experiments]
     fn = _residual_fn(model, params, experiments, masks, scale)
     lo, hi = _bounds(params)
     best, nfev, starts = None, 0, _starts(params, max_starts)
+    if start:
+        starts = [np.array([p.to_x(min(max(float(start.get(p.name, p.starts[0])), p.lower), p.upper))
+                            for p in params])] + starts
     for x0 in starts:
         res = _least_squares(fn, x0, lo, hi, max_nfev)
         nfev += res.nfev

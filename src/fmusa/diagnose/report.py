@@ -499,7 +499,7 @@ def _chain_section(diag: Mapping) -> str:
     rows = []
     for i, s in enumerate(steps, 1):
         g = s["gain"]
-        rows.append([str(i), f"`{s['effect']}`", f"{fmt(s['rmse'] * f)}", f"{fmt(s['heldout_rmse'] * f)}",
+        rows.append([f"#{i}", f"`{s['effect']}`", f"{fmt(s['rmse'] * f)}", f"{fmt(s['heldout_rmse'] * f)}",
                      ratio_text(g.get("rmse_ratio")), ratio_text(g.get("heldout_rmse_ratio")),
                      delta_text(g.get("delta_bic")), p_text(g.get("p_value"))])
     out = "## Chain of effects\n\n"

@@ -143,8 +143,18 @@ def _model_row(row: pd.Series, model: ModelRunner, damped: ModelRunner, max_poin
     force = abs(float(dfit.predictions[0][i_b]))
     extra = {}
     if toe is not None:
+        # first start: the two lines of the authors' rule on the raw record (their first local minimum of the
+        # squared error), so that the fit looks for the same breakpoint, not a farther one
+        two = bilinear.fit_two_lines(*shear_c67.load_raw(row))
+        y_b = abs(two["bp_mm"] / 1000.0 - x0)
+        c_s = abs(two["k1_N_mm"]) * 1000.0
+        yy, ff = np.abs(exp.displacement), np.abs(exp.force)
+        first = yy < y_b
+        off = float(np.mean(ff[first] - c_s * yy[first])) if first.any() else 0.0
+        start = {"c_y": c_s, "nl_ratio": abs(two["k2_N_mm"] / two["k1_N_mm"]) if two["k1_N_mm"] else 1.0,
+                 "nl_y_b": y_b, TOE_PARAM: off}
         tfit = calibrate(toe, f"nonlinear_stiffness+{TOE_EFFECT}", "displacement", [exp], sc,
-                         max_starts=max_starts, held=("d_y",))
+                         max_starts=max_starts, held=("d_y",), start=start)
         extra = {"toe_k1_N_mm": tfit.params["c_y"] / 1000.0,
                  "toe_k2_N_mm": tfit.params["c_y"] * tfit.params["nl_ratio"] / 1000.0,
                  "toe_gap_mm": 1000.0 * tfit.params["gap"] if TOE_PARAM == "gap" else float("nan"),
