@@ -66,10 +66,13 @@ int model_validate(const ModelInstance *mi, char *msg, size_t len)
                   fin[i], mi->v[fin_vr[i]]))
             return 1;
     {   /* the axial effects (MODEL.md): every one is off at its default */
-        static const char *const eff_nonneg[] = {"gap", "nl_y_b", "yield_ratio", "fric_F", "ve_k", NULL};
-        static const int eff_nonneg_vr[] = {VR_gap, VR_nl_y_b, VR_yield_ratio, VR_fric_F, VR_ve_k};
-        static const char *const eff_pos[] = {"nl_ratio", "yield_F", "fric_x", "ve_tau", "smooth_w", NULL};
-        static const int eff_pos_vr[] = {VR_nl_ratio, VR_yield_F, VR_fric_x, VR_ve_tau, VR_smooth_w};
+        static const char *const eff_nonneg[] = {"gap", "nl_y_b", "yield_ratio", "fric_F", "ve_k", "dmg_rate",
+                                                 "dmg_F_res", NULL};
+        static const int eff_nonneg_vr[] = {VR_gap, VR_nl_y_b, VR_yield_ratio, VR_fric_F, VR_ve_k, VR_dmg_rate,
+                                            VR_dmg_F_res};
+        static const char *const eff_pos[] = {"nl_ratio", "yield_F", "fric_x", "ve_tau", "smooth_w", "dmg_y0",
+                                              NULL};
+        static const int eff_pos_vr[] = {VR_nl_ratio, VR_yield_F, VR_fric_x, VR_ve_tau, VR_smooth_w, VR_dmg_y0};
         for (int i = 0; eff_nonneg[i]; i++)
             if (check(isfinite(mi->v[eff_nonneg_vr[i]]) && mi->v[eff_nonneg_vr[i]] >= 0.0, msg, len,
                       "parameter %s = %g is invalid: it must be finite and >= 0 (0 switches the effect off "
@@ -202,6 +205,7 @@ typedef struct {
     cplx ye, ve;      /* elastic displacement and its rate after the gap */
     cplx spring;      /* F_s */
     cplx fric, ve_F;  /* F_f, F_ve */
+    cplx damage;      /* the damage variable D in [0, 1) (0 when damage is off) */
 } Axial;
 
 /* The axial interface force F_y = F_s(y_e) + d_y v + F_f + F_ve and its parts, from the state u. */
@@ -228,6 +232,15 @@ static Axial axial_force(const ModelInstance *mi, const cplx *u)
         double yb = V(nl_y_b);
         a.spring += (V(nl_ratio) - 1.0) * V(c_y) * (softplus(a.ye - yb, w) - softplus(-a.ye - yb, w));
     }
+    a.damage = 0.0;
+    if (V(dmg_rate) > 0.0) {
+        /* interface damage: D = 1 - exp(-dmg_rate S(kappa - dmg_y0)) of the largest |y_e| reached (kappa),
+         * the spring scaled by 1 - D, plus D times the residual force on the secant to the origin */
+        double y0 = V(dmg_y0);
+        cplx past = softplus(u[IX_KD] - y0, w);
+        a.damage = 1.0 - cexp(-V(dmg_rate) * past);
+        a.spring = (1.0 - a.damage) * a.spring + a.damage * V(dmg_F_res) * a.ye / (y0 + past);
+    }
     a.fric = V(fric_F) > 0.0 ? V(fric_F) * u[IX_ZF] : 0.0;
     a.ve_F = V(ve_k) > 0.0 ? u[IX_FVE] : 0.0;
     return a;
@@ -240,6 +253,12 @@ static void effect_rates(const ModelInstance *mi, const cplx *u, const Axial *a,
     du[IX_ZY] = V(yield_ratio) != 1.0 ? bouc_wen(u[IX_ZY], a->ve, V(yield_F) / V(c_y)) : 0.0;
     du[IX_ZF] = V(fric_F) > 0.0 ? bouc_wen(u[IX_ZF], v, V(fric_x)) : 0.0;
     du[IX_FVE] = V(ve_k) > 0.0 ? V(ve_k) * v - u[IX_FVE] / V(ve_tau) : 0.0;
+    du[IX_KD] = 0.0;
+    if (V(dmg_rate) > 0.0) {
+        /* kappa follows |y_e| while it grows beyond it: kappa' = max(0, sgn(y_e) v_e) sigma(|y_e| - kappa) */
+        cplx sv = creal(a->ye) >= 0.0 ? a->ve : -a->ve, aye = creal(a->ye) >= 0.0 ? a->ye : -a->ye;
+        if (creal(sv) > 0.0) du[IX_KD] = sv * sigmoid(aye - u[IX_KD], V(smooth_w));
+    }
 }
 
 /* ------------------------------------------------------------------ small complex algebra */
@@ -583,6 +602,7 @@ static int update_outputs(ModelInstance *mi, char *msg, size_t len)
     V(F_y) = creal(ax.spring) + V(d_y) * u[IX_VY] + creal(ax.fric) + creal(ax.ve_F);
     V(F_fric) = creal(ax.fric);
     V(F_ve) = creal(ax.ve_F);
+    V(dmg_D) = creal(ax.damage);
     V(y_meas) = u[IX_Y] + V(y_offset);
     V(F_z) = V(c_z) * u[2] + V(d_z) * u[8];
     V(T_alpha) = V(c_alpha) * u[3] + V(d_alpha) * u[9];
@@ -677,7 +697,7 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->max_steps = (long)V(max_steps);
     sv->max_wall_s = V(max_wall_s);
     sv->lin2 = (int)V(mode) == 1 && V(tab_n) < 2.0 && V(gap) == 0.0 && V(yield_ratio) == 1.0 &&
-               V(nl_ratio) == 1.0 && V(fric_F) == 0.0 && V(ve_k) == 0.0;
+               V(nl_ratio) == 1.0 && V(fric_F) == 0.0 && V(ve_k) == 0.0 && V(dmg_rate) == 0.0;
     sv->eps_v = V(eps_v_eq);
     sv->eps_a = V(eps_a_eq);
     sv->rhs = rhs;

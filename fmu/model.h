@@ -23,8 +23,9 @@ typedef struct {
 const VarInfo *model_variable(unsigned int vr);
 
 /* State vector: q = (x, y, z, alpha, beta, gamma), then dq/dt, then the states of the axial effects
- * (MODEL.md): the Bouc-Wen variables of yield and friction and the Maxwell branch force. */
-enum { NQ = 6, NX = 15, IX_Y = 1, IX_VY = 7, IX_ZY = 12, IX_ZF = 13, IX_FVE = 14 };
+ * (MODEL.md): the Bouc-Wen variables of yield and friction, the Maxwell branch force and the largest
+ * elastic displacement reached (interface damage). */
+enum { NQ = 6, NX = 16, IX_Y = 1, IX_VY = 7, IX_ZY = 12, IX_ZF = 13, IX_FVE = 14, IX_KD = 15 };
 
 typedef struct ModelInstance {
     double v[N_VR];          /* every variable by value reference (Integer and Boolean as 0/1 doubles) */

@@ -42,6 +42,10 @@
 //    y_Y = yield_F/c_y (yield), and der(z_f) = (v_y/fric_x)*(1 - H(z_f*v_y)*z_f^4), F_fric = fric_F*z_f
 //    (Coulomb friction with pre-sliding); H(x) = 1 for x > 0, else 0;
 //  - Maxwell branch, 0 at the start: der(F_ve) = ve_k*v_y - F_ve/ve_tau;
+//  - interface damage (dmg_rate > 0): kappa, 0 at the start, follows the largest |y_e| reached,
+//    der(kappa) = max(0, sign(y_e)*v_e)*sigma(|y_e| - kappa); D = 1 - exp(-dmg_rate*S(kappa - dmg_y0));
+//    the spring becomes (1 - D)*F_s + D*dmg_F_res*y_e/(dmg_y0 + S(kappa - dmg_y0)) (a softening to the
+//    residual force, unloading and reloading on the secant to the origin);
 //  - total axial force F_y = F_s + d_y*v_y + F_fric + F_ve; measured outputs F_meas = F_pull + F_offset,
 //    y_meas = y + y_offset (sensor bias, the physics is unchanged).
 //  As in the FMU, the states z_y and z_f keep a zero rate while their effect is off.
@@ -56,7 +60,7 @@
 //  - The Bouc-Wen switch H(z*v) is written with noEvent inside smooth(0, ...): the rates of z_y and z_f
 //    are continuous in z and v, so no event is needed (the FMU's solver does not locate the switch
 //    either). The effect states z_y, z_f, F_ve are states of the Modelica model (protected z_y, z_f;
-//    output F_ve); the FMU carries them as its solver states 13-15.
+//    output F_ve) and kappa (protected); the FMU carries them as its solver states 13-16.
 model ScrewVertebra
   "Rigid pedicle/anchor screw (6 DOF) in a fixed C4 vertebra joined by a diagonal spring-damper matrix force element (Kramer and Bauer, eq. 1)"
 
@@ -131,6 +135,9 @@ model ScrewVertebra
   parameter Real F_offset(unit="N") = 0 "Sensor offset: bias added to the measured force F_meas";
   parameter Real y_offset(unit="m") = 0 "Sensor offset: bias added to the measured displacement y_meas";
   parameter Real smooth_w(unit="m") = 1e-06 "Width over which the corners of the gap and the breakpoint are rounded";
+  parameter Real dmg_rate(unit="1/m") = 0 "Interface damage: softening rate per metre of displacement past the onset, D = 1 - exp(-dmg_rate*(kappa - dmg_y0)) (0: off)";
+  parameter Real dmg_y0(unit="m") = 0.0005 "Interface damage: onset displacement (the largest |y| reached before damage starts)";
+  parameter Real dmg_F_res(unit="N") = 0 "Interface damage: residual force of the fully damaged interface (friction plateau)";
 
   // Inputs
   input Real F_ext_x(unit="N", start=0) "External force at the screw head along x (vertebra frame)";
@@ -178,6 +185,7 @@ model ScrewVertebra
   output Real y_meas(unit="m") "Measured displacement: y + y_offset";
   output Real F_fric(unit="N") "Friction part of the axial interface force";
   output Real F_ve(unit="N") "Maxwell branch part of the axial interface force";
+  output Real dmg_D(unit="1") "Interface damage: the damage variable D (0 undamaged, towards 1 failed)";
 
 protected
   function tableForce
@@ -251,6 +259,8 @@ protected
   Real v_e(unit="m/s") "Rate of y_e";
   Real z_y(unit="1") "Bouc-Wen yield state";
   Real z_f(unit="1") "Bouc-Wen friction state";
+  Real kappa(unit="m") "Largest elastic displacement |y_e| reached (interface damage)";
+  Real F_spring_u(unit="N") "Axial spring force before damage";
   final parameter Real y_Y(unit="m") = yield_F/c_y "Yield displacement of the Bouc-Wen yield state";
   final parameter Boolean yield_on = yield_ratio < 1 or yield_ratio > 1 "Yield softening switched on";
   Real F_load(unit="N") "Pullout force of the force-driven load case";
@@ -282,6 +292,7 @@ initial equation
   z_y = 0;
   z_f = 0;
   F_ve = 0;
+  kappa = 0;
 
 initial algorithm
   for i in 2:tab_n loop
@@ -337,7 +348,7 @@ equation
   // Spring: yield softening replaces c_y*y_e (or the table force) by yield_ratio*F_el +
   // (1 - yield_ratio)*yield_F*z_y; bilinear stiffness adds (nl_ratio - 1)*c_y past the breakpoint.
   F_el = if tab_n >= 2 then tableForce(y_e, tab_n, tab_y, tab_F) else c_y*y_e;
-  F_spring_y = yield_ratio*F_el + (1 - yield_ratio)*yield_F*z_y
+  F_spring_u = yield_ratio*F_el + (1 - yield_ratio)*yield_F*z_y
     + (nl_ratio - 1)*c_y*(softplus(y_e - nl_y_b, smooth_w) - softplus(-y_e - nl_y_b, smooth_w));
   // Bouc-Wen, n = 4: the rate is continuous in (z, v), so the switch H(z*v) needs no event
   der(z_y) = if yield_on then
@@ -347,6 +358,12 @@ equation
       smooth(0, v_y/fric_x*(1 - (if noEvent(z_f*v_y > 0) then z_f^4 else 0)))
     else 0;
   F_fric = fric_F*z_f;
+  // Interface damage: kappa follows the largest |y_e| reached; the spring softens to the residual force
+  der(kappa) = if dmg_rate > 0 then
+      smooth(0, (if noEvent(y_e*v_e > 0) then abs(v_e) else 0)*softplusSlope(abs(y_e) - kappa, smooth_w))
+    else 0;
+  dmg_D = if dmg_rate > 0 then 1 - exp(-dmg_rate*softplus(kappa - dmg_y0, smooth_w)) else 0;
+  F_spring_y = (1 - dmg_D)*F_spring_u + dmg_D*dmg_F_res*y_e/(dmg_y0 + softplus(kappa - dmg_y0, smooth_w));
   // Maxwell branch: spring ve_k in series with a dashpot ve_k*ve_tau
   der(F_ve) = ve_k*v_y - F_ve/ve_tau;
   // Sensor offsets: biases of the measuring channels

@@ -14,13 +14,16 @@ Model (notation of MODEL.md; w = smooth_w, S(u) = w ln(1 + e^{u/w}), sigma(u) = 
 * yield:      z_y' = (v_e / y_Y) (1 - H(z_y v_e) z_y^4),  y_Y = yield_F / c
 * friction:   F_f = fric_F z_f,  z_f' = (v / fric_x) (1 - H(z_f v) z_f^4)
 * Maxwell:    F_ve' = ve_k v - F_ve / ve_tau
+* damage:     kappa' = max(0, sgn(y_e) v_e) sigma(|y_e| - kappa)  (the largest |y_e| reached),
+              D = 1 - exp(-dmg_rate S(kappa - dmg_y0)),
+              F_s <- (1 - D) F_s + D dmg_F_res y_e / (dmg_y0 + S(kappa - dmg_y0))
 * total:      F_y = F_s + d v + F_f + F_ve
 
 Drive modes
 * ``"displacement"``: y(t) piecewise linear through knots (v constant between knots, y'' = 0), states
   (z_y, z_f, F_ve); predicted measurement F_meas = F_y + F_offset.  At a knot time the output is the
   left limit (velocity of the segment that ends there; v = 0 at t = 0), which is what a
-  co-simulation reads at the end of a communication step.
+  co-simulation reads at the end of a communication step.  With damage a fourth state kappa.
 * ``"force"``: F(t) piecewise linear through knots, m y'' = F(t) - F_y, states
   (y, v, z_y, z_f, F_ve); predicted measurement y_meas = y + y_offset.
 
@@ -47,6 +50,10 @@ Generator ranges (``draw_case``) and why
 * yield_softening: yield_ratio [0.1, 0.5], yield_F = (0.3-0.6) linear peak force.
 * coulomb_friction: fric_F = (0.05-0.15) linear peak force, fric_x default (1e-5 m).
 * viscoelastic_relaxation: ve_k = (0.3-1.0) c_y, ve_tau = (0.2-1.0) T_hold.
+* interface_damage: displacement drive: dmg_y0 = (0.35-0.55) y_peak, dmg_rate = (1.5-3) / (y_peak -
+  dmg_y0) (the force drops past a peak), dmg_F_res = (0.15-0.35) c dmg_y0; force drive: dmg_y0 =
+  (0.3-0.5) y_lin, dmg_rate = (0.2-0.35) / y_lin, dmg_F_res = (0.2-0.5) F_peak (the softened curve
+  still rises to the peak force, whose largest value is at y = 1/dmg_rate + dmg_F_res/c_y).
 * sensor_offset: F_offset (displacement drive) or y_offset (force drive) = +-(0.03-0.1) of the
   linear peak response.
 The ranges of the brief were kept.  Visibility was measured by fitting the effect-free model (best
@@ -89,16 +96,16 @@ DEFAULTS = {
     "m": 0.00029, "c_y": 823224.0, "d_y": 488.0,
     "gap": 0.0, "nl_ratio": 1.0, "nl_y_b": 0.0005, "yield_ratio": 1.0, "yield_F": 100.0,
     "fric_F": 0.0, "fric_x": 1e-5, "ve_k": 0.0, "ve_tau": 1.0, "F_offset": 0.0, "y_offset": 0.0,
-    "smooth_w": 1e-6,
+    "smooth_w": 1e-6, "dmg_rate": 0.0, "dmg_y0": 0.0005, "dmg_F_res": 0.0,
 }
 
 EFFECTS = ("none", "backlash_gap", "nonlinear_stiffness", "yield_softening", "coulomb_friction",
-           "viscoelastic_relaxation", "sensor_offset")
+           "viscoelastic_relaxation", "sensor_offset", "interface_damage")
 
 #: main parameter of every effect (sensor_offset: depends on the drive, see ``main_parameter``)
 MAIN_PARAMETER = {"none": None, "backlash_gap": "gap", "nonlinear_stiffness": "nl_ratio",
                   "yield_softening": "yield_F", "coulomb_friction": "fric_F",
-                  "viscoelastic_relaxation": "ve_tau",
+                  "viscoelastic_relaxation": "ve_tau", "interface_damage": "dmg_F_res",
                   "sensor_offset": {"displacement": "F_offset", "force": "y_offset"}}
 
 DRIVES = ("displacement", "force")
@@ -142,6 +149,7 @@ class _Axial:
         self.has_fric = p["fric_F"] != 0.0
         self.has_ve = p["ve_k"] != 0.0
         self.y_Y = p["yield_F"] / self.c
+        self.has_dmg = p["dmg_rate"] != 0.0
 
     def S(self, u):
         return self.w * np.logaddexp(0.0, u / self.w)
@@ -166,9 +174,26 @@ class _Axial:
             F = F + (p["nl_ratio"] - 1.0) * c * (self.S(ye - yb) - self.S(-ye - yb))
         return F
 
-    def total(self, y, v, zy, zf, Fve):
+    def damaged(self, ye, Fs, kappa):
+        """(1 - D) F_s + D F_res y_e / (y0 + S(kappa - y0)) and D, of the largest |y_e| reached."""
+        if not self.has_dmg:
+            return Fs, 0.0 * Fs
+        p = self.p
+        past = self.S(kappa - p["dmg_y0"])
+        D = 1.0 - np.exp(-p["dmg_rate"] * past)
+        return (1.0 - D) * Fs + D * p["dmg_F_res"] * ye / (p["dmg_y0"] + past), D
+
+    def kappa_rate(self, y, v, kappa):
+        if not self.has_dmg:
+            return 0.0 * v
+        ye, ve = self.elastic(y, v)
+        sv = np.where(ye >= 0.0, ve, -ve)
+        return np.where(sv > 0.0, sv, 0.0) * self.sig(np.abs(ye) - kappa)
+
+    def total(self, y, v, zy, zf, Fve, kappa=0.0):
         ye, _ = self.elastic(y, v)
-        return self.spring(ye, zy) + self.d * v + self.p["fric_F"] * zf + Fve
+        Fs, _ = self.damaged(ye, self.spring(ye, zy), kappa)
+        return Fs + self.d * v + self.p["fric_F"] * zf + Fve
 
     def jacobian_force(self, y, v, zy, zf, Fve):
         """Analytic Jacobian of the force-drive right-hand side (states y, v, z_y, z_f, F_ve)."""
@@ -207,6 +232,40 @@ class _Axial:
         if self.has_ve:
             J[4, 1] = p["ve_k"]
             J[4, 4] = -1.0 / p["ve_tau"]
+        return J
+
+    def jacobian_force_damage(self, y, v, zy, zf, Fve, kappa):
+        """The force-drive Jacobian with damage (states y, v, z_y, z_f, F_ve, kappa): the undamaged one
+        with the spring's row scaled by 1 - D and the entries of kappa."""
+        p, w, m = self.p, self.w, self.m
+        J = np.zeros((6, 6))
+        J[:5, :5] = self.jacobian_force(y, v, zy, zf, Fve)
+        ye, ve = self.elastic(y, v)
+        if self.has_gap:
+            g = self.gap
+            s1, s2 = self.sig(y - g), self.sig(-y - g)
+            sg = s1 + s2
+            dve_dy = (s1 * (1.0 - s1) - s2 * (1.0 - s2)) / w * v
+        else:
+            sg, dve_dy = 1.0, 0.0
+        y0, r, Fr = p["dmg_y0"], p["dmg_rate"], p["dmg_F_res"]
+        P = self.S(kappa - y0)
+        sp = self.sig(kappa - y0)
+        E = math.exp(-r * P)
+        D = 1.0 - E
+        Fs = self.spring(ye, zy)
+        J[1, 0] = (1.0 - D) * J[1, 0] - D * Fr * sg / ((y0 + P) * m)
+        J[1, 2] = (1.0 - D) * J[1, 2]
+        dF_dk = r * E * sp * (-Fs + Fr * ye / (y0 + P)) - D * Fr * ye * sp / (y0 + P) ** 2
+        J[1, 5] = -dF_dk / m
+        sgn = 1.0 if ye >= 0.0 else -1.0
+        sv = sgn * ve
+        if sv > 0.0:
+            q = self.sig(abs(ye) - kappa)
+            dq = q * (1.0 - q) / w
+            J[5, 0] = sgn * dve_dy * q + sv * dq * sgn * sg
+            J[5, 1] = sgn * sg * q
+            J[5, 5] = -sv * dq
         return J
 
     def jacobian_disp(self, y, v, zy, zf, Fve):
@@ -254,7 +313,8 @@ def simulate(params: dict, drive: str, knots_t, knots_u, t_out, *, rtol: float =
     params: FMU names in SI (c_y, d_y, m and the effect parameters; missing ones at the MODEL.md
     defaults).  drive "displacement": knots_u are displacements y [m], returns F_meas [N];
     drive "force": knots_u are forces F [N], returns y_meas [m].
-    method: "LSODA" (default) or "Radau" (scipy's Radau with Hairer's Newton tolerance).
+    method: "LSODA" (default) or "Radau" (scipy's Radau with Hairer's Newton tolerance); a force drive
+    with damage always takes Radau.
     With return_states, also returns a dict of the states (and v, F_y) at t_out."""
     if method not in ("LSODA", "Radau"):
         raise ValueError("method: LSODA or Radau")
@@ -263,23 +323,26 @@ def simulate(params: dict, drive: str, knots_t, knots_u, t_out, *, rtol: float =
     p = full_params(params)
     ax = _Axial(p)
     kt, ku, slopes = _segments(knots_t, knots_u)
+    if ax.has_dmg and drive == "force":
+        # LSODA takes ~1e5 steps on a damaging ramp (it measured 375 000 on a 2 s ramp against Radau's 718)
+        method = "Radau"
     t_out = np.asarray(t_out, dtype=float)
     if t_out.ndim != 1 or np.any(t_out < 0.0) or np.any(t_out > kt[-1] * (1 + 1e-12)):
         raise ValueError("t_out must lie within [0, knots_t[-1]]")
-    n_st = 3 if drive == "displacement" else 5
+    n_st = (3 if drive == "displacement" else 5) + (1 if ax.has_dmg else 0)   # kappa last, with damage
     states = np.zeros((n_st, t_out.size))
     vel = np.zeros(t_out.size)  # displacement drive: left-limit drive velocity at t_out
 
     if drive == "displacement":
         scale_F = max(ax.c * np.max(np.abs(ku)), 1.0)
-        atol = np.array([1e-11, 1e-11, 1e-11 * scale_F])
+        atol = np.array([1e-11, 1e-11, 1e-11 * scale_F] + ([1e-12] if ax.has_dmg else []))
     else:
         y_scale = max(np.max(np.abs(ku)) / ax.c, 1e-9)
         # v: an absolute floor well above round-off (1e-9 y_scale per second): a tighter one lets
         # the sign of a vanishing velocity in a hold chatter, which switches H(z v) and stalls
         # Radau when friction sticks
         atol = np.array([1e-11 * y_scale, 1e-9 * y_scale, 1e-10, 1e-10,
-                         1e-10 * max(np.max(np.abs(ku)), 1.0)])
+                         1e-10 * max(np.max(np.abs(ku)), 1.0)] + ([1e-11 * y_scale] if ax.has_dmg else []))
 
     s = np.zeros(n_st)
     # t = 0: all states at rest, v = 0
@@ -289,25 +352,32 @@ def simulate(params: dict, drive: str, knots_t, knots_u, t_out, *, rtol: float =
         if drive == "displacement":
             def fun(t, x, a=a, u0=u0, k=k):
                 y = u0 + k * (t - a)
-                return np.array(ax.internal_rates(y, k, x[0], x[1], x[2]))
+                rates = list(ax.internal_rates(y, k, x[0], x[1], x[2]))
+                if ax.has_dmg:
+                    rates.append(ax.kappa_rate(y, k, x[3]))
+                return np.array(rates, dtype=float)
 
             def jac(t, x, a=a, u0=u0, k=k):
                 return ax.jacobian_disp(u0 + k * (t - a), k, x[0], x[1], x[2])
         else:
             def fun(t, x, a=a, u0=u0, k=k):
-                y, v, zy, zf, Fve = x
+                y, v, zy, zf, Fve = x[:5]
+                kappa = x[5] if ax.has_dmg else 0.0
                 F = u0 + k * (t - a)
-                acc = (F - ax.total(y, v, zy, zf, Fve)) / ax.m
+                acc = (F - ax.total(y, v, zy, zf, Fve, kappa)) / ax.m
                 dzy, dzf, dFve = ax.internal_rates(y, v, zy, zf, Fve)
-                return np.array([v, acc, dzy, dzf, dFve])
+                rates = [v, acc, dzy, dzf, dFve] + ([ax.kappa_rate(y, v, kappa)] if ax.has_dmg else [])
+                return np.array(rates, dtype=float)
 
             def jac(t, x):
-                return ax.jacobian_force(*x)
+                return ax.jacobian_force_damage(*x) if ax.has_dmg else ax.jacobian_force(*x)
         sel = (t_out > a) & (t_out <= b)
         if i == kt.size - 2:
             sel |= (t_out > b)  # rounding at the very end
         te = np.clip(t_out[sel], a, b)
-        if drive == "displacement" and not (ax.has_yield or ax.has_fric or ax.has_ve):
+        if ax.has_dmg and drive == "displacement":   # kappa's entry by LSODA's finite differences
+            jac = None
+        if drive == "displacement" and not (ax.has_yield or ax.has_fric or ax.has_ve or ax.has_dmg):
             # no internal state is active: nothing to integrate
             xs = np.zeros((n_st, te.size))
             s_end = s
@@ -328,17 +398,18 @@ def simulate(params: dict, drive: str, knots_t, knots_u, t_out, *, rtol: float =
 
     if drive == "displacement":
         y = np.interp(t_out, kt, ku)
-        zy, zf, Fve = states
+        zy, zf, Fve = states[:3]
         v = vel
-        Fy = ax.total(y, v, zy, zf, Fve)
-        out = Fy + p["F_offset"]
     else:
-        y, v, zy, zf, Fve = states
-        Fy = ax.total(y, v, zy, zf, Fve)
-        out = y + p["y_offset"]
+        y, v, zy, zf, Fve = states[:5]
+    kappa = states[-1] if ax.has_dmg else np.zeros_like(y)
+    Fy = ax.total(y, v, zy, zf, Fve, kappa)
+    out = Fy + p["F_offset"] if drive == "displacement" else y + p["y_offset"]
     if return_states:
+        ye, _ = ax.elastic(y, v)
+        _, D = ax.damaged(ye, ax.spring(ye, zy), kappa)
         return out, {"y": y, "v": v, "z_y": zy, "z_f": zf, "F_ve": Fve, "F_y": Fy,
-                     "F_fric": p["fric_F"] * zf}
+                     "F_fric": p["fric_F"] * zf, "kappa": kappa, "dmg_D": D}
     return out
 
 
@@ -427,6 +498,18 @@ def draw_case(effect: str, drive: str, rng: np.random.Generator, *, hold: bool =
     elif effect == "viscoelastic_relaxation":
         params["ve_k"] = _u(rng, 0.3, 1.0) * c
         params["ve_tau"] = _u(rng, 0.2, 1.0) * proto.T_hold
+    elif effect == "interface_damage":
+        if drive == "displacement":
+            # onset before the peak, softening past it that drops the force towards the residual
+            params["dmg_y0"] = _u(rng, 0.35, 0.55) * y_pk
+            params["dmg_rate"] = _u(rng, 1.5, 3.0) / (y_pk - params["dmg_y0"])
+            params["dmg_F_res"] = _u(rng, 0.15, 0.35) * c * params["dmg_y0"]
+        else:
+            # under a force drive the softened curve must still rise to the peak force (else the screw
+            # runs away): its maximum is at y = 1/dmg_rate + dmg_F_res/c, above F_pk for these ranges
+            params["dmg_y0"] = _u(rng, 0.3, 0.5) * y_pk
+            params["dmg_rate"] = _u(rng, 0.2, 0.35) / y_pk
+            params["dmg_F_res"] = _u(rng, 0.2, 0.5) * F_pk
     elif effect == "sensor_offset":
         sign = 1.0 if rng.random() < 0.5 else -1.0
         if drive == "displacement":

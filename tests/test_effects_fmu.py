@@ -29,13 +29,13 @@ REL_TOL = 1e-7
 #: the FMU at its default rtol (1e-6): measured <= 1.5e-7 of the peak
 REL_TOL_DEFAULT_RTOL = 1e-5
 SEEDS = {"none": 11, "backlash_gap": 12, "nonlinear_stiffness": 13, "yield_softening": 14,
-         "coulomb_friction": 15, "viscoelastic_relaxation": 16, "sensor_offset": 17}
+         "coulomb_friction": 15, "viscoelastic_relaxation": 16, "sensor_offset": 17, "interface_damage": 18}
 
 
 @pytest.fixture(scope="module")
 def runner(fmu_path):
     r = FmuRunner(fmu_path)
-    missing = [n for n in ("gap", "fric_F", "ve_k", "F_meas", "y_meas", "F_fric", "F_ve")
+    missing = [n for n in ("gap", "fric_F", "ve_k", "F_meas", "y_meas", "F_fric", "F_ve", "dmg_rate", "dmg_D")
                if n not in r.vars]
     if missing:
         r.close()
@@ -89,7 +89,7 @@ def _compare(runner, effect, drive, replica, rtol, tol):
     params, pr, main = _case(effect, drive, replica)
     want, st = er.simulate(params, drive, pr.knots_t, pr.knots_u, pr.t_out, return_states=True)
     got = run_fmu(runner, params, drive, pr.knots_t, pr.knots_u, pr.t_out,
-                  extra_outputs=("F_fric", "F_ve"), rtol=rtol)
+                  extra_outputs=("F_fric", "F_ve", "dmg_D"), rtol=rtol)
     meas = got["F_meas" if drive == "displacement" else "y_meas"]
     scale = np.max(np.abs(want))
     err = np.abs(meas - want)
@@ -101,6 +101,7 @@ def _compare(runner, effect, drive, replica, rtol, tol):
     F_scale = max(np.max(np.abs(st["F_y"])), 1.0)
     np.testing.assert_allclose(got["F_fric"], st["F_fric"], rtol=0, atol=tol * F_scale)
     np.testing.assert_allclose(got["F_ve"], st["F_ve"], rtol=0, atol=tol * F_scale)
+    np.testing.assert_allclose(got["dmg_D"], st["dmg_D"], rtol=0, atol=tol)   # the damage variable
     return params, pr, want, scale
 
 
@@ -117,7 +118,7 @@ def test_fmu_matches_reference(runner, effect, drive, replica):
 
 
 @pytest.mark.parametrize("drive", er.DRIVES)
-@pytest.mark.parametrize("effect", ["yield_softening", "coulomb_friction", "backlash_gap"])
+@pytest.mark.parametrize("effect", ["yield_softening", "coulomb_friction", "backlash_gap", "interface_damage"])
 def test_fmu_default_rtol_matches_reference(runner, effect, drive):
     """The stiff, state-carrying effects at the FMU's own default tolerance (rtol 1e-6)."""
     _compare(runner, effect, drive, 2, None, REL_TOL_DEFAULT_RTOL)

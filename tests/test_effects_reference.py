@@ -397,6 +397,43 @@ def test_make_protocol_shape_and_ranges():
             assert pr.t_out[0] == 0.0 and pr.t_end - 0.01 < pr.t_out[-1] <= pr.t_end
 
 
+# ---------------------------------------------------------------------------------------------
+# interface damage
+# ---------------------------------------------------------------------------------------------
+def _damage_closed_form(y, v, kappa, c, d, y0, r, Fr):
+    """MODEL.md's damaged spring with kappa = max |y| so far (the limit of a sharp corner, w -> 0)."""
+    past = np.maximum(kappa - y0, 0.0)
+    D = 1.0 - np.exp(-r * past)
+    return (1.0 - D) * c * y + D * Fr * y / (y0 + past) + d * v, D
+
+
+def test_damage_displacement_drive_against_closed_form():
+    """Loading past the onset softens towards the residual force; unloading and reloading run on the
+    secant to the origin (no permanent set, unlike yield), and damage grows again only past the largest
+    displacement reached before."""
+    c, d, y0, r, Fr, w = 2.0e5, 80.0, 4e-4, 3000.0, 30.0, 1e-9
+    kt = np.array([0.0, 1.0, 1.5, 2.5, 3.0])
+    ku = np.array([0.0, 1.0e-3, 0.2e-3, 1.4e-3, 0.0])
+    t = np.arange(0, 300 + 1) / 100.0
+    p = {"c_y": c, "d_y": d, "dmg_rate": r, "dmg_y0": y0, "dmg_F_res": Fr, "smooth_w": w}
+    F, st = er.simulate(p, "displacement", kt, ku, t, return_states=True)
+    y = np.interp(t, kt, ku)
+    kappa = np.maximum.accumulate(np.abs(y))
+    want, D = _damage_closed_form(y, left_velocity(kt, ku, t), kappa, c, d, y0, r, Fr)
+    # the smooth max lags the sharp one by about w ln(y / w): 1e-8 m, 2e-3 N here
+    assert np.max(np.abs(F - want)) <= 0.05, np.max(np.abs(F - want))
+    np.testing.assert_allclose(st["dmg_D"], D, atol=1e-4)
+    # unloading from 1 mm is a straight line through the origin (secant), after the damping jump
+    unl = (t > 1.05) & (t < 1.5)
+    sec = (F[unl] - d * left_velocity(kt, ku, t)[unl]) / y[unl]
+    assert np.ptp(sec) < 1e-3 * sec.mean()
+    # reloading below 1 mm adds no damage; past it damage grows again
+    assert np.ptp(st["dmg_D"][(t > 1.0) & (t < 1.83)]) < 1e-6
+    assert st["dmg_D"][t == 2.5][0] > st["dmg_D"][t == 1.0][0] + 0.1
+    # and the force past the peak falls towards the residual: well below the undamaged c y
+    assert F[t == 1.0][0] < 0.5 * c * 1e-3
+
+
 def test_draw_case_ranges():
     rng = np.random.default_rng(123)
     seen_soft = seen_stiff = seen_pos = seen_neg = False
@@ -430,6 +467,13 @@ def test_draw_case_ranges():
                 elif eff == "viscoelastic_relaxation":
                     assert 0.3 <= p["ve_k"] / c <= 1.0
                     assert 0.2 <= p["ve_tau"] / pr.T_hold <= 1.0
+                elif eff == "interface_damage":
+                    assert p["dmg_y0"] < y_pk and p["dmg_rate"] > 0 and p["dmg_F_res"] > 0
+                    if drive == "force":   # the softened curve still rises to the peak force
+                        y_top = 1.0 / p["dmg_rate"] + p["dmg_F_res"] / c
+                        F_top, _ = _damage_closed_form(y_top, 0.0, y_top, c, 0.0, p["dmg_y0"],
+                                                       p["dmg_rate"], p["dmg_F_res"])
+                        assert F_top > 1.1 * F_pk
                 elif eff == "sensor_offset":
                     key, pk = ("F_offset", F_pk) if drive == "displacement" else ("y_offset", y_pk)
                     assert set(extra) == {key}

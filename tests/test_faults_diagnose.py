@@ -112,7 +112,7 @@ def test_no_units_warning_on_the_shear_data_or_the_synthetic_tests(fmu_path):
                 rep = check_units([_exp(f, drive, f"r{i}") for i, f in enumerate(frames)], scale)
                 assert rep["warnings"] == [], (drive, effect, protocol, rep["warnings"])
                 count += 1
-    assert count == 2 * 7 * 8
+    assert count == 2 * len(er.EFFECTS) * 8 == 2 * 8 * 8
 
 
 # ----------------------------------------------------------------------------------------------- effect size

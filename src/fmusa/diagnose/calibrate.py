@@ -16,8 +16,8 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy import optimize, stats
 
-from fmusa.diagnose.effects import (EQUIVALENT_BY_CONSTRUCTION, Param, Scales, data_scales, equivalent_intervals,
-                                    equivalent_parameters, model_parameters)
+from fmusa.diagnose.effects import (EQUIVALENT_BY_CONSTRUCTION, Param, Scales, constant_rate, data_scales,
+                                    equivalent_intervals, equivalent_parameters, model_parameters)
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
 
 __all__ = ["Fit", "ModelRunner", "calibrate", "MIN_EXPERIMENTS_LEFT_OUT", "heldout_masks", "heldout_folds",
@@ -44,6 +44,10 @@ class Fit:
     mapped_from: str | None = None
     #: with mapped_from: what this candidate's own optimiser found (params, rmse, heldout_rmse)
     own: dict | None = None
+    #: parameters where the optimiser stopped at a bound: name, value, which bound
+    at_bounds: list[dict] = field(default_factory=list)
+    #: parameters held (not fitted), with their values and why
+    held: dict = field(default_factory=dict)
 
     @property
     def aic(self) -> float:
@@ -150,17 +154,22 @@ def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, floa
 
 
 def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence, sc: Scales,
-              max_starts: int = 6, max_nfev: int = 60, held: Sequence[str] = ()) -> Fit:
+              max_starts: int = 6, max_nfev: int = 60, held: Sequence[str] = (),
+              start: dict | None = None) -> Fit:
     """Multi-start bounded least squares of the response channel on all experiments jointly.
 
     ``held``: parameters of the model that are not fitted; ``model`` must have been built without them
-    (their values in its ``fixed``), and the fit's params, intervals and k leave them out."""
+    (their values in its ``fixed``), and the fit's params, intervals and k leave them out. ``start``: a first
+    start in natural units (e.g. from a direct fit of the data), tried before the generic ones."""
     params = [p for p in model_parameters(effect, drive, sc) if p.name not in held]
     scale = _response_scale(drive, sc)
     masks = [np.ones(len(e.t), bool) for e in experiments]
     fn = _residual_fn(model, params, experiments, masks, scale)
     lo, hi = _bounds(params)
     best, nfev, starts = None, 0, _starts(params, max_starts)
+    if start:
+        starts = [np.array([p.to_x(min(max(float(start.get(p.name, p.starts[0])), p.lower), p.upper))
+                            for p in params])] + starts
     for x0 in starts:
         res = _least_squares(fn, x0, lo, hi, max_nfev)
         nfev += res.nfev
@@ -172,7 +181,21 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
     rss = float(sum(np.sum((pr - e.response_signal) ** 2) for pr, e in zip(preds, experiments)))
     return Fit(effect=effect, params={p.name: v for p, v in zip(params, values)},
                ci95=_confidence(best, params, n), rss=rss, n=n, k=len(params), rmse=math.sqrt(rss / n),
-               predictions=preds, starts_tried=len(starts), nfev=nfev)
+               predictions=preds, starts_tried=len(starts), nfev=nfev, at_bounds=at_bounds(params, best.x, lo, hi))
+
+
+def at_bounds(params: list[Param], x: np.ndarray, lo: np.ndarray, hi: np.ndarray, rel: float = 1e-6) -> list[dict]:
+    """The parameters the optimiser left at a bound (within ``rel`` of the range on its scale): a fit that
+    stops there did not find an optimum inside the range, which the report says. A lower bound of 0 on an
+    effect size (an effect switched off) counts too."""
+    out = []
+    for p, xi, a, b in zip(params, x, lo, hi):
+        span = max(b - a, 1e-300)
+        if xi - a <= rel * span or b - xi <= rel * span:
+            which = "lower" if xi - a <= rel * span else "upper"
+            out.append({"name": p.name, "value": p.from_x(xi), "bound": which,
+                        "limit": p.lower if which == "lower" else p.upper})
+    return out
 
 
 #: whole experiments are left out in turn only when every training set still holds at least two of them
@@ -202,13 +225,14 @@ def heldout_masks(experiments: Sequence, blocks: int = 4) -> list[list[np.ndarra
 
 
 def heldout_folds(model: ModelRunner, fit: Fit, drive: str, experiments: Sequence, sc: Scales,
-                  max_nfev: int = 40) -> list[dict]:
+                  max_nfev: int = 40, held: Sequence[str] = ()) -> list[dict]:
     """Refit without each fold and predict it: per fold, the training cost of the refit (the least-squares
     cost on the scaled residuals of the training points), the squared error on the held-out points and
     their count.
 
-    Each refit starts from the all-data optimum (one start, to keep the cost at a few fits)."""
-    params = model_parameters(fit.effect, drive, sc)
+    Each refit starts from the all-data optimum (one start, to keep the cost at a few fits); ``held`` as in
+    :func:`calibrate`."""
+    params = [p for p in model_parameters(fit.effect, drive, sc) if p.name not in held]
     scale = _response_scale(drive, sc)
     lo, hi = _bounds(params)
     x_full = np.array([p.to_x(min(max(fit.params[p.name], p.lower), p.upper)) for p in params])
@@ -276,14 +300,25 @@ def unify_equivalent(fits: dict[str, Fit]) -> dict[str, Fit]:
 
 def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
                   max_starts: int = 6, interface: ModelInterface = SCREW_VERTEBRA) -> Fit:
-    """Calibrate one model and score it on held-out data (runs in a worker process)."""
+    """Calibrate one model and score it on held-out data (runs in a worker process).
+
+    Under a drive of one constant rate (:func:`effects.constant_rate`) the damping d_y is held at 0: its
+    force d_y*v is a constant there, which the fit would trade against the stiffness (the baseline of issue
+    22 fitted a constant 150 N through d_y*v with c_y -> 0)."""
     sc = data_scales(experiments)
-    names = [p.name for p in model_parameters(effect, drive, sc)]
-    model = ModelRunner(fmu_path, drive, names, interface=interface)
+    const = constant_rate(experiments) if drive == "displacement" else None
+    fixed = {"d_y": 0.0} if const else {}
+    names = [p.name for p in model_parameters(effect, drive, sc) if p.name not in fixed]
+    model = ModelRunner(fmu_path, drive, names, fixed={interface.variable(k): v for k, v in fixed.items()},
+                        interface=interface)
     try:
-        fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts)
-        fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc)
+        fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed))
+        fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc, held=tuple(fixed))
         fit.heldout_rmse = pooled_heldout(fit.heldout_folds)
     finally:
         model.close()
+    if const:
+        fit.params = {"c_y": fit.params["c_y"], "d_y": 0.0, **{k: v for k, v in fit.params.items() if k != "c_y"}}
+        fit.ci95 = {"c_y": fit.ci95["c_y"], "d_y": (0.0, 0.0), **{k: v for k, v in fit.ci95.items() if k != "c_y"}}
+        fit.held = {"d_y": {"value": 0.0, "why": const["why"], "identifying_test": const["identifying_test"]}}
     return fit

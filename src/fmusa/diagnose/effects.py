@@ -16,11 +16,11 @@ import numpy as np
 from fmusa.errors import FmusaError
 
 __all__ = ["CANDIDATES", "SEPARATING_TESTS", "UNITS", "MAIN_PARAMETER", "DiagnoseError", "Param", "Scales",
-           "data_scales", "model_parameters", "main_parameter", "separating_test", "EQUIVALENT_BY_CONSTRUCTION",
+           "data_scales", "constant_rate", "model_parameters", "main_parameter", "separating_test", "EQUIVALENT_BY_CONSTRUCTION",
            "equivalent_by_construction", "equivalent_parameters", "equivalent_intervals", "BASELINE_LOOK_ALIKES"]
 
 CANDIDATES = ("nonlinear_stiffness", "viscoelastic_relaxation", "coulomb_friction", "yield_softening",
-              "backlash_gap", "sensor_offset")
+              "backlash_gap", "sensor_offset", "interface_damage")
 
 # Which measurement tells two candidates apart when the data could not.
 SEPARATING_TESTS = {
@@ -55,6 +55,22 @@ SEPARATING_TESTS = {
         "unload to zero: a yield set remains in displacement, an offset stays constant in the channel",
     frozenset({"backlash_gap", "viscoelastic_relaxation"}):
         "hold the displacement: relaxation shows, slack does not",
+    frozenset({"interface_damage", "yield_softening"}):
+        "unload after the peak: a damaged interface unloads on the secant to the origin (no permanent set), "
+        "a yielded one with its elastic stiffness and keeps a set; on loading alone both soften past a force",
+    frozenset({"interface_damage", "coulomb_friction"}):
+        "unload after the peak: friction drops by twice its force at the reversal and opens a loop, a damaged "
+        "interface unloads on the secant to the origin without a jump",
+    frozenset({"interface_damage", "nonlinear_stiffness"}):
+        "unload after the peak and reload: a bend retraces loading, damage unloads on a lower secant and "
+        "reloads on it up to the largest displacement reached",
+    frozenset({"interface_damage", "viscoelastic_relaxation"}):
+        "hold the displacement or test at a second rate: relaxation depends on time, damage on the largest "
+        "displacement reached",
+    frozenset({"interface_damage", "backlash_gap"}):
+        "unload to zero and reload: slack shows at every reloading from zero, damage only lowers the secant",
+    frozenset({"interface_damage", "sensor_offset"}):
+        "read the channels at rest before loading, and unload: a damaged interface carries no force at zero",
     frozenset({"backlash_gap", "coulomb_friction"}):
         "reverse the motion at a load well above zero: friction drops by twice its force, slack does not",
 }
@@ -142,11 +158,13 @@ def equivalent_intervals(effect: str, params: dict, ci95: dict, other: str) -> d
 
 
 UNITS = {"c_y": "N/m", "d_y": "N.s/m", "gap": "m", "nl_ratio": "1", "nl_y_b": "m", "yield_ratio": "1",
-         "yield_F": "N", "fric_F": "N", "fric_x": "m", "ve_k": "N/m", "ve_tau": "s", "F_offset": "N", "y_offset": "m"}
+         "yield_F": "N", "fric_F": "N", "fric_x": "m", "ve_k": "N/m", "ve_tau": "s", "F_offset": "N", "y_offset": "m",
+         "dmg_y0": "m", "dmg_rate": "1/m", "dmg_F_res": "N"}
 
 MAIN_PARAMETER = {"nonlinear_stiffness": "nl_ratio", "viscoelastic_relaxation": "ve_tau",
                   "coulomb_friction": "fric_F", "yield_softening": "yield_F", "backlash_gap": "gap",
-                  "sensor_offset": None}   # F_offset or y_offset, by drive
+                  "sensor_offset": None,   # F_offset or y_offset, by drive
+                  "interface_damage": "dmg_F_res"}
 
 
 class DiagnoseError(FmusaError, ValueError):
@@ -181,6 +199,8 @@ class Scales:
     t_min: float
     t_max: float
     dt_min: float
+    #: the damping the rate content of the data asks for: the least-squares d of F - c0 y on v, in [0, d_max]
+    d0: float = 0.0
 
 
 def data_scales(experiments: Sequence) -> Scales:
@@ -196,8 +216,37 @@ def data_scales(experiments: Sequence) -> Scales:
     c0 = abs(float(np.dot(ys, Fs) / np.dot(ys, ys)))
     durations = [float(e.t[-1] - e.t[0]) for e in experiments]
     dt_min = min(float(np.min(np.diff(e.t))) for e in experiments)
-    return Scales(y_pk=y_pk, F_pk=F_pk, v_pk=v_pk, c0=c0 if c0 > 0 else F_pk / y_pk,
-                  t_min=min(durations), t_max=max(durations), dt_min=dt_min)
+    c0 = c0 if c0 > 0 else F_pk / y_pk
+    # damping from the rate content: what of the force the secant spring leaves, projected on the velocity
+    vs = np.concatenate([np.gradient(e.displacement, e.t) for e in experiments])
+    vv = float(np.dot(vs, vs))
+    d0 = float(np.dot(Fs - c0 * ys, vs) / vv) if vv > 0 else 0.0
+    d0 = min(max(d0, 0.0), 2.0 * F_pk / v_pk) if math.isfinite(d0) else 0.0
+    return Scales(y_pk=y_pk, F_pk=F_pk, v_pk=v_pk, c0=c0, t_min=min(durations), t_max=max(durations),
+                  dt_min=dt_min, d0=d0)
+
+
+def constant_rate(experiments: Sequence, tol: float = 0.05) -> dict | None:
+    """Whether every test drives at one constant rate (one direction, the same rate in all): then the damping
+    force d_y*v is a constant, which no fit can tell from an offset or a friction force. Returns the rate
+    (SI, of the drive channel) and why, or None when the rate varies (a hold, an unloading, a second rate)."""
+    rates = []
+    for e in experiments:
+        u = np.asarray(e.drive_signal, float)
+        du = np.diff(u) / np.diff(e.t)
+        if du.size < 3:
+            return None
+        med = float(np.median(du))
+        if med == 0 or float(np.mean(np.abs(du - med) <= tol * abs(med))) < 0.9:
+            return None
+        rates.append(med)
+    if not rates or max(rates) - min(rates) > tol * max(abs(r) for r in rates):
+        return None
+    return {"rate": float(np.median(rates)),
+            "why": "the drive has one constant rate, so the damping force d_y*v is a constant that no fit can "
+                   "tell from a force offset (or a friction force): d_y is held at 0",
+            "identifying_test": "a test at a second rate (the damping force scales with it) or a hold (it "
+                                "vanishes)"}
 
 
 def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
@@ -210,8 +259,9 @@ def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
         return out
     c0, y_pk, F_pk = sc.c0, sc.y_pk, sc.F_pk
     d_max = 2.0 * F_pk / sc.v_pk
+    # starts: the secant stiffness of the data, the damping its rate content asks for (at least a trace)
     base = [Param("c_y", c0 / 100, c0 * 100, (c0,), log=True),
-            Param("d_y", 0.0, d_max, (0.001 * d_max,))]
+            Param("d_y", 0.0, d_max, (min(max(sc.d0, 0.001 * d_max), d_max),))]
     if effect == "none":
         return base
     if effect == "backlash_gap":
@@ -237,6 +287,11 @@ def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
             taus = taus + (min(max(0.3 * sc.t_min, tau_lo), tau_hi),)
         return base + [Param("ve_k", 0.0, 20.0 * c0, (0.3 * c0, 1.0 * c0)),
                        Param("ve_tau", tau_lo, tau_hi, taus, log=True)]
+    if effect == "interface_damage":
+        # onset within the data, softening over 0.3 to 10 times the span past it, residual up to the peak
+        return base + [Param("dmg_y0", 0.05 * y_pk, 0.95 * y_pk, (0.3 * y_pk, 0.6 * y_pk), log=True),
+                       Param("dmg_rate", 0.1 / y_pk, 100.0 / y_pk, (3.0 / y_pk,), log=True),
+                       Param("dmg_F_res", 0.0, 1.2 * F_pk, (0.2 * F_pk,))]
     if effect == "sensor_offset":
         if drive == "displacement":
             return base + [Param("F_offset", -0.5 * F_pk, 0.5 * F_pk, (0.0,))]

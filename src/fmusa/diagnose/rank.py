@@ -25,6 +25,8 @@ __all__ = ["Thresholds", "nested_p_value", "effect_size", "rank_candidates", "ch
 
 #: joins the names of candidates the data cannot decide between: "coulomb_friction ≡ yield_softening"
 GROUP_SEP = " ≡ "
+#: a look-alike whose RMSE and held-out RMSE are both this many times the named effect's is told apart
+TOLD_APART = 3.0
 
 
 @dataclass(frozen=True)
@@ -174,7 +176,10 @@ def choose_effect(ranking: list[dict], th: Thresholds = Thresholds(),
 PROTOCOL_FEATURES = {
     "unloading": (frozenset({"nonlinear_stiffness", "yield_softening"}),
                   frozenset({"nonlinear_stiffness", "coulomb_friction"}),   # friction is yield (same equations)
-                  frozenset({"coulomb_friction", "sensor_offset"})),
+                  frozenset({"coulomb_friction", "sensor_offset"}),
+                  frozenset({"interface_damage", "yield_softening"}),
+                  frozenset({"interface_damage", "coulomb_friction"}),
+                  frozenset({"interface_damage", "nonlinear_stiffness"})),
     "several_rates_or_hold": (frozenset({"viscoelastic_relaxation", "nonlinear_stiffness"}),
                               frozenset({"viscoelastic_relaxation", "yield_softening"}),
                               frozenset({"viscoelastic_relaxation", "coulomb_friction"})),
@@ -272,10 +277,19 @@ def indistinguishable(effect: str, ties: Sequence[str], ranking: list[dict], fea
     # phase the training blocks did not show)
     bic = {r["effect"]: r["bic"] for r in ranking}
     th = Thresholds()
+    lead_row = next((r for r in ranking if r["effect"] == lead), None)
+
+    def told_apart(r: dict) -> bool:
+        # a look-alike the data left far behind (RMSE and held-out RMSE both TOLD_APART x the named one's) was
+        # told apart by the data after all, whatever the protocol lacks (e.g. a drop of the force past a peak,
+        # which neither yield nor friction can give)
+        return bool(lead_row and r["rmse"] > TOLD_APART * lead_row["rmse"]
+                    and r["heldout_rmse"] > TOLD_APART * lead_row["heldout_rmse"])
     explains = {r["effect"] for r in ranking
-                if r["significant"] or ((r.get("effect_size") or {}).get("matters", True)
-                                        and r["delta_bic"] < th.delta_bic and lead in bic
-                                        and r["bic"] - bic[lead] < th.tie_bic)}
+                if not told_apart(r) and (
+                    r["significant"] or ((r.get("effect_size") or {}).get("matters", True)
+                                         and r["delta_bic"] < th.delta_bic and lead in bic
+                                         and r["bic"] - bic[lead] < th.tie_bic))}
     seen = set(members) | set(ties)
     for m in members:
         for b in protocol_blind_spots(m, features):

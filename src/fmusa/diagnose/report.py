@@ -43,6 +43,9 @@ PARAM_MEANING = {
     "ve_tau": "relaxation time of the Maxwell branch",
     "F_offset": "bias of the force channel",
     "y_offset": "bias of the displacement channel",
+    "dmg_y0": "onset displacement of the interface damage (largest displacement reached)",
+    "dmg_rate": "softening rate of the damage per displacement past the onset",
+    "dmg_F_res": "residual force of the failed interface (friction plateau)",
 }
 
 #: What each effect means physically (fmu/MODEL.md, "Effects beyond eq. 1").
@@ -57,6 +60,8 @@ EFFECT_MEANING = {
                        "a permanent set after unloading",
     "backlash_gap": "slack: no force until the displacement passes a gap",
     "sensor_offset": "a constant bias in the measured channel",
+    "interface_damage": "the interface fails: past an onset displacement its strength drops towards a residual "
+                        "(friction) force, and it unloads and reloads on the secant to the origin",
 }
 
 
@@ -104,6 +109,15 @@ def _describe_structure(st: Mapping | None, unit: str, f: float) -> str:
         return str(st.get("description") or "white: no structure beyond noise")
     parts = []
     osc, drift = st.get("oscillation"), st.get("drift")
+    mis = st.get("misfit")
+    if mis:
+        xu = st.get("x_unit") or ""
+        parts.append(f"the model is {fmt(mis['size_low'] * f)}–{fmt(mis['size_high'] * f)} {unit} "
+                     f"{'above' if mis['sign'] > 0 else 'below'} the data from {fmt(mis['x_start'])} {xu} to "
+                     f"{fmt(mis['x_end'])} {xu} of {st.get('x_name') or 'displacement'}"
+                     + (f" (experiment {mis['experiment'] + 1})" if st.get("n_segments", 1) > 1 else "")
+                     + (f", where the measured {st.get('response') or 'response'} falls"
+                        if mis.get("response_falls") else ""))
     if osc:
         parts.append(f"an oscillation at {fmt(osc['frequency_hz'])} Hz (period {fmt(1 / osc['frequency_hz'])} s) "
                      f"of amplitude {fmt(osc['amplitude'] * f)} {unit}, "
@@ -113,7 +127,7 @@ def _describe_structure(st: Mapping | None, unit: str, f: float) -> str:
         parts.append(f"a drift of {drift['total_change'] * f:+.3g} {unit} {over} "
                      f"({fmt(drift['slope_per_s'] * f)} {unit}/s, {100 * drift['share_of_variance']:.0f} % of "
                      f"the residual variance)")
-    if not parts:
+    if not osc and not drift:
         rho, z = st.get("lag1_autocorrelation", float("nan")), st.get("runs_z", float("nan"))
         if (z < 0) or (rho > 0):
             parts.append(f"a slowly varying systematic error (lag-1 autocorrelation {rho:.2f}, runs test "
@@ -370,8 +384,8 @@ def _leftover_text(diag: Mapping, unit: str, f: float) -> str:
                 f"{unit} in all, p = {p_text(drift.get('p_value'))}) may be a sensor drift, temperature, or a slow "
                 "effect none of the candidates has.")
     if not osc and not drift:
-        out += (" It is neither a single oscillation nor a drift: a systematic error the candidates "
-                "do not describe, or two effects at once.")
+        out += (" It is neither an oscillation (none recurs over three periods or more) nor a drift: a "
+                "systematic error the candidates do not describe, or a further effect.")
     return out + "\n"
 
 
@@ -457,8 +471,9 @@ def _caveats_section(diag: Mapping) -> str:
     if diag["data"].get("heldout", "").startswith("4 contiguous"):
         out += ("- Held-out blocks are stretches of the tests the fit saw the rest of: a prediction into a "
                 "stretch the fit did not see, not a new test.\n")
-    out += ("- Every candidate is one effect added to the baseline; two effects at once are not fitted, and "
-            "the named effect is the single one that explains most.\n")
+    out += ("- Every candidate of the ranking is one effect added to the baseline, and the named effect is the "
+            "single one that explains most; further effects are tried on top of it in the chain (see Chain of "
+            "effects), one at a time, the best addition first.\n")
     if structured and "extended" not in structured:
         out += "- The baseline's residuals were structured; the extension removed that structure.\n"
     return out
@@ -476,6 +491,70 @@ def _warnings_section(diag: Mapping) -> str:
                   "for the data as read.\n")
 
 
+def _chain_section(diag: Mapping) -> str:
+    """The chain of effects: each step's gain over the model before it, and the final model's parameters."""
+    steps = diag.get("chain") or []
+    if not steps:
+        return ""
+    _, unit, f = response_channel(diag)
+    rows = []
+    for i, s in enumerate(steps, 1):
+        g = s["gain"]
+        rows.append([f"#{i}", f"`{s['effect']}`", f"{fmt(s['rmse'] * f)}", f"{fmt(s['heldout_rmse'] * f)}",
+                     ratio_text(g.get("rmse_ratio")), ratio_text(g.get("heldout_rmse_ratio")),
+                     delta_text(g.get("delta_bic")), p_text(g.get("p_value"))])
+    out = "## Chain of effects\n\n"
+    if len(steps) == 1:
+        out += (f"After `{steps[0]['effect']}`, every remaining candidate was tried on top of it: none passed the "
+                f"tests (significant and mattering against the model with `{steps[0]['effect']}`), so the chain "
+                f"stops at one effect.\n\n")
+    else:
+        out += ("After the first effect, every remaining candidate was tried on top of the model so far; the best "
+                "addition was kept while it passed the same tests as the first (significant and mattering). "
+                "Gains are against the model of the step before (the first against the baseline).\n\n")
+    out += _table(["step", "effect", f"RMSE [{unit}]", f"held-out RMSE [{unit}]", "RMSE ratio",
+                   "held-out ratio", "ΔBIC", "p"], rows) + "\n"
+    final = diag.get("final") or {}
+    if len(steps) > 1 and final.get("params"):
+        prow = []
+        for n, v in final["params"].items():
+            val, u = natural(n, v["value"])
+            lo, hi = natural(n, v["ci95"][0])[0], natural(n, v["ci95"][1])[0]
+            prow.append([f"`{n}`", PARAM_MEANING.get(n, ""), u or "–", f"{fmt(val, 4)} [{fmt(lo, 3)}, {fmt(hi, 3)}]"])
+        out += (f"\nFinal model: baseline + {' + '.join(f'`{e}`' for e in final['effects'])}:\n\n"
+                + _table(["parameter", "meaning", "unit", "value [95 %]"], prow) + "\n")
+    return out
+
+
+def _fit_checks_section(diag: Mapping) -> str:
+    """What the fits could not decide or where they stopped: a parameter held (the damping under one constant
+    rate) and the test that would identify it, the baseline against the straight line through the data, and
+    every parameter left at a bound."""
+    lines = []
+    base = diag.get("baseline") or {}
+    for name, h in (base.get("held") or {}).items():
+        lines.append(f"- `{name}` held at {fmt(h.get('value', 0.0))}: {h.get('why', '')}. The test that would "
+                     f"identify it: {h.get('identifying_test', '')}.")
+    line = diag.get("straight_line")
+    if line:
+        _, unit, f = response_channel(diag)
+        c, u = natural("c_y", line["c_y"])
+        verdict = "not worse" if line.get("baseline_not_worse") else "WORSE (a fit that failed: see the caveats)"
+        lines.append(f"- The fitted baseline (RMSE {fmt(base.get('rmse', float('nan')) * f)} {unit}) is {verdict} "
+                     f"than the straight line through the origin with the secant stiffness {fmt(c)} {u} (RMSE "
+                     f"{fmt(line['rmse'] * f)} {unit}).")
+    for label, summary in (("baseline", base), ("extended model", diag.get("extended") or {})):
+        if label == "extended model" and diag.get("effect") == "none":
+            continue
+        for b in summary.get("at_bounds") or []:
+            v, u = natural(b["name"], b["value"])
+            lim, _ = natural(b["name"], b["limit"])
+            lines.append(f"- The {label}'s fit stopped at the {b['bound']} bound of `{b['name']}` ({fmt(v)} {u}, "
+                         f"bound {fmt(lim)} {u}): no optimum inside the range; the value is a limit, not an "
+                         f"estimate.")
+    return "## Fit checks\n\n" + "\n".join(lines) + "\n" if lines else ""
+
+
 def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) -> Path:
     """``out_dir/report.md``: the data, the named effect and why, parameters with intervals, the ranking, the
     residual diagnosis before and after, look-alike candidates, caveats and the figures."""
@@ -489,7 +568,7 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
              f"candidate effect ({len(diag.get('ranking') or [])} candidates); the effect is named only when "
              f"its gain is significant.\n",
              _warnings_section(diag),
-             _data_section(diag, experiments), _verdict_section(diag), _params_section(diag),
+             _data_section(diag, experiments), _verdict_section(diag), _params_section(diag), _chain_section(diag), _fit_checks_section(diag),
              _ranking_section(diag), _residual_section(diag, experiments), _ties_section(diag),
              _caveats_section(diag)]
     if figures:

@@ -20,9 +20,12 @@ OVERSAMPLE = 5          # frequency grid points per independent frequency 1/T: t
 LOCAL_WINDOW = 25       # independent frequencies each side of a peak that estimate the local continuum
 LOCAL_GAP = 2           # ... leaving out this many each side of the peak (its main lobe)
 HOLD_FRACTION = 0.02    # |v| below this fraction of max |v| counts as a hold
-MIN_PERIODS = 2.0       # an experiment says something about a period only when it holds this many of them:
+MIN_PERIODS = 3.0       # an experiment says something about a period only when it holds this many of them:
 #                         over a shorter stretch a free-phase sinusoid is indistinguishable from an offset, a
-#                         slope and a bend, and its fitted amplitude is meaningless (it can be 100x the rms)
+#                         slope, a bend or a single bump, and its fitted amplitude is meaningless (it can be
+#                         100x the rms)
+RECUR_PARTS = 3         # an oscillation must recur: fitted alone in each third of the samples that hold it, its
+RECUR_SHARE = 0.3       # amplitude is at least this share of the whole fit's in every third (a bump is not)
 MIN_SAMPLES = 8         # ... and when it has at least this many samples
 
 
@@ -311,6 +314,65 @@ def _oscillation(t: np.ndarray, r: np.ndarray, segs: list[np.ndarray]) -> dict |
             "active": active, "experiments": k}
 
 
+def _recurs(tt: np.ndarray, centred: np.ndarray, rows: np.ndarray, freq: float, amp: float) -> bool:
+    """Whether a wave at ``freq`` of amplitude ``amp`` is in every part of the record, not one bump: a sinusoid
+    with an offset fitted to each of RECUR_PARTS consecutive parts of the samples that hold it must reach
+    RECUR_SHARE of the amplitude in each (a peak and a drop of a test, read as a wave, live in one part)."""
+    idx = np.flatnonzero(rows)
+    if len(idx) < RECUR_PARTS * MIN_SAMPLES or amp <= 0:
+        return False
+    for part in np.array_split(idx, RECUR_PARTS):
+        w = 2 * np.pi * freq * tt[part]
+        X = np.column_stack([np.ones(len(part)), np.cos(w), np.sin(w)])
+        b, *_ = np.linalg.lstsq(X, centred[part], rcond=None)
+        if float(np.hypot(b[1], b[2])) < RECUR_SHARE * amp:
+            return False
+    return True
+
+
+def misfit_region(r: np.ndarray, segs: list[np.ndarray], x: np.ndarray, t: np.ndarray, noise: float,
+                  measured: np.ndarray | None = None) -> dict | None:
+    """The stretch where the model misses the data systematically: the contiguous run, within one experiment,
+    of one sign of the smoothed residual (moving mean over about 1/20 of the experiment) around its largest
+    value, where it exceeds 3 x the noise of the mean (and 10 % of that largest value). Returns where (x and
+    t at its ends), how much (the 10th percentile and the largest |smoothed residual| there), its sign (+1: the
+    model above the data) and, given the measured response, whether that falls across the region."""
+    best = None
+    for j, idx in enumerate(segs):
+        n = len(idx)
+        if n < MIN_SAMPLES:
+            continue
+        w = max(3, n // 20)
+        sm = np.convolve(r[idx], np.ones(w) / w, mode="same")
+        edge = np.convolve(np.ones(n), np.ones(w) / w, mode="same")
+        sm = sm / edge
+        k = int(np.argmax(np.abs(sm)))
+        if best is None or abs(sm[k]) > abs(best[2][best[3]]):
+            best = (j, idx, sm, k, w)
+    if best is None:
+        return None
+    j, idx, sm, k, w = best
+    peak = abs(float(sm[k]))
+    thr = max(3.0 * noise / np.sqrt(w), 0.1 * peak)
+    if not (peak > thr):
+        return None
+    sign = 1.0 if sm[k] > 0 else -1.0
+    on = (sign * sm) > thr
+    a = b = k
+    while a > 0 and on[a - 1]:
+        a -= 1
+    while b < len(sm) - 1 and on[b + 1]:
+        b += 1
+    sizes = np.abs(sm[a:b + 1])
+    out = {"experiment": int(j), "sign": int(sign), "x_start": float(x[idx[a]]), "x_end": float(x[idx[b]]),
+           "t_start": float(t[idx[a]]), "t_end": float(t[idx[b]]), "size_low": float(np.percentile(sizes, 10)),
+           "size_high": float(np.max(sizes)), "samples": int(b - a + 1), "share_of_samples": float((b - a + 1) / len(idx)),
+           "response_falls": None}
+    if measured is not None and b > a:
+        out["response_falls"] = bool(abs(measured[idx[b]]) < abs(measured[idx[a]]) - 2 * noise)
+    return out
+
+
 def longest_period(t: np.ndarray, segs: list[np.ndarray]) -> float:
     """The longest period the oscillation search looks at (s): the longest experiment / MIN_PERIODS; NaN when
     no experiment has MIN_SAMPLES samples. Longer periods cannot be told from an offset and a drift."""
@@ -383,6 +445,18 @@ def _describe(out: dict, unit: str, n_segments: int) -> str:
         parts.append(f"a drift of {drift['total_change']:+.3g}{u} {over} "
                      f"({_fmt(drift['slope_per_s'])}{u}/s, {100 * drift['share_of_variance']:.0f} % of the "
                      f"residual variance)")
+    mis = out.get("misfit")
+    if mis is not None:
+        where = "above" if mis["sign"] > 0 else "below"
+        xu = f" {out.get('x_unit')}" if out.get("x_unit") else ""
+        text = (f"the model is {_fmt(mis['size_low'])}–{_fmt(mis['size_high'])}{u} {where} the data from "
+                f"{_fmt(mis['x_start'])}{xu} to {_fmt(mis['x_end'])}{xu} of {out.get('x_name', 'displacement')}"
+                + (f" (experiment {mis['experiment'] + 1})" if n_segments > 1 else ""))
+        if mis.get("response_falls"):
+            text += f", where the measured {out.get('response', 'response')} falls"
+        mis_text = text
+    else:
+        mis_text = None
     if not parts:
         rho = out["lag1_autocorrelation"]
         if out["runs_z"] < 0 or rho > 0:
@@ -398,11 +472,15 @@ def _describe(out: dict, unit: str, n_segments: int) -> str:
         else:
             parts.append(f"{kind}, but no single drift; whether it oscillates cannot be told (segments too "
                          f"short: fewer than {MIN_SAMPLES} samples each)")
+    if mis_text:
+        parts.insert(0, mis_text)
     return "structured: " + "; ".join(parts)
 
 
 def residual_structure(t: np.ndarray, r: np.ndarray, *, segments: Sequence[np.ndarray] | None = None,
-                       alpha: float = 0.01, unit: str = "") -> dict:
+                       alpha: float = 0.01, unit: str = "", x: np.ndarray | None = None, x_unit: str = "",
+                       x_name: str = "displacement", measured: np.ndarray | None = None,
+                       response: str = "response") -> dict:
     """Is anything left in the residuals r(t) beyond white noise, and if so what?
 
     Four tests, each at alpha / 4 so that white noise is called structured with probability at most alpha:
@@ -425,7 +503,9 @@ def residual_structure(t: np.ndarray, r: np.ndarray, *, segments: Sequence[np.nd
     lag1_autocorrelation, ljung_box_q, ljung_box_df, ljung_box_p, runs, runs_z, runs_p, p_values (the four
     tests), oscillation (None or frequency_hz, amplitude, share_of_variance, p_value, experiments, samples),
     drift (None or slope_per_s, slope_se, total_change, share_of_variance, p_value), longest_period_s (the
-    longest period searched, NaN when none can be)."""
+    longest period searched, NaN when none can be), misfit (None or the region of systematic misfit of
+    :func:`misfit_region` along ``x``, the drive channel in ``x_unit``: a structure that is no oscillation,
+    e.g. a trend or a single bump, is described by where the model misses the data and by how much)."""
     t = np.asarray(t, float).ravel()
     r = np.asarray(r, float).ravel()
     if t.shape != r.shape:
@@ -464,7 +544,7 @@ def residual_structure(t: np.ndarray, r: np.ndarray, *, segments: Sequence[np.nd
         # would needs the offsets and the drift to cancel it: degenerate, and not reported.
         ms_wave = float(np.mean(wave ** 2))
         ms_room = float(np.mean(centred[rows] ** 2))
-        if ms_wave <= 1.05 * ms_room:
+        if ms_wave <= 1.05 * ms_room and _recurs(np.concatenate([t[i] for i in segs]), centred, rows, freq, float(np.sqrt(2.0 * ms_wave))):
             amp = float(np.sqrt(2.0 * min(ms_wave, ms_room)))
             explained = max(0.0, float(e0 @ e0) - float(e @ e))
             oscillation = {"frequency_hz": freq, "amplitude": amp,
@@ -504,7 +584,14 @@ def residual_structure(t: np.ndarray, r: np.ndarray, *, segments: Sequence[np.nd
         "runs": n_runs, "runs_z": z_runs, "runs_p": p_runs,
         "p_values": p_values, "oscillation": oscillation, "drift": drift,
         "longest_period_s": longest_period(t, segs),
+        "misfit": None, "x_unit": x_unit, "x_name": x_name, "response": response,
     }
+    if out["structured"] and oscillation is None:
+        xx = np.asarray(x, float).ravel() if x is not None else t
+        if x is None:
+            out.update(x_unit="s", x_name="time")
+        out["misfit"] = misfit_region(r, segs, xx, t, max(out["noise_rms"], 1e-300),
+                                      None if measured is None else np.asarray(measured, float).ravel())
     out["description"] = _describe(out, unit, k)
     return out
 

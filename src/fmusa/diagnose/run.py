@@ -21,8 +21,9 @@ import numpy as np
 
 from fmusa.diagnose import residuals as rs
 from fmusa.diagnose.calibrate import MIN_EXPERIMENTS_LEFT_OUT, Fit, unify_equivalent
-from fmusa.diagnose.effects import (CANDIDATES, UNITS, DiagnoseError, data_scales, equivalent_parameters,
-                                    main_parameter, model_parameters)
+from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, UNITS, DiagnoseError, data_scales,
+                                    equivalent_by_construction, equivalent_parameters, main_parameter,
+                                    model_parameters)
 from fmusa.diagnose.fitcache import data_key, run_fits
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
 from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members,
@@ -51,7 +52,15 @@ def _structure(fit: Fit, experiments: Sequence, drive: str) -> dict:
         offset += len(e.t)
     t_all = np.concatenate([e.t for e in experiments])
     r = np.concatenate([pr - e.response_signal for pr, e in zip(fit.predictions, experiments)])
-    return rs.residual_structure(t_all, r, segments=segments, unit="N" if drive == "displacement" else "m")
+    meas = np.concatenate([np.asarray(e.response_signal, float) for e in experiments])
+    # where a misfit is: along the drive channel, in mm or N
+    if drive == "displacement":
+        x, x_unit, x_name, resp = np.concatenate([e.displacement for e in experiments]) * 1e3, "mm", \
+            "displacement", "force"
+    else:
+        x, x_unit, x_name, resp = np.concatenate([e.force for e in experiments]), "N", "force", "displacement"
+    return rs.residual_structure(t_all, r, segments=segments, unit="N" if drive == "displacement" else "m",
+                                 x=x, x_unit=x_unit, x_name=x_name, measured=meas, response=resp)
 
 
 def _fit_summary(f: Fit) -> dict:
@@ -61,7 +70,83 @@ def _fit_summary(f: Fit) -> dict:
            "aic": f.aic, "bic": f.bic, "k": f.k, "n": f.n}
     if f.mapped_from:
         out.update(mapped_from=f.mapped_from, own=f.own)
+    out["at_bounds"] = [dict(b, unit=UNITS.get(b["name"], "")) for b in f.at_bounds]
+    out["held"] = dict(f.held)
     return out
+
+
+#: the most effects a chain names (the first and up to two on top of it)
+MAX_CHAIN = 3
+
+
+def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect: str, candidates: Sequence[str],
+                 experiments: Sequence, drive: str, fmu: str, max_starts: int, interface: ModelInterface,
+                 workers: int, cache_dir, key: str, progress: bool, th: Thresholds, chain: int) -> list[dict]:
+    """After the first effect, each remaining candidate on top of the model so far, while the best addition
+    passes the same tests as the first (significant against the model so far: ΔBIC, held-out ratio, F test)
+    and matters (:func:`rank.effect_size`). Each step: the effect, its gain over the model before it (fitted
+    and held-out RMSE ratios, ΔBIC, p) and the fit. Candidates equivalent to a named one are not tried (the
+    same equations add nothing)."""
+    if effect == "none":
+        return []
+    steps = [{"effect": lead, "model": lead, "gain": _gain(base, ext, lead), "rmse": ext.rmse,
+              "heldout_rmse": ext.heldout_rmse, "fit": ext}]
+    named = set(members)
+    current, name = ext, lead
+    rr = response_range(experiments)
+    while len(steps) < chain:
+        rest = [c for c in candidates if c not in named
+                and not any(equivalent_by_construction(c, m) for m in named)]
+        if not rest:
+            break
+        jobs = [(fmu, f"{name}+{c}", drive, list(experiments), max_starts, interface) for c in rest]
+        results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress)
+        combos = {c: results[f"{name}+{c}"] for c in rest if isinstance(results.get(f"{name}+{c}"), Fit)}
+        if not combos:
+            break
+        ranking = rank_candidates(current, combos, th, rr)
+        nxt, _ = choose_effect(ranking, th, combos)
+        if nxt == "none":
+            break
+        pick = group_members(nxt)[0]
+        fit = combos[pick]
+        name = f"{name}+{pick}"
+        steps.append({"effect": pick, "model": name, "gain": _gain(current, fit, pick), "rmse": fit.rmse,
+                      "heldout_rmse": fit.heldout_rmse, "fit": fit,
+                      "tried": sorted(combos)})
+        named |= set(group_members(nxt))
+        current = fit
+    return steps
+
+
+def damping_look_alikes(base: Fit, members: Sequence[str], effect: str) -> list[dict]:
+    """With d_y held at 0 (a drive of one constant rate), a named effect that adds a constant force on such a
+    ramp (friction, a fast Maxwell branch, a force offset) may be the damping force: say so, with the test."""
+    if effect == "none" or "d_y" not in base.held:
+        return []
+    out = []
+    for m in members:
+        la = BASELINE_LOOK_ALIKES.get(m)
+        if la:
+            out.append({"effect": "damping d_y (held at 0)", "of": m,
+                        "reason": f"cannot tell, because {base.held['d_y']['why']}; and {la['why']}",
+                        "separating_test": la["separating_test"]})
+            break
+    return out
+
+
+def straight_line(experiments: Sequence, drive: str) -> dict:
+    """The straight line through the origin that fits the response best (the secant stiffness): a fitted
+    baseline must never be worse (it holds this line at d_y = 0)."""
+    ys = np.concatenate([np.asarray(e.displacement, float) for e in experiments])
+    Fs = np.concatenate([np.asarray(e.force, float) for e in experiments])
+    if drive == "displacement":
+        c = float(np.dot(ys, Fs) / np.dot(ys, ys))
+        r = c * ys - Fs
+    else:
+        c = float(np.dot(Fs, Fs) / np.dot(ys, Fs))
+        r = Fs / c - ys
+    return {"c_y": c, "rmse": float(np.sqrt(np.mean(r ** 2)))}
 
 
 def response_range(experiments: Sequence) -> float:
@@ -98,12 +183,14 @@ def _thresholds(th: Thresholds) -> dict:
 def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | None = None,
              candidates: Sequence[str] = CANDIDATES, workers: int | None = None,
              max_starts: int = 6, thresholds: Thresholds = Thresholds(), progress: bool = False,
-             cache_dir: str | os.PathLike | None = None, interface: ModelInterface = SCREW_VERTEBRA) -> dict:
+             cache_dir: str | os.PathLike | None = None, interface: ModelInterface = SCREW_VERTEBRA,
+             chain: int = MAX_CHAIN) -> dict:
     """Calibrate the baseline and every candidate, rank them, and describe what is left.
 
     Returns a dict with the keys of diagnosis.json plus the fits (``_fits``) for the figures. With
     ``cache_dir`` each fit is saved as it completes and reused by a rerun on the same data, so an
-    interrupted diagnosis loses nothing already computed. ``interface`` names the FMU's variables."""
+    interrupted diagnosis loses nothing already computed. ``interface`` names the FMU's variables.
+    ``chain``: the most effects of the chain (:func:`effect_chain`; 1 names one effect only)."""
     from fmusa.fmi.info import FMURunError, default_fmu_path
 
     _check_input(experiments, drive, candidates, interface)
@@ -122,6 +209,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     base = results["none"]
     if not isinstance(base, Fit):
         raise FMURunError(f"the baseline could not be fitted: {base}")
+    line = straight_line(experiments, drive)
+    line["baseline_not_worse"] = bool(base.rmse <= line["rmse"] * (1 + 1e-3) + 1e-12 * sc.F_pk)
     # the same equations under two parametrisations are scored as one model
     fits = unify_equivalent({n: r for n, r in results.items() if n != "none" and isinstance(r, Fit)})
     ranking = rank_candidates(base, fits, thresholds, response_range(experiments))
@@ -134,6 +223,10 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         lead = fits[lead].mapped_from
     ext = fits[lead] if effect != "none" else base
     res_base, res_ext = _structure(base, experiments, drive), _structure(ext, experiments, drive)
+    steps = effect_chain(base, ext, lead, members, effect, candidates, experiments, drive, fmu, max_starts,
+                         interface, workers, cache_dir, key, progress, thresholds, chain)
+    final = steps[-1]["fit"] if steps else ext
+    res_final = _structure(final, experiments, drive) if len(steps) > 1 else res_ext
     features = protocol_features(experiments)
     eff_names = [p.name for p in model_parameters(lead, drive, sc)][2:] if effect != "none" else []
     group = {m: {"params": dict(fits[m].params), "main_parameter": main_parameter(m, drive),
@@ -149,19 +242,27 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "effect_params": {n: {"value": ext.params[n], "ci95": list(ext.ci95[n]), "unit": UNITS.get(n, "")}
                           for n in eff_names},
         "baseline": _fit_summary(base),
+        "straight_line": line,
         "extended": _fit_summary(ext),
         "gain": _gain(base, ext, effect),
         "ranking": ranking,
         "failed": {n: r for n, r in results.items() if not isinstance(r, Fit)},
-        "indistinguishable": indistinguishable(effect, ties, ranking, features, fits, drive),
+        "indistinguishable": indistinguishable(effect, ties, ranking, features, fits, drive)
+                             + damping_look_alikes(base, members, effect),
         "protocol": features,
-        "residuals": {"baseline": res_base, "extended": res_ext},
-        "leftover": res_ext.get("description", "") if res_ext.get("structured") else "",
+        "residuals": {"baseline": res_base, "extended": res_ext, **({"final": res_final} if len(steps) > 1 else {})},
+        "leftover": res_final.get("description", "") if res_final.get("structured") else "",
+        "chain": [{k: v for k, v in s.items() if k != "fit"} for s in steps],
+        "final": {"effects": [s["effect"] for s in steps],
+                  "params": {n: {"value": v, "ci95": list(final.ci95.get(n, (v, v))), "unit": UNITS.get(n, "")}
+                             for n, v in final.params.items()},
+                  "rmse": final.rmse, "heldout_rmse": final.heldout_rmse} if steps else None,
         "data": _data_summary(experiments, drive),
         "thresholds": _thresholds(thresholds),
         "units": units,
         "warnings": [dict(w) for w in units["warnings"]],
-        "_fits": {"none": base, **fits, **({effect: ext} if len(members) > 1 else {})},
+        "_fits": {"none": base, **fits, **({effect: ext} if len(members) > 1 else {}),
+                  **({"+".join(s["effect"] for s in steps): final} if len(steps) > 1 else {})},
     }
 
 

@@ -19,7 +19,7 @@ __all__ = ["NATURAL_UNITS", "natural", "param_label", "p_text", "ratio_text", "d
            "fit_predictions", "extended_name", "residual_series", "experiment_motion", "by_loading_direction"]
 
 #: SI unit -> (natural unit, factor SI -> natural)
-NATURAL_UNITS = {"N/m": ("N/mm", 1e-3), "N.s/m": ("N·s/mm", 1e-3), "m": ("mm", 1e3), "N": ("N", 1.0),
+NATURAL_UNITS = {"N/m": ("N/mm", 1e-3), "N.s/m": ("N·s/mm", 1e-3), "m": ("mm", 1e3), "N": ("N", 1.0), "1/m": ("1/mm", 1e-3),
                  "s": ("s", 1.0), "1": ("", 1.0), "": ("", 1.0)}
 
 

@@ -348,6 +348,12 @@ def _model_text(by_rate: dict) -> str:
            f"absorbs a toe at the start of a record, and its breakpoint is wherever its own least squares put it. "
            f"Its median |Δk1| against the authors is {per} (|Δk2| {per2}), its k1 lower at {lower} of {len(rows)} "
            f"rates; on the same tests the two lines with a free intercept give the medians above.")
+    toe = {r: v for r, v in rows.items() if v.get("toe_k1_rel_diff_median") is not None}
+    if toe:
+        t1 = ", ".join(f"{100 * v['toe_k1_rel_diff_median']:.2f} % at {r} mm/s" for r, v in toe.items())
+        t2 = ", ".join(f"{100 * v['toe_k2_rel_diff_median']:.2f} %" for v in toe.values())
+        out += (f" The chain's model (issue 22: the bend with a force offset that frees the first phase's start, "
+                f"d_y held at 0, started at the authors' rule) gives a median |Δk1| of {t1} (|Δk2| {t2}).")
     return out + _damping_text(rows, by_rate) + "\n"
 
 
