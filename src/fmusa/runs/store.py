@@ -40,7 +40,11 @@ def _num(x: float) -> str:
 
 
 class StoreBusyError(UsageError):
-    """Another process writes the same runs file."""
+    """Another process writes the same runs file.
+
+    Fix: wait for the other ``fmusa sweep`` on the same ``--out`` folder to finish (or stop it), or give this
+    one another ``--out``.
+    """
 
 
 def _lock_folder(path: Path):
