@@ -200,7 +200,8 @@ def render() -> str:
     for section, cls, excluded, what in SECTIONS:
         check(section, cls, excluded)
         title = f"`{section}`" if section else "Top level"
-        out += [f"## {title}", "", what, "", markdown(intro(cls)), "",
+        prose = "" if cls is schema.Study else markdown(intro(cls))   # Study's docstring is about the Python object
+        out += [f"## {title}", "", what, "", prose, "",
                 "| key | type | default | meaning |", "|---|---|---|---|"]
         docs = param_entries(cls)
         for f in keys_of(cls, excluded):
