@@ -36,7 +36,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 FMU = ROOT / "dist" / "ScrewVertebra.fmu"
 BIN = Path(sys.executable).parent
-PAGES = [ROOT / "README.md"] + sorted((ROOT / "docs").glob("*.md"))
+PAGES = [ROOT / "README.md"] + sorted((ROOT / "docs").glob("*.md")) + sorted((ROOT / "docs" / "_partials").glob("*.md"))
 
 #: (page, first line of the block) of every block that is not run, with the reason given on the page.
 SKIPPED = {
