@@ -398,7 +398,10 @@ class Execution:
     :param scheduler: The address of a Dask scheduler, e.g. ``tcp://127.0.0.1:8786`` (``--scheduler``
         overrides it). Each Dask task runs its runs in a supervised process on its Dask worker, as the local
         pool does: a run that segfaults, hangs past ``timeout_s``, returns NaN or fmi2Error is recorded as
-        failed with its reason, the process is replaced, and the Dask worker itself survives.
+        failed with its reason, the process is replaced, and the Dask worker itself survives. A Dask worker
+        killed from outside costs nothing: Dask gives its task to another worker. A task Dask gives up on (its
+        worker died more than ``distributed.scheduler.allowed-failures`` = 3 times) records its runs as
+        failed with Dask's reason; the study goes on.
     :param timeout_s: The wall-clock limit per run in s, > 0, wherever the run is made.
     """
     workers: int | None = None
