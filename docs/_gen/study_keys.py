@@ -84,6 +84,29 @@ def param_entries(cls: type) -> dict[str, str]:
     return out
 
 
+def comment_entries(cls: type) -> dict[str, str]:
+    """``#: text`` comments right above a field in the class body (the Sphinx convention for attributes),
+    for fields that have no ``:param`` entry."""
+    import inspect
+    out: dict[str, str] = {}
+    pending: list[str] = []
+    for line in inspect.getsource(cls).splitlines():
+        stripped = line.strip()
+        if stripped.startswith("#:"):
+            pending.append(stripped[2:].strip())
+            continue
+        m = re.match(r"(\w+)\s*:", stripped)
+        if m and pending:
+            out[m.group(1)] = " ".join(pending)
+        pending = []
+    return out
+
+
+def entries(cls: type) -> dict[str, str]:
+    """The text of each documented field: its ``:param`` entry, else its ``#:`` comment."""
+    return {**comment_entries(cls), **param_entries(cls)}
+
+
 def intro(cls: type) -> str:
     """The docstring's prose, without its ``:param`` entries."""
     text = (cls.__doc__ or "").split(":param", 1)[0]
@@ -172,13 +195,14 @@ def loader_keys(section: str) -> list[str] | None:
 def check(section: str, cls: type, excluded: frozenset[str]) -> None:
     """Raise :class:`DocsDriftError` when the docstring, the fields and the loader disagree."""
     fields = [f.name for f in keys_of(cls, excluded)]
-    docs = param_entries(cls)
+    docs = entries(cls)
     where = f"fmusa.study.schema.{cls.__name__}"
     missing = [k for k in fields if k not in docs]
     if missing:
         raise DocsDriftError(f"{where}: field(s) {', '.join(missing)} have no ':param <key>: text' entry in the "
-                             f"class docstring; add one (the study-file reference page is made from it)")
-    extra = [k for k in docs if k not in fields]
+                             f"class docstring (nor a '#: text' comment above the field); add one (the "
+                             f"study-file reference page is made from it)")
+    extra = [k for k in param_entries(cls) if k not in fields]
     if extra:
         raise DocsDriftError(f"{where}: docstring entries {', '.join(extra)} are not fields; remove them")
     allowed = loader_keys(section)
@@ -203,7 +227,7 @@ def render() -> str:
         prose = "" if cls is schema.Study else markdown(intro(cls))   # Study's docstring is about the Python object
         out += [f"## {title}", "", what, "", prose, "",
                 "| key | type | default | meaning |", "|---|---|---|---|"]
-        docs = param_entries(cls)
+        docs = entries(cls)
         for f in keys_of(cls, excluded):
             text = docs[f.name]
             default = _default(f)
