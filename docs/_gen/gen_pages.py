@@ -58,6 +58,7 @@ def figures() -> None:
 def paper_report(report: str) -> str:
     """report.md of the paper's study as a page: its figure links pointed at the copied figures."""
     text = report.replace("](figures/", "](../figures/paper/")
+    text = text.replace(ROOT.as_posix() + "/", "").replace(str(ROOT) + "\\", "")   # paths relative to the repository
     lines = text.splitlines()
     if lines and lines[0].startswith("# "):
         lines[0] = "# The paper's study: the report `make sweep` writes"
