@@ -28,7 +28,7 @@ MINGW_CFLAGS := -std=c99 -O3 -fcx-limited-range -shared -Wall -Wextra -static-li
 HAVE_MINGW := $(if $(MINGW_CC),$(shell command -v $(MINGW_CC) 2>/dev/null))
 FMU_BINARIES := $(FMU_SO) $(if $(HAVE_MINGW),$(FMU_DLL))
 
-.PHONY: all fmu sweep test identifiability bench diagnose clean
+.PHONY: all fmu sweep test identifiability bench diagnose docs clean
 .DELETE_ON_ERROR:
 
 all: fmu
@@ -95,6 +95,23 @@ diagnose: $(STAMP) $(FMU)
 
 bench: $(STAMP) $(FMU)
 	$(VPY) -m fmusa.bench --out out/bench/bench.json
+
+# ---------------------------------------------------------------- documentation
+# The site (mkdocs.yml, docs/) into out/site: --strict turns every warning, a broken link or anchor among
+# them, into an error. The generated pages (study file keys, the model, errors, API) and the figures are
+# made during the build by docs/_gen/ from the code and the FMU; docs/assets/tour-pullout.png, the README's
+# one figure, is redrawn by the same `fmusa pullout` call the README shows. mkdocs stays below 2.0
+# (pyproject's docs extra), so Material's notice about MkDocs 2.0 is switched off.
+DOCS_STAMP := $(VENV)/.installed-docs
+
+$(DOCS_STAMP): pyproject.toml | $(STAMP)
+	$(VENV)/bin/pip install -e '.[test,docs]'
+	touch $@
+
+docs: $(DOCS_STAMP) $(FMU)
+	$(VENV)/bin/fmusa pullout --out build/docs/tour
+	cp build/docs/tour/pullout.png docs/assets/tour-pullout.png
+	DISABLE_MKDOCS_2_WARNING=true NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --clean --site-dir out/site
 
 clean:
 	rm -rf build dist out

@@ -18,6 +18,10 @@ class FmusaError(Exception):
 
     ``exit_code`` is the status the ``fmusa`` command exits with: 2 for input that is wrong (the default),
     1 for input that could not be used (an FMU that fails to build or to run, a file that is missing).
+
+    Fix: read the one line the ``fmusa`` command printed: it names the input (a file and line, an option, a
+    variable) and what to change. Any other exception, printed with a traceback, is a bug in fmusa: report it
+    with the traceback.
     """
 
     exit_code: int = 2
@@ -25,4 +29,8 @@ class FmusaError(Exception):
 
 class UsageError(FmusaError, ValueError):
     """An argument out of range: a command-line option or a keyword argument of the Python API (e.g. a
-    non-positive ``stop_time``, an unknown ``--causality``)."""
+    non-positive ``stop_time``, an unknown ``--causality``).
+
+    Fix: change the option or argument the message names to a value in the range it gives (``fmusa <command>
+    --help`` lists the options).
+    """

@@ -20,7 +20,11 @@ __all__ = ["OutputError", "DiskFullError", "writable_folder", "atomic_path", "at
 
 
 class OutputError(FmusaError, OSError):
-    """An output folder that cannot be made or written: the message names it and the fix."""
+    """An output folder that cannot be made or written: the message names it and the fix.
+
+    Fix: choose an ``--out`` folder you can write (not a file, not read-only, on a disk with space), or make
+    the named folder writable, then rerun (a study with ``--resume`` keeps the runs already in ``runs.csv``).
+    """
     exit_code = 2
 
 

@@ -168,7 +168,11 @@ MAIN_PARAMETER = {"nonlinear_stiffness": "nl_ratio", "viscoelastic_relaxation": 
 
 
 class DiagnoseError(FmusaError, ValueError):
-    """Bad input to the diagnosis: names what is wrong and the fix."""
+    """Bad input to the diagnosis: names what is wrong and the fix.
+
+    Fix: change the argument the message names (an effect name, a drive ``displacement`` or ``force``, an
+    option out of range) as it says.
+    """
 
 
 @dataclass(frozen=True)

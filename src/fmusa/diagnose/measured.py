@@ -73,7 +73,12 @@ OPTIONS = {
 
 class MeasuredDataError(FmusaError, ValueError):
     """A measured-data file or column specification that cannot be used. The message is
-    ``file:line: column 'name' (role): what is wrong; how to fix it``."""
+    ``file:line: column 'name' (role): what is wrong; how to fix it``.
+
+    Fix: go to the file and line named; map the column with ``--time-column``, ``--displacement-column`` or
+    ``--force-column``, convert its unit with ``--time-unit``, ``--displacement-unit`` or ``--force-unit``, or
+    remove the bad rows (NaN, time that does not increase).
+    """
 
 
 # ============================================================================ units

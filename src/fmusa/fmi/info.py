@@ -59,32 +59,54 @@ _SHORT = {"co-simulation": "CS", "model-exchange": "ME"}
 class FMUError(FmusaError, ValueError):
     """An FMU fmusa cannot run as asked: neither FMI 2.0 nor 3.0, the requested interface missing, no binary for
     this platform and no sources to build one, an unreadable model description, an unknown variable
-    name or a value of the wrong type for a variable."""
+    name or a value of the wrong type for a variable.
+
+    Fix: ``fmusa inspect FMU`` shows what the FMU declares. Export it again as FMI 2.0 with the interface you
+    ask for and a binary for this platform (or its C sources), or correct the variable name or value the
+    message names (it lists the closest names).
+    """
 
 
 class FMUNotFoundError(FmusaError, FileNotFoundError):
-    """The FMU file is missing (a ``FileNotFoundError`` too, as it was before fmusa had its own errors)."""
+    """The FMU file is missing (a ``FileNotFoundError`` too, as it was before fmusa had its own errors).
+
+    Fix: give the right path to the ``.fmu`` file; for the built ScrewVertebra FMU run ``make fmu`` (it writes
+    ``dist/ScrewVertebra.fmu``) or point ``$FMUSA_FMU`` at it.
+    """
 
     exit_code = 1
 
 
 class FMUCompileError(FmusaError, RuntimeError):
     """Building an FMU's binary from its C sources failed; the message names the FMU and holds the
-    compiler's output."""
+    compiler's output.
+
+    Fix: read the compiler output in the message. Install a C compiler (and CMake, for fmpy's build template),
+    or export the FMU again with a binary for this platform (``fmusa inspect FMU`` shows the binaries it has).
+    """
 
     exit_code = 1
 
 
 class FMURunError(FmusaError, RuntimeError):
     """A run the FMU rejected (an FMI call returned Error or Fatal, or its outputs were not finite); the
-    message names the phase of the run, the parameters set and the FMU's log."""
+    message names the phase of the run, the parameters set and the FMU's log.
+
+    Fix: read the FMU's log in the message: the parameters may be outside the range the model is meant for (a
+    zero mass, a negative stiffness), or the solver settings too tight. In a study the run is recorded as
+    failed with this reason and the study goes on.
+    """
 
     exit_code = 1
 
 
 class FMUTimeLimitError(FMURunError):
     """A run stopped at a communication point because it passed its runner's ``deadline``: the caller that
-    set the deadline words the reason (which limit, and how to raise it)."""
+    set the deadline words the reason (which limit, and how to raise it).
+
+    Fix: if the FMU is only slow, raise the limit the message names (``execution.timeout_s`` in a study) and
+    rerun without ``--resume``; if it hangs, check the parameters of that run.
+    """
 
 
 def host_platform(fmi_version: str = "2.0") -> str:

@@ -21,7 +21,12 @@ _NOT_DASK = "is it a Dask scheduler? (its port is 8786 by default; 8787 is its d
 
 class SchedulerUnreachableError(UsageError):
     """The Dask scheduler of ``--scheduler`` (or ``execution.scheduler``) cannot be reached, or its address
-    is not one."""
+    is not one.
+
+    Fix: start the scheduler (``dask scheduler --port 8786``) and pass the address it prints,
+    ``tcp://HOST:PORT`` (not the dashboard's port 8787); or leave out ``--scheduler`` to run on local
+    processes.
+    """
 
 
 def _unreachable(address: str, reason: str) -> SchedulerUnreachableError:

@@ -42,7 +42,11 @@ def _num(x: float) -> str:
 
 
 class StoreBusyError(UsageError):
-    """Another process writes the same runs file."""
+    """Another process writes the same runs file.
+
+    Fix: wait for the other ``fmusa sweep`` on the same ``--out`` folder to finish (or stop it), or give this
+    one another ``--out``.
+    """
 
 
 def _try_lock(fh) -> None:

@@ -61,7 +61,11 @@ IDENTIFIER = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
 class StudyError(FmusaError, ValueError):
-    """An invalid study file. The message is ``file:line: what is wrong; how to fix it``."""
+    """An invalid study file. The message is ``file:line: what is wrong; how to fix it``.
+
+    Fix: go to the file and line the message names and make the change it says (the closest allowed key or
+    name is suggested). The keys are listed on the site's *Study file keys* page.
+    """
 
 
 # ============================================================================ dataclasses
@@ -71,6 +75,12 @@ class Parameter:
 
     The study may work in other units than the FMU; ``scale``/``offset`` convert, so reports and
     figures use the study's unit while the FMU always gets SI values.
+
+    :param variable: **required** The FMU variable, any string (e.g. ``c_y``, ``body.c``, ``tab_y[1]``).
+    :param unit: The study's unit, used in reports and figures.
+    :param scale: Nonzero; FMU value = ``scale`` × study value + ``offset`` (unit conversion).
+    :param offset: Added after ``scale``.
+    :param description: Free text for the report.
     """
     name: str
     variable: str
@@ -92,7 +102,16 @@ class Parameter:
 class FixedValue:
     """A ``fixed`` FMU parameter written in the study's own unit (``fixed: {c_y: {value: 823.2, unit: N/mm,
     scale: 1000}}``): FMU value = ``scale`` × ``value`` + ``offset``, the conversion of a study parameter.
-    The report shows the study's value and unit; the FMU gets :meth:`to_fmu`."""
+    The report shows the study's value and unit; the FMU gets :meth:`to_fmu`.
+
+    :param value: **required** A number in the study's unit.
+    :param unit: The study's unit, shown in the report. A label only: the conversion is ``scale`` and
+        ``offset`` (``fmusa inspect`` shows the FMU's own unit).
+    :param scale: Nonzero; FMU value = ``scale`` × ``value`` + ``offset``; e.g.
+        ``c_y: {value: 823.2, unit: N/mm, scale: 1000}`` sets ``c_y`` = 823200 N/m.
+    :param offset: E.g. ``T: {value: 37, unit: degC, offset: 273.15}`` sets 310.15 K.
+    :param description: Free text for the report.
+    """
     name: str
     value: float
     unit: str = ""
@@ -113,6 +132,18 @@ class Scenario:
     ``step`` the outputs are sampled every ``step`` s, and a peak or a settling time taken from the
     samples is off by up to ~step²/8·|y''| or one step; ``refine_peaks`` then re-runs each run with
     ``refine_factor`` times finer steps around those samples (see :mod:`fmusa.runs.refine`).
+
+    :param stop_time: **required** The end time in s, > 0.
+    :param step: Communication step (the output interval) in s, > 0. With null there is a single ``doStep``
+        to ``stop_time``; the FMU's monitors make this exact.
+    :param inputs: FMU inputs held constant: name → number.
+    :param description: Free text.
+    :param refine_peaks: With true, every run whose metrics take a peak (``max``, ``min``, ``max_abs``) or a
+        settling time (``settle``) from the samples is re-run once with ``refine_factor`` times finer
+        communication steps in the sampling intervals next to those samples (a model exchange FMU, or one that
+        cannot vary its communication step, is re-run with the finer step throughout). Needs a ``step`` and
+        such a metric.
+    :param refine_factor: Integer ≥ 2; only with ``refine_peaks: true``.
     """
     stop_time: float
     step: float | None = None
@@ -129,6 +160,20 @@ class Metric:
     ``reduce`` turns the sampled output into one number (``final`` needs no sampling). A reduced
     raw value below ``missing_below`` means "none" (NaN): e.g. ``t_eq = -1`` means never at rest.
     The reported metric is ``scale * raw + offset`` (unit conversion).
+
+    :param output: **required** The FMU output variable (any variable except the independent one).
+    :param reduce: One of ``final``, ``max``, ``min``, ``max_abs``, ``mean``, ``mean_abs``, ``settle``, over the
+        sampled output. ``settle`` is the time since which |output| ≤ ``settle_tol`` has held (the first
+        such sample; NaN when the last sample is outside the band): a time to equilibrium for an FMU without a
+        ``t_eq`` monitor.
+    :param unit: The metric's unit, for reports.
+    :param scale: Nonzero; metric = ``scale`` × value + ``offset``.
+    :param offset: Added after ``scale``.
+    :param missing_below: A reduced raw FMU value below this means "none" (NaN). For example ``t_eq = -1``
+        means the screw never came to rest.
+    :param description: Free text for the report.
+    :param settle_tol: > 0, the band of ``settle``, in the FMU's unit of the output; required with ``settle``
+        and allowed only there.
     """
     name: str
     output: str
@@ -170,6 +215,14 @@ class Constraint:
 
     Bounds are inclusive (``min <= value <= max``). ``required`` means the metric must exist
     (not NaN), e.g. "the screw reaches equilibrium".
+
+    :param name: **required** An identifier that is unique among the constraints.
+    :param metric: **required** The name of a metric.
+    :param max: Inclusive upper bound.
+    :param min: Inclusive lower bound (≤ ``max``).
+    :param required: With true, the metric must exist (not NaN). A NaN fails every constraint. Each item
+        needs a bound or ``required: true``.
+    :param description: Free text for the report.
     """
     name: str
     metric: str
@@ -193,7 +246,14 @@ class Constraint:
 
 @dataclass(frozen=True)
 class GridStage:
-    """The initial coarse grid (paper, Section 2.4): powers of a base, or explicit values."""
+    """The initial coarse grid (paper, Section 2.4): powers of a base, or explicit values.
+
+    :param base: Required with ``exponents``; > 0 and not 1.
+    :param exponents: Parameter → [lo, hi], an inclusive integer range with lo ≤ hi. The grid values are
+        base^lo … base^hi.
+    :param values: Parameter → an explicit list of values. Each parameter takes exactly one of ``exponents``
+        and ``values``, and the grid must give values for every study parameter.
+    """
     base: float | None = None
     exponents: dict[str, tuple[int, int]] = field(default_factory=dict)
     values: dict[str, list[float]] = field(default_factory=dict)
@@ -213,7 +273,14 @@ class GridStage:
 class RoiStage:
     """The region of interest. ``manual`` (parameter -> (lo, hi)) overrides the region computed
     from the grid; the paper chose its region by hand. Spanned by the search's ``inner`` and ``outer``
-    parameters, or by ``inner`` alone (an inner range) when the search has no ``outer``."""
+    parameters, or by ``inner`` alone (an inner range) when the search has no ``outer``.
+
+    :param manual: Parameter → [lo, hi], which overrides the region computed from the grid. Without
+        ``manual``, a ``grid`` stage must come first. A ``search`` stage is also required: its ``inner`` and
+        ``outer`` parameters span the region. Without ``outer``, the region is a range of ``inner`` alone: the
+        grid neighbours that bracket its smallest feasible grid value (rule 1 of ``fmusa/analysis/roi.py``),
+        taken at the other study parameters' first grid values.
+    """
     manual: dict[str, tuple[float, float]] | None = None
 
 
@@ -236,7 +303,33 @@ class SearchStage:
     search_in_rounds`): ``"auto"`` (the default) as many points per round as the study has workers (local
     processes or the Dask cluster's threads), an integer that many, ``False`` the sequential search, one
     point at a time (the paper's; studies/paper.yaml keeps it). The answer is the sequential search's for
-    a monotone boundary."""
+    a monotone boundary.
+
+    :param inner: **required** The study parameter whose smallest feasible value is bisected. A ``roi`` stage
+        must come first; with ``roi.manual``, both parameters need a range there.
+    :param outer: The study parameter halved from the region's upper bound (≠ ``inner``). Without it the
+        search is one bisection of ``inner`` inside the region; ``summary.json`` then has
+        ``optimum: {inner: value}`` and a single search level whose ``outer`` is null.
+    :param inner_rtol: > 0, the relative bracket width that ends the inner bisection.
+    :param response_rtol: > 0, the relative change in the response that counts as "a change".
+    :param max_outer: Integer ≥ 1, the most outer levels.
+    :param response: [the constrained metrics] The metric names compared between consecutive outer levels
+        (the search's stop rule); e.g. ``[max_y, max_v, t_eq]``.
+    :param response_atol: [0] ≥ 0, an absolute floor in the metric's unit: a metric changed only if it moved by
+        more than ``response_rtol`` relative *and* more than its floor. One number for every response metric,
+        or metric → number (only metrics in ``response``). Without a floor a metric that is 0 up to round-off
+        (a final velocity at rest, 1e-19 … 1e-150 m/s) counts as changed at every level, and the search runs
+        to ``max_outer``; e.g. ``response_atol: {v_end: 5.0e-8}``.
+    :param warm_start: True brackets each outer level from the previous level's answer x: x and
+        x·(1 − ``inner_rtol``) are run first (2 runs when the boundary has not moved), else the bracket grows
+        geometrically from x and is bisected; the monotonicity check runs once, at the final answer. Fewer FMU
+        runs (the paper's study: 64 instead of 225) for an optimum within ``inner_rtol`` of the default
+        search's. Needs ``outer``. ``summary.json`` gives each stage's runs under ``stage_runs`` (``asked``,
+        ``simulated``).
+    :param parallel: [auto] ``auto``, an integer ≥ 1 or ``false``: the points run together in one round of the
+        search (``auto``: the study's workers, or the Dask cluster's threads); ``false`` is the paper's
+        sequential search. The answer is the sequential search's for a monotone boundary.
+    """
     inner: str
     outer: str | None = None
     inner_rtol: float = 1e-3
@@ -252,7 +345,16 @@ class SearchStage:
 class RegressionStage:
     """Polynomial fits of metrics over one parameter (the paper's eq. 3, a cubic in c), one fit
     per value of ``by`` if given. ``source`` names the runs fitted, set by the loader: ``"search"``
-    when the study has a search stage (the paper's fits), else ``"grid"``."""
+    when the study has a search stage (the paper's fits), else ``"grid"``.
+
+    :param x: **required** A study parameter. The fits use the runs of the ``search`` stage, which must come
+        before the regression; in a study without ``search``, the runs of the ``grid`` stage, which must then
+        come first and give at least ``degree`` + 1 values of ``x``. ``summary.json`` names the runs fitted
+        under ``regression_source`` (``search`` or ``grid``).
+    :param y: **required** A list of metric names.
+    :param by: A study parameter (≠ ``x``); one fit is made for each of its values.
+    :param degree: Integer ≥ 1, the degree of the polynomial.
+    """
     x: str
     y: list[str]
     by: str | None = None
@@ -262,7 +364,14 @@ class RegressionStage:
 
 @dataclass(frozen=True)
 class SensitivityParameter:
-    """An input of the global sensitivity analysis, sampled within ``bounds``."""
+    """An input of the global sensitivity analysis, sampled within ``bounds``.
+
+    :param variable: **required** The FMU variable. It is varied by only one parameter and is not in
+        ``fixed``.
+    :param bounds: **required** [lo, hi] with lo < hi (and lo > 0 for ``loguniform``).
+    :param distribution: ``uniform`` or ``loguniform``.
+    :param unit: The parameter's unit, for reports.
+    """
     name: str
     variable: str
     bounds: tuple[float, float]
@@ -273,7 +382,16 @@ class SensitivityParameter:
 @dataclass(frozen=True)
 class SensitivityStage:
     """Global sensitivity analysis (Morris screening, Sobol indices) of ``outputs`` (metric
-    names) to ``parameters``. ``n`` is the Sobol base sample size."""
+    names) to ``parameters``. ``n`` is the Sobol base sample size.
+
+    :param methods: A subset of ``morris``, ``sobol``.
+    :param n: The Sobol base sample size, an integer ≥ 1 (a power of 2 is recommended).
+    :param morris_trajectories: Integer ≥ 2.
+    :param seed: Integer ≥ 0, the seed of the samples.
+    :param outputs: **required** A list of metric names.
+    :param parameters: **required** Name → ``{variable, bounds, distribution, unit}``. Each name is an
+        identifier and must not also be a metric name.
+    """
     methods: list[str] = field(default_factory=lambda: list(METHODS))
     n: int = 1024
     morris_trajectories: int = 20
@@ -286,11 +404,20 @@ class SensitivityStage:
 class Execution:
     """Where the runs execute: local worker processes (None = all cores) or a Dask scheduler.
 
-    ``check_fmu_steps``: after the stages, rerun a few points with the communication step halved, the
-    tolerance tightened tenfold and (where the FMU has it) through model exchange, and flag the metrics that
-    move by more than the study's tolerance (:mod:`fmusa.pipeline.solver_check`). ``None`` (``auto``, the
-    default): for every FMU but this repository's own ScrewVertebra, whose solver its tests hold to closed
-    forms and an independent stiff solver; ``true`` checks ours too, ``false`` skips those runs.
+    :param workers: The number of local worker processes, an integer ≥ 1; null uses all cores.
+    :param scheduler: The address of a Dask scheduler, e.g. ``tcp://127.0.0.1:8786`` (``--scheduler``
+        overrides it). Each Dask task runs its runs in a supervised process on its Dask worker, as the local
+        pool does: a run that segfaults, hangs past ``timeout_s``, returns NaN or fmi2Error is recorded as
+        failed with its reason, the process is replaced, and the Dask worker itself survives. A Dask worker
+        killed from outside costs nothing: Dask gives its task to another worker. A task Dask gives up on (its
+        worker died more than ``distributed.scheduler.allowed-failures`` = 3 times) records its runs as
+        failed with Dask's reason; the study goes on.
+    :param timeout_s: The wall-clock limit per run in s, > 0, wherever the run is made.
+    :param check_fmu_steps: [auto] ``auto``, ``true`` or ``false``: after the stages, rerun a few points with the
+        communication step halved, the tolerance tightened tenfold and (where the FMU has it) through model
+        exchange, and flag the metrics that move by more than the study's tolerance
+        (:mod:`fmusa.pipeline.solver_check`). ``auto`` checks every FMU but this repository's own
+        ScrewVertebra, whose solver its tests hold to closed forms and an independent stiff solver.
     """
     workers: int | None = None
     scheduler: str | None = None
@@ -320,6 +447,17 @@ class FMUOptions:
     exchange. Model exchange FMUs are integrated by fmpy's ``solver`` (CVode when None, or Euler) with
     ``relative_tolerance`` (CVode) and ``step_size`` (Euler's fixed step; CVode's longest step). For a
     co-simulation FMU, ``relative_tolerance`` is passed to ``fmi2SetupExperiment``.
+
+    :param interface: ``auto``, ``co-simulation`` or ``model-exchange`` (``CS`` and ``ME`` are accepted too).
+        ``auto`` runs co-simulation when the FMU has it, else model exchange.
+    :param solver: Model exchange only: fmpy's ``CVode`` (the default) or ``Euler``. An error with
+        co-simulation, which integrates with the FMU's own solver.
+    :param relative_tolerance: > 0 and < 1. Model exchange: CVode's relative tolerance (null: the FMU's
+        default experiment, else 1e-5). Co-simulation: passed to the FMU as the tolerance of
+        ``fmi2SetupExperiment``.
+    :param step_size: s, > 0, model exchange only: Euler's fixed step, or the longest step CVode may take. It
+        must divide ``scenario.step`` into whole steps. Null: Euler steps at ``scenario.step``, split to at
+        most ``stop_time``/1000; CVode chooses its own steps.
     """
     interface: str = "auto"
     solver: str | None = None
@@ -334,6 +472,26 @@ class Study:
     ``path`` is the YAML file (absolute; None when parsed from a string without a file name);
     ``fmu`` None means the built ScrewVertebra FMU (:func:`fmusa.fmi.info.default_fmu_path`).
     ``stages`` keeps the file order.
+
+    :param name: **required** An identifier (letters, digits, ``_``); names the study and its outputs.
+    :param description: [""] Free text.
+    :param fmu: [``default``] ``default`` (or absent) is the built ``dist/ScrewVertebra.fmu`` (or
+        ``$FMUSA_FMU``); otherwise the path to an ``.fmu`` file, relative to the YAML file. The file must exist.
+    :param fmu_options: [defaults of ``fmu_options``] How the FMU runs: its interface and, for model exchange,
+        fmpy's solver.
+    :param parameters: **required** At least one study parameter. They map onto FMU variables and are what the
+        grid, RoI, search and regression work on.
+    :param fixed: [{}] FMU parameters set on every run: name → number or true/false (in the FMU's unit), or
+        name → ``{value, unit, scale, offset, description}`` to write the value in the study's own unit. It
+        must not set the variable of a study or sensitivity parameter.
+    :param scenario: **required** What one run simulates.
+    :param metrics: **required** At least one. Maps a metric name to how it is computed from an FMU output.
+    :param constraints: [[]] A list of conditions on metrics (Equation 2 and Table 2 of the paper).
+    :param stages: **required** At least one. An ordered mapping whose keys come from ``grid``, ``roi``,
+        ``search``, ``regression``, ``sensitivity``; the stages run in file order.
+    :param execution: [defaults of ``execution``] Where the runs execute.
+    :param paper: [{}] Reference values quoted in the paper, for the report (the paper application checks
+        this block's own keys); not used by the computation.
     """
     name: str
     description: str
