@@ -30,7 +30,11 @@ class OutputError(FmusaError, OSError):
 
 class DiskFullError(OutputError):
     """A file that could not be written because its disk (or quota) is full: names the file and the free
-    space. Exit code 1: the input was right, the machine could not take the output."""
+    space. Exit code 1: the input was right, the machine could not take the output.
+
+    Fix: free space on the file system the message names (or point ``--out`` at another one), then rerun
+    the same command with ``--resume``: every file written before is intact, and the runs already in
+    runs.csv are not made again."""
     exit_code = 1
 
 

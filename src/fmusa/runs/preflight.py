@@ -45,7 +45,11 @@ _CHECK_VERSION = 1
 
 class FMULoadError(FmusaError, RuntimeError):
     """The FMU's binary cannot be loaded or instantiated on this machine (a missing library or symbol, the
-    wrong platform, an instantiation the FMU refuses); the message holds the loader's reason and the fix."""
+    wrong platform, an instantiation the FMU refuses); the message holds the loader's reason and the fix.
+
+    Fix: what the message says after "Fix:": install the library the binary needs, re-export the FMU for
+    this platform (or with its C sources, which fmusa builds), or export or download a damaged FMU again.
+    Nothing was written: an earlier runs.csv in ``--out`` is where it was."""
 
     exit_code = 1
 
@@ -53,7 +57,11 @@ class FMULoadError(FmusaError, RuntimeError):
 class FMUReuseError(FmusaError, RuntimeError):
     """Runs of the FMU are not reproducible even on a new instance with its library loaded anew: its
     results depend on something fmusa cannot reset (state kept in its process, a nondeterministic
-    solver), so no run of it could be trusted."""
+    solver), so no run of it could be trusted.
+
+    Fix: ask the FMU's exporter for an export whose runs depend only on their parameters (no global state
+    in its binary, a deterministic solver); the message names the output and time where two runs of the
+    same point differed."""
 
     exit_code = 1
 
