@@ -26,7 +26,10 @@ __all__ = ["Thresholds", "nested_p_value", "effect_size", "rank_candidates", "ch
 #: joins the names of candidates the data cannot decide between: "coulomb_friction ≡ yield_softening"
 GROUP_SEP = " ≡ "
 #: a look-alike whose RMSE and held-out RMSE are both this many times the named effect's is told apart
-TOLD_APART = 3.0
+#: (10: a Maxwell branch that a load-unload test fits 8x better than friction, or a bend 3.7x worse than
+#: yield on ramp-holds, stay look-alikes whose separating test is named; a failure curve leaves friction and
+#: yield ~2000x behind)
+TOLD_APART = 10.0
 
 
 @dataclass(frozen=True)
