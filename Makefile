@@ -28,7 +28,7 @@ MINGW_CFLAGS := -std=c99 -O3 -fcx-limited-range -shared -Wall -Wextra -static-li
 HAVE_MINGW := $(if $(MINGW_CC),$(shell command -v $(MINGW_CC) 2>/dev/null))
 FMU_BINARIES := $(FMU_SO) $(if $(HAVE_MINGW),$(FMU_DLL))
 
-.PHONY: all fmu sweep test identifiability bench diagnose docs clean
+.PHONY: all fmu sweep test identifiability slow bench diagnose docs clean
 .DELETE_ON_ERROR:
 
 all: fmu
@@ -88,6 +88,10 @@ test: $(STAMP) $(FMU)
 # The whole identifiability table through the FMU (`make test` runs a representative subset of its cells).
 identifiability: $(STAMP) $(FMU)
 	$(VENV)/bin/pytest -q -p no:cacheprovider --run-slow tests/test_identifiability.py
+
+# Every test marked slow (kept out of `make test`): the identifiability cells and hidden-effect cells it skips.
+slow: $(STAMP) $(FMU)
+	$(VENV)/bin/pytest -q -p no:cacheprovider --run-slow -m slow tests
 
 # The diagnosis of the real C6/C7 shear tests (data/shear-c67) against the authors' own analysis.
 diagnose: $(STAMP) $(FMU)
