@@ -31,7 +31,7 @@ from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
 from fmusa.pipeline.sampling_check import sampling_summary
 from fmusa.pipeline.solver_check import implausible_runs, solver_summary
-from fmusa.study.plan import check_fmu, check_points, grid_points, run_fingerprint, study_plan_spec
+from fmusa.study.plan import check_fmu, grid_points, reset_check_points, run_fingerprint, study_plan_spec
 from fmusa.runs.preflight import preflight
 
 
@@ -95,7 +95,7 @@ class StudyRunner:
             self.evaluator.connect()
             # the FMU loaded once, and how its runs must be made to equal runs on a fresh instance, before
             # anything is written (a binary that cannot load stops the study here, nothing moved aside)
-            a, b = check_points(study, spec)
+            a, b = reset_check_points(study, spec)
             self.reuse = preflight(self.evaluator.check_spec(), a, b, isolate=self.evaluator.supervised_only,
                                    timeout_s=study.execution.timeout_s, digest=str(self.fingerprint.get("fmu")),
                                    start_method=study.execution.start_method, name=str(fmu_path))

@@ -109,6 +109,13 @@ def load_problem(fmu: str, exc: BaseException) -> str:
     return f"{fmu}: the FMU cannot be loaded on this machine: {text}. Fix: {fix}"
 
 
+def _is_load_failure(exc: BaseException) -> bool:
+    """Whether ``exc``, raised while an FMU was loaded or instantiated, says the binary cannot be loaded here
+    (fmpy raises a plain Exception for a library that does not load; an FMUError for a missing binary), as
+    opposed to a mistake in the input, which is raised as it is."""
+    return not (isinstance(exc, FmusaError) and not isinstance(exc, FMUError))
+
+
 # ------------------------------------------------------------------------------------------ the check
 def _difference(first: np.ndarray, again: np.ndarray, outputs: Sequence[str], times: np.ndarray) -> str:
     """Where run ``again`` differs most from run ``first`` (the same point), in words."""
@@ -135,7 +142,7 @@ def _run_sequence(spec: PlanSpec, mode: str, a: Sequence[float], b: Sequence[flo
         try:
             plan = plan_for(spec)
         except Exception as exc:
-            if isinstance(exc, FmusaError) and not isinstance(exc, FMUError):
+            if not _is_load_failure(exc):
                 raise
             raise FMULoadError(load_problem(spec.fmu_path, exc)) from None
         if plan.runner.is_fresh:
@@ -144,8 +151,8 @@ def _run_sequence(spec: PlanSpec, mode: str, a: Sequence[float], b: Sequence[flo
         return _run_sequence(spec, mode, a, b, shared, budget)
     try:
         runner = runner_for(replace(spec, reuse=mode))
-    except Exception as exc:        # fmpy raises a plain Exception for a library that does not load
-        if isinstance(exc, FmusaError) and not isinstance(exc, FMUError):
+    except Exception as exc:
+        if not _is_load_failure(exc):
             raise
         if mode == "reset":
             raise FMULoadError(load_problem(spec.fmu_path, exc)) from None
@@ -469,6 +476,6 @@ def _confirm_loads(spec: PlanSpec, isolate: bool) -> None:
     try:
         runner_for(spec).close()
     except Exception as exc:
-        if isinstance(exc, FmusaError) and not isinstance(exc, FMUError):
+        if not _is_load_failure(exc):
             raise
         raise FMULoadError(load_problem(spec.fmu_path, exc)) from None

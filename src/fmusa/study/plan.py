@@ -165,7 +165,7 @@ def study_plan_spec(study: Study, fmu_path: str | Path) -> PlanSpec:
     )
 
 
-def check_points(study: Study, spec: PlanSpec) -> tuple[list[float], list[float]]:
+def reset_check_points(study: Study, spec: PlanSpec) -> tuple[list[float], list[float]]:
     """Two points (FMU values of ``spec.varied``) for the FMU's reset check (:mod:`fmusa.runs.preflight`):
     the grid's first and last points, as far apart as the study goes; without a grid, the study
     parameters' start values, twice (the check then still finds a state that a reset does not restore)."""
