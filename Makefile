@@ -36,7 +36,7 @@ all: fmu
 # ---------------------------------------------------------------- virtual environment
 $(STAMP): pyproject.toml
 	test -x $(VPY) || $(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install -e '.[test]'
+	$(VENV)/bin/pip install -e '.[test,fmu]'
 	touch $@
 
 $(VENV): $(STAMP)
