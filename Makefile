@@ -11,20 +11,21 @@ FMU := dist/ScrewVertebra.fmu
 FMU_BUILD := build/fmu
 FMU_SO := $(FMU_BUILD)/binaries/linux64/ScrewVertebra.so
 SRC_STAMP := build/.fmu-sources
-FMU_C := fmu/fmi2.c fmu/model.c fmu/solver.c
+FMU_C := fmu/fmi2.c fmu/model.c fmu/solver.c sv_generated.c
+# The model's equations: C generated from the Modelica source by fmu/codegen.py (pymoca and CasADi, the `fmu`
+# extra), carried in the FMU's sources with the hand-written FMI layer and solver.
+FMU_GEN := $(FMU_BUILD)/sources/sv_generated.c $(FMU_BUILD)/sources/sv_generated.h $(FMU_BUILD)/sources/sv_model.h
 FMU_SRC := $(wildcard fmu/*.c) $(wildcard fmu/*.h)
 FMI_HEADERS := fmi2Functions.h fmi2FunctionTypes.h fmi2TypesPlatform.h
 CC := gcc
-# -fcx-limited-range: complex products without C99's recovery of infinite parts; the solver's complex step
-# never meets infinities (a non-finite right-hand side is an error), and its results are bit for bit the same.
-CFLAGS := -std=c99 -O3 -fcx-limited-range -fPIC -shared -Wall -Wextra -fvisibility=hidden
+CFLAGS := -std=c99 -O3 -fPIC -shared -Wall -Wextra -fvisibility=hidden
 # win64: the same sources cross-compiled with Debian's gcc-mingw-w64-x86-64, where it is installed
 # (`MINGW_CC=` builds linux64 only). fmi2Functions.h exports the fmi2 functions with
 # __declspec(dllexport) under _WIN32; -static-libgcc keeps the DLL's imports to Windows system DLLs
 # (KERNEL32, msvcrt).
 FMU_DLL := $(FMU_BUILD)/binaries/win64/ScrewVertebra.dll
 MINGW_CC ?= x86_64-w64-mingw32-gcc
-MINGW_CFLAGS := -std=c99 -O3 -fcx-limited-range -shared -Wall -Wextra -static-libgcc -s -Wl,--no-insert-timestamp
+MINGW_CFLAGS := -std=c99 -O3 -shared -Wall -Wextra -static-libgcc -s -Wl,--no-insert-timestamp
 HAVE_MINGW := $(if $(MINGW_CC),$(shell command -v $(MINGW_CC) 2>/dev/null))
 FMU_BINARIES := $(FMU_SO) $(if $(HAVE_MINGW),$(FMU_DLL))
 
@@ -47,9 +48,12 @@ $(VENV): $(STAMP)
 $(FMU_BUILD)/modelDescription.xml $(FMU_BUILD)/sources/variables.h &: fmu/generate.py fmu/variables.csv
 	$(PYTHON) fmu/generate.py $(FMU_BUILD)
 
+$(FMU_GEN) &: fmu/codegen.py modelica/ScrewVertebra.mo | $(STAMP)
+	$(VPY) fmu/codegen.py $(FMU_BUILD)/sources
+
 # The headers come from the installed fmpy: order-only on the venv, so reinstalling it does not
 # force a rebuild.
-$(SRC_STAMP): $(FMU_SRC) $(FMU_C) $(FMU_BUILD)/sources/variables.h | $(STAMP)
+$(SRC_STAMP): $(FMU_SRC) $(FMU_GEN) $(FMU_BUILD)/sources/variables.h | $(STAMP)
 	mkdir -p $(FMU_BUILD)/sources
 	cp $(FMU_SRC) $(FMU_BUILD)/sources/
 	cc_dir=$$($(VPY) -c 'import fmpy, os; print(os.path.join(os.path.dirname(fmpy.__file__), "c-code"))') && \

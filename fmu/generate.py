@@ -15,7 +15,7 @@ from xml.sax.saxutils import quoteattr
 
 HERE = Path(__file__).resolve().parent
 MODEL_NAME = "ScrewVertebra"
-SOURCES = ["fmi2.c", "model.c", "solver.c"]
+SOURCES = ["fmi2.c", "model.c", "solver.c", "sv_generated.c"]
 
 # SI base-unit exponents (kg, m, s, rad) of every unit the table may use.
 UNITS = {

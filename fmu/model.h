@@ -10,6 +10,7 @@ typedef enum { CAUS_PARAMETER, CAUS_CALCULATED, CAUS_INPUT, CAUS_OUTPUT } Causal
 
 #include "variables.h"
 #include "solver.h"
+#include "sv_model.h"
 
 typedef struct {
     const char *name;
@@ -22,10 +23,11 @@ typedef struct {
 /* The variable table (generated from fmu/variables.csv); vr -> entry, NULL for unknown vr. */
 const VarInfo *model_variable(unsigned int vr);
 
-/* State vector: q = (x, y, z, alpha, beta, gamma), then dq/dt, then the states of the axial effects
- * (MODEL.md): the Bouc-Wen variables of yield and friction, the Maxwell branch force and the largest
- * elastic displacement reached (interface damage). */
-enum { NQ = 6, NX = 16, IX_Y = 1, IX_VY = 7, IX_ZY = 12, IX_ZF = 13, IX_FVE = 14, IX_KD = 15 };
+/* The solver's states, in the order of the generated model (sv_model.h): the six coordinates, their rates,
+ * then the states of the axial effects (MODEL.md). */
+enum { NX = SV_NX };
+
+typedef int (*sv_function)(const double **arg, double **res, int *iw, double *w, int mem);
 
 typedef struct ModelInstance {
     double v[N_VR];          /* every variable by value reference (Integer and Boolean as 0/1 doubles) */
@@ -33,8 +35,12 @@ typedef struct ModelInstance {
     double t_inputs;         /* time at which the inputs and their derivatives apply */
     double time;
     double u[NX];
-    double inertia[9];       /* I_B about the CG in the screw frame */
-    double inertia_inv[9];
+    double p[SV_NP];         /* the parameters, in the generated functions' order (set at initialisation) */
+    double d[SV_ND];         /* the derived parameters (sv_derived) */
+    double kinks[SV_NKINKS]; /* times at which the load has a kink (sv_kinks) */
+    sv_function f_rhs, f_lin, f_out, f_drive;   /* the variant the parameters call for (f_drive: motion only) */
+    int iw[SV_SZ_IW];        /* work arrays of the generated functions */
+    double w[SV_SZ_W];
     Solver solver;
     void *work;              /* the solver's workspace (solver_work_size bytes), made once, kept across resets */
 } ModelInstance;

@@ -7,8 +7,8 @@
  * Rosenbrock method (exprb32, Hochbruck, Ostermann & Schweitzer 2009):
  *     U     = u + h phi1(hJ) F(u) + h^2 phi2(hJ) F_t
  *     u_new = U + 2h phi3(hJ) D,  D = F(U) - F(u) - J (U - u) - h F_t,
- * with J = dF/du and F_t = dF/dt exact: columns the model writes in closed form (Solver.columns), the others
- * and F_t by the complex-step method. For a linear element with a
+ * with J = dF/du and F_t = dF/dt exact: the model gives them (Solver.lin: code generated from the Modelica
+ * source with its symbolic derivatives, fmu/codegen.py). For a linear element with a
  * piecewise-linear load (the paper's case) D vanishes and a step is exact to rounding whatever its length,
  * at any stiffness, without numerical damping; for the nonlinear 6-DOF dynamics (gyroscopic terms, finite
  * rotations, lever arms, a force table) the method is third order, A-stable through the exact exponential,
@@ -61,7 +61,6 @@
 
 #define NMAX SOLVER_NMAX
 #define NSUB 8                 /* dense samples per step */
-#define CSTEP 1e-100           /* complex step: exact derivatives, no cancellation */
 
 /* ---------------------------------------------------------------- small dense linear algebra */
 
@@ -552,19 +551,17 @@ typedef struct {
     int idx[NMAX];
     int active[NMAX];
     double F0[NMAX], Ft[NMAX];
-    double J[NMAX * NMAX];       /* full n x n; only active columns are filled */
+    double J[NMAX * NMAX];       /* n x n; only the active states' columns are filled */
+    double Jfull[NMAX * NMAX];   /* the model's whole Jacobian at (t, u) */
     double t;
     double u[NMAX];
 } Linearization;
 
 static int eval_real(Solver *s, double t, const double *u, double *F, char *msg, size_t len)
 {
-    cplx uc[NMAX], du[NMAX];
-    for (int i = 0; i < s->n; i++) uc[i] = u[i];
     s->n_rhs++;
-    if (s->rhs(s->ctx, t, uc, du, msg, len)) return 1;
+    if (s->rhs(s->ctx, t, u, F, msg, len)) return 1;
     for (int i = 0; i < s->n; i++) {
-        F[i] = creal(du[i]);
         if (!isfinite(F[i])) {
             snprintf(msg, len, "the right-hand side is not finite at t = %.17g (state %d)", t, i);
             return 1;
@@ -573,27 +570,15 @@ static int eval_real(Solver *s, double t, const double *u, double *F, char *msg,
     return 0;
 }
 
-static int column(Solver *s, Linearization *L, int j, char *msg, size_t len)
-{
-    int n = s->n;
-    cplx uc[NMAX], du[NMAX];
-    for (int i = 0; i < n; i++) uc[i] = L->u[i];
-    uc[j] += I * CSTEP;
-    s->n_rhs++;
-    if (s->rhs(s->ctx, L->t, uc, du, msg, len)) return 1;
-    for (int i = 0; i < n; i++) L->J[i * n + j] = cimag(du[i]) / CSTEP;
-    return 0;
-}
-
 /* Add to the active set every state driven by an active one, and fill the new columns. */
-static int close_active_set(Solver *s, Linearization *L, int *filled, char *msg, size_t len)
+static void close_active_set(Solver *s, Linearization *L, int *filled)
 {
     int n = s->n, changed = 1;
     while (changed) {
         changed = 0;
         for (int j = 0; j < n; j++) {
             if (!L->active[j] || filled[j]) continue;
-            if (column(s, L, j, msg, len)) return 1;
+            for (int i = 0; i < n; i++) L->J[i * n + j] = L->Jfull[i * n + j];
             filled[j] = 1;
             for (int i = 0; i < n; i++)
                 if (!L->active[i] && L->J[i * n + j] != 0.0) { L->active[i] = 1; changed = 1; }
@@ -602,21 +587,16 @@ static int close_active_set(Solver *s, Linearization *L, int *filled, char *msg,
     L->k = 0;
     for (int i = 0; i < n; i++)
         if (L->active[i]) L->idx[L->k++] = i;
-    return 0;
 }
 
 static int linearize(Solver *s, double t, const double *u, Linearization *L, char *msg, size_t len)
 {
     int n = s->n;
-    cplx uc[NMAX] = {0}, du[NMAX];
     L->t = t;
     memcpy(L->u, u, sizeof(double) * n);
-    for (int i = 0; i < n; i++) uc[i] = u[i];
     s->n_rhs++;
-    if (s->rhs(s->ctx, t + I * CSTEP, uc, du, msg, len)) return 1;
+    if (s->lin(s->ctx, t, u, L->F0, L->Jfull, L->Ft, msg, len)) return 1;
     for (int i = 0; i < n; i++) {
-        L->F0[i] = creal(du[i]);
-        L->Ft[i] = cimag(du[i]) / CSTEP;
         if (!isfinite(L->F0[i]) || !isfinite(L->Ft[i])) {
             snprintf(msg, len, "the right-hand side is not finite at t = %.17g (state %d)", t, i);
             return 1;
@@ -625,12 +605,13 @@ static int linearize(Solver *s, double t, const double *u, Linearization *L, cha
     }
     memset(L->J, 0, sizeof(double) * n * n);
     int filled[NMAX] = {0};
-    /* the model's closed-form columns pay off when many states move; two (the axial pullout) take the
-     * complex step */
-    int initially = 0;
-    for (int i = 0; i < n; i++) initially += L->active[i];
-    if (s->columns && initially > 2 && s->columns(s->ctx, t, u, L->J, filled)) return 1;
-    if (close_active_set(s, L, filled, msg, len)) return 1;
+    close_active_set(s, L, filled);
+    for (int a = 0; a < L->k; a++)
+        for (int i = 0; i < n; i++)
+            if (!isfinite(L->J[i * n + L->idx[a]])) {
+                snprintf(msg, len, "the Jacobian is not finite at t = %.17g (state %d)", t, L->idx[a]);
+                return 1;
+            }
     /* In the linear regime (same Jacobian as the last step) keep the carried derivative wherever it agrees
      * with the evaluated one within the evaluation's rounding error: there it is the more accurate. */
     if (s->z_valid && memcmp(L->J, s->J_prev, sizeof(double) * n * n) == 0) {
@@ -1257,9 +1238,8 @@ static int step_size(const Solver *s, double t, double remaining, double bp, dou
     return 0;
 }
 
-/* States the trial point U set moving join the active set (their columns filled). 1 when it grew, -1 on an
- * error. */
-static int expand_active(Solver *s, Linearization *L, const double *FU, char *msg, size_t len)
+/* States the trial point U set moving join the active set (their columns filled). 1 when it grew. */
+static int expand_active(Solver *s, Linearization *L, const double *FU)
 {
     int n = s->n, expanded = 0;
     for (int i = 0; i < n; i++)
@@ -1268,7 +1248,8 @@ static int expand_active(Solver *s, Linearization *L, const double *FU, char *ms
     int filled[NMAX];
     for (int i = 0; i < n; i++) filled[i] = 0;
     for (int a = 0; a < L->k; a++) filled[L->idx[a]] = 1;
-    return close_active_set(s, L, filled, msg, len) ? -1 : 1;
+    close_active_set(s, L, filled);
+    return 1;
 }
 
 /* D = F(U) - F0 - J (U - u) - h Ft on the active block; returns 1 when D vanished (the step was linear). The
@@ -1404,8 +1385,7 @@ static int fast_step(Solver *s, Linearization *L, double t_end, double bp, Budge
             zU[i] = p0F[a] + h * p1T[a];
         }
         if (eval_real(s, t + h, U, FU, msg, msglen)) return 1;
-        int grown = expand_active(s, L, FU, msg, msglen);
-        if (grown < 0) return 1;
+        int grown = expand_active(s, L, FU);
         if (grown) { expanded_any = 1; prepared = 0; continue; }
         /* correction 2h phi3 D (as the dense stepper) */
         double D[NMAX], p3D[NMAX], u1[NMAX];
@@ -1538,8 +1518,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             double U[NMAX], FU[NMAX], zU[NMAX];
             propagate_linear(s, &L, s->u, L.F0, h, P.phf, U, zU);
             if (eval_real(s, t + h, U, FU, msg, msglen)) return 1;
-            int grown = expand_active(s, &L, FU, msg, msglen);
-            if (grown < 0) return 1;
+            int grown = expand_active(s, &L, FU);
             if (grown) { expanded_any = 1; continue; }
             /* correction 2h phi3 D */
             double D[NMAX], corr[NMAX], u1[NMAX];

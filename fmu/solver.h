@@ -1,24 +1,20 @@
-/* Exponential Rosenbrock integrator with exact Jacobians (complex step), active-subspace reduction,
+/* Exponential Rosenbrock integrator with exact Jacobians (the model's, generated), active-subspace reduction,
  * dense output and the axial monitors. See solver.c for why this method. */
 #ifndef SOLVER_H
 #define SOLVER_H
 
-#include <complex.h>
 #include <stddef.h>
 
 #define SOLVER_NMAX 16
 
-typedef double complex cplx;
+/* Right-hand side du = f(t, u). Returns 0 on success, nonzero (with msg filled) when the state is outside the
+ * model's domain. */
+typedef int (*solver_rhs_fn)(void *ctx, double t, const double *u, double *du, char *msg, size_t msglen);
 
-/* Right-hand side du = f(t, u), evaluated in complex arithmetic so that the solver can take exact
- * derivatives by the complex-step method. Must be complex-analytic: branch only on real parts.
- * Returns 0 on success, nonzero (with msg filled) when the state is outside the model's domain. */
-typedef int (*solver_rhs_fn)(void *ctx, cplx t, const cplx *u, cplx *du, char *msg, size_t msglen);
-
-/* Optional: columns of the Jacobian d(du)/du at (t, u) that the model knows in closed form. Writes column j of
- * the n x n row-major J (every row) and sets filled[j] = 1 for each one; the solver takes the other columns
- * by the complex step. Returns 0 (also when it fills none). */
-typedef int (*solver_columns_fn)(void *ctx, double t, const double *u, double *J, int *filled);
+/* The linearisation at (t, u), exact: du = f(t, u), the Jacobian J = d(du)/du (n x n, row-major) and the time
+ * derivative Ft = d(du)/dt (with the inputs' rates). Returns as solver_rhs_fn. */
+typedef int (*solver_lin_fn)(void *ctx, double t, const double *u, double *du, double *J, double *Ft, char *msg,
+                             size_t msglen);
 
 /* Next time > t at which the right-hand side has a kink in time (a load ramp starts or ends). */
 typedef double (*solver_breakpoint_fn)(void *ctx, double t);
@@ -55,7 +51,7 @@ typedef struct {
     double fast_off_until;       /* the steps without dense samples are not tried before this time */
     long n_steps, n_rejected, n_rhs;
     solver_rhs_fn rhs;
-    solver_columns_fn columns;   /* may be NULL */
+    solver_lin_fn lin;
     void *work;                  /* workspace of solver_work_size() bytes, owned by the caller (NULL: the steps
                                   * without dense samples are not taken) */
     solver_breakpoint_fn breakpoint;

@@ -61,6 +61,28 @@
 //    are continuous in z and v, so no event is needed (the FMU's solver does not locate the switch
 //    either). The effect states z_y, z_f, F_ve are states of the Modelica model (protected z_y, z_f;
 //    output F_ve) and kappa (protected); the FMU carries them as its solver states 13-16.
+// Functions of the model, at the top level of the file: the generator (fmu/codegen.py) names a function
+// by a plain identifier, so they cannot be nested in the model.
+function ScrewVertebraSoftplus
+  "S(u) = w*log(1 + exp(u/w)): max(u, 0) with the corner rounded over w (written so that exp cannot overflow)"
+  input Real u;
+  input Real w "Rounding width, > 0";
+  output Real S;
+algorithm
+  S := max(u, 0) + w*log(1 + exp(-abs(u)/w));
+  annotation(smoothOrder=1);
+end ScrewVertebraSoftplus;
+
+function ScrewVertebraSoftplusSlope
+  "sigma(u) = dS/du = 1/(1 + exp(-u/w)) of ScrewVertebraSoftplus (written so that exp cannot overflow)"
+  input Real u;
+  input Real w "Rounding width, > 0";
+  output Real sigma;
+algorithm
+  sigma := exp(-max(-u, 0)/w)/(1 + exp(-abs(u)/w));
+  annotation(smoothOrder=1);
+end ScrewVertebraSoftplusSlope;
+
 model ScrewVertebra
   "Rigid pedicle/anchor screw (6 DOF) in a fixed C4 vertebra joined by a diagonal spring-damper matrix force element (Kramer and Bauer, eq. 1)"
 
@@ -188,83 +210,117 @@ model ScrewVertebra
   output Real dmg_D(unit="1") "Interface damage: the damage variable D (0 undamaged, towards 1 failed)";
 
 protected
-  function tableForce
-    "Piecewise-linear force F(u) through the first n table points, linear extrapolation beyond its ends"
-    input Real u "Axial displacement";
-    input Integer n "Number of table points used (2 <= n <= size(ty, 1))";
-    input Real ty[:] "Displacements, strictly increasing";
-    input Real tF[size(ty, 1)] "Forces";
-    output Real F "Spring force at u";
-  protected
-    Integer i "Segment [ty[i], ty[i+1]] used for u";
-  algorithm
-    if n < 2 then
-      F := 0 "no table (not used then)";
-    else
-      i := 1;
-      while i < n - 1 and u >= ty[i + 1] loop
-        i := i + 1;
-      end while;
-      F := tF[i] + (tF[i + 1] - tF[i])*(u - ty[i])/(ty[i + 1] - ty[i]);
-    end if;
-  end tableForce;
+  // Written in the subset of Modelica that fmu/codegen.py translates into the FMU's C (pymoca and
+  // CasADi): scalars only (no arrays of variables, matrix literals or cross()), explicit inverses where
+  // the matrix is known in closed form (G, the inertia tensor), if-expressions rather than when-clauses,
+  // no while loops or variable subscripts (the table is a sum of ramps), functions at the top level of the
+  // file (CasADi names a function by a plain identifier). smooth() and noEvent() are read as their
+  // argument, assert() and the monitors (the when-clauses at the end, computed by the FMU's solver) are
+  // left out of the generated code.
 
-  function softplus
-    "S(u) = w*log(1 + exp(u/w)): max(u, 0) with the corner rounded over w (written so that exp cannot overflow)"
-    input Real u;
-    input Real w "Rounding width, > 0";
-    output Real S;
-  algorithm
-    S := max(u, 0) + w*log(1 + exp(-abs(u)/w));
-    annotation(smoothOrder=1);
-  end softplus;
-
-  function softplusSlope
-    "sigma(u) = dS/du = 1/(1 + exp(-u/w)) of softplus (written so that exp cannot overflow)"
-    input Real u;
-    input Real w "Rounding width, > 0";
-    output Real sigma;
-  algorithm
-    sigma := exp(-max(-u, 0)/w)/(1 + exp(-abs(u)/w));
-    annotation(smoothOrder=1);
-  end softplusSlope;
-
-  // Geometry and inertia in the screw frame S
-  final parameter Real c[3](each unit="m") = {cg_x, cg_y, cg_z} "Centre of gravity";
-  final parameter Real p[3](each unit="m") = {rI_x, rI_y, rI_z} "Interaction point P";
-  final parameter Real b[3](each unit="m") = c - p "From P to the centre of gravity";
-  final parameter Real h[3](each unit="m") = -c "From the centre of gravity to the head centre H";
-  final parameter Real Q[3, 3] = [1, 0, 0;
-                                  0, cos(phi_inertia), -sin(phi_inertia);
-                                  0, sin(phi_inertia), cos(phi_inertia)]
-    "Principal axes e1, e2, e3 as columns";
-  final parameter Real I_B[3, 3](each unit="kg.m2") = Q*diagonal({I_1, I_2, I_3})*transpose(Q)
-    "Inertia tensor about the centre of gravity";
-
-  Real R[3, 3] "Rotation matrix, S to V";
-  Real G[3, 3] "Body angular velocity omega = G*der({alpha, beta, gamma})";
-  Real G_d[3, 3] "Time derivative of G";
-  Real a[3](each unit="m/s2") "Acceleration of P, in V";
-  Real theta_dd[3](each unit="rad/s2") "Second derivatives of the Cardan angles";
-  Real omega[3](each unit="rad/s") "Angular velocity of the screw, in S";
-  Real omega_d[3](each unit="rad/s2") "Angular acceleration of the screw, in S";
-  Real a_G[3](each unit="m/s2") "Acceleration of the centre of gravity, in V";
-  Real F_I[3](each unit="N") "Interface force on the screw at P, in V";
-  Real Q_I[3](each unit="N.m") "Generalised interface forces on the Cardan angles";
-  Real tau_I[3](each unit="N.m") "Interface torque on the screw, in S";
-  Real F_H[3](each unit="N") "Force on the screw head H, in V";
-  Real F_spring_y(unit="N") "Axial spring force F_s of the elastic displacement y_e (with the effects)";
-  Real F_el(unit="N") "Elastic force c_y*y_e or the table force at y_e";
-  Real y_e(unit="m") "Elastic axial displacement after the backlash gap";
-  Real v_e(unit="m/s") "Rate of y_e";
-  Real z_y(unit="1") "Bouc-Wen yield state";
-  Real z_f(unit="1") "Bouc-Wen friction state";
-  Real kappa(unit="m") "Largest elastic displacement |y_e| reached (interface damage)";
-  Real F_spring_u(unit="N") "Axial spring force before damage";
+  // Geometry in the screw frame S: b from P to the centre of gravity, h from the centre of gravity to H
+  final parameter Real b_x(unit="m") = cg_x - rI_x;
+  final parameter Real b_y(unit="m") = cg_y - rI_y;
+  final parameter Real b_z(unit="m") = cg_z - rI_z;
+  final parameter Real h_x(unit="m") = -cg_x;
+  final parameter Real h_y(unit="m") = -cg_y;
+  final parameter Real h_z(unit="m") = -cg_z;
+  // Inertia tensor about the centre of gravity I_B = Q*diag(I_1, I_2, I_3)*transpose(Q), Q = Rx(phi_inertia)
+  // (columns e1, e2, e3), and its inverse by cofactors
+  final parameter Real c_phi = cos(phi_inertia);
+  final parameter Real s_phi = sin(phi_inertia);
+  final parameter Real I_xx(unit="kg.m2") = I_1;
+  final parameter Real I_xy(unit="kg.m2") = 0;
+  final parameter Real I_xz(unit="kg.m2") = 0;
+  final parameter Real I_yy(unit="kg.m2") = c_phi^2*I_2 + s_phi^2*I_3;
+  final parameter Real I_yz(unit="kg.m2") = c_phi*s_phi*(I_2 - I_3);
+  final parameter Real I_zz(unit="kg.m2") = s_phi^2*I_2 + c_phi^2*I_3;
+  final parameter Real I_det = I_xx*(I_yy*I_zz - I_yz*I_yz) - I_xy*(I_xy*I_zz - I_yz*I_xz)
+    + I_xz*(I_xy*I_yz - I_yy*I_xz);
+  final parameter Real J_xx = (I_yy*I_zz - I_yz*I_yz)/I_det "inverse of I_B";
+  final parameter Real J_xy = (I_xz*I_yz - I_xy*I_zz)/I_det;
+  final parameter Real J_xz = (I_xy*I_yz - I_xz*I_yy)/I_det;
+  final parameter Real J_yy = (I_xx*I_zz - I_xz*I_xz)/I_det;
+  final parameter Real J_yz = (I_xy*I_xz - I_xx*I_yz)/I_det;
+  final parameter Real J_zz = (I_xx*I_yy - I_xy*I_xy)/I_det;
   final parameter Real y_Y(unit="m") = yield_F/c_y "Yield displacement of the Bouc-Wen yield state";
   final parameter Boolean yield_on = yield_ratio < 1 or yield_ratio > 1 "Yield softening switched on";
+  // Slopes of the force-displacement table's segments (0 past the tab_n points used)
+  final parameter Real tab_s1(unit="N/m") = if tab_n > 1 then (tab_F[2] - tab_F[1])/(tab_y[2] - tab_y[1]) else 0;
+  final parameter Real tab_s2(unit="N/m") = if tab_n > 2 then (tab_F[3] - tab_F[2])/(tab_y[3] - tab_y[2]) else 0;
+  final parameter Real tab_s3(unit="N/m") = if tab_n > 3 then (tab_F[4] - tab_F[3])/(tab_y[4] - tab_y[3]) else 0;
+  final parameter Real tab_s4(unit="N/m") = if tab_n > 4 then (tab_F[5] - tab_F[4])/(tab_y[5] - tab_y[4]) else 0;
+  final parameter Real tab_s5(unit="N/m") = if tab_n > 5 then (tab_F[6] - tab_F[5])/(tab_y[6] - tab_y[5]) else 0;
+  final parameter Real tab_s6(unit="N/m") = if tab_n > 6 then (tab_F[7] - tab_F[6])/(tab_y[7] - tab_y[6]) else 0;
+  final parameter Real tab_s7(unit="N/m") = if tab_n > 7 then (tab_F[8] - tab_F[7])/(tab_y[8] - tab_y[7]) else 0;
+  final parameter Real tab_s8(unit="N/m") = if tab_n > 8 then (tab_F[9] - tab_F[8])/(tab_y[9] - tab_y[8]) else 0;
+  final parameter Real tab_s9(unit="N/m") = if tab_n > 9 then (tab_F[10] - tab_F[9])/(tab_y[10] - tab_y[9]) else 0;
+  final parameter Real tab_s10(unit="N/m") = if tab_n > 10 then (tab_F[11] - tab_F[10])/(tab_y[11] - tab_y[10]) else 0;
+  final parameter Real tab_s11(unit="N/m") = if tab_n > 11 then (tab_F[12] - tab_F[11])/(tab_y[12] - tab_y[11]) else 0;
+  final parameter Real tab_s12(unit="N/m") = if tab_n > 12 then (tab_F[13] - tab_F[12])/(tab_y[13] - tab_y[12]) else 0;
+  final parameter Real tab_s13(unit="N/m") = if tab_n > 13 then (tab_F[14] - tab_F[13])/(tab_y[14] - tab_y[13]) else 0;
+  final parameter Real tab_s14(unit="N/m") = if tab_n > 14 then (tab_F[15] - tab_F[14])/(tab_y[15] - tab_y[14]) else 0;
+  final parameter Real tab_s15(unit="N/m") = if tab_n > 15 then (tab_F[16] - tab_F[15])/(tab_y[16] - tab_y[15]) else 0;
+
+  // Kinematics
+  Real ca "cos(alpha)";
+  Real sa "sin(alpha)";
+  Real cb "cos(beta)";
+  Real sb "sin(beta)";
+  Real cg "cos(gamma)";
+  Real sg "sin(gamma)";
+  Real R_11; Real R_12; Real R_13; Real R_21; Real R_22; Real R_23; Real R_31; Real R_32; Real R_33
+    "R = Rx(alpha)*Ry(beta)*Rz(gamma) maps the screw frame S to the vertebra frame V";
+  Real om_x(unit="rad/s") "Angular velocity of the screw, in S: omega = G*der({alpha, beta, gamma})";
+  Real om_y(unit="rad/s");
+  Real om_z(unit="rad/s");
+  Real gd_x(unit="rad/s2") "der(G)*der({alpha, beta, gamma})";
+  Real gd_y(unit="rad/s2");
+  Real gd_z(unit="rad/s2");
+  Real omd_x(unit="rad/s2") "Angular acceleration of the screw, in S";
+  Real omd_y(unit="rad/s2");
+  Real omd_z(unit="rad/s2");
+
+  // Forces and torques
+  Real F_H_x(unit="N") "Force on the screw head H, in V";
+  Real F_H_y(unit="N");
+  Real F_H_z(unit="N");
+  Real F_Ib_x(unit="N") "Interface force on the screw at P, in S: transpose(R)*F_I, F_I = -{F_x, F_y, F_z}";
+  Real F_Ib_y(unit="N");
+  Real F_Ib_z(unit="N");
+  Real F_Hb_x(unit="N") "Force on the head, in S";
+  Real F_Hb_y(unit="N");
+  Real F_Hb_z(unit="N");
+  Real tau_x(unit="N.m") "Interface torque in S: tau_I = transpose(inverse(G))*Q_I, Q_I = -{T_alpha, T_beta, T_gamma}";
+  Real tau_y(unit="N.m");
+  Real tau_z(unit="N.m");
+  Real M_x(unit="N.m") "Torque about the centre of gravity, in S, less the gyroscopic term omega x (I_B*omega)";
+  Real M_y(unit="N.m");
+  Real M_z(unit="N.m");
+  Real Iom_x(unit="kg.m2/s") "I_B*omega";
+  Real Iom_y(unit="kg.m2/s");
+  Real Iom_z(unit="kg.m2/s");
+  Real e_x(unit="m/s2") "omega_d x b + omega x (omega x b): acceleration of the centre of gravity relative to P, in S";
+  Real e_y(unit="m/s2");
+  Real e_z(unit="m/s2");
+  Real wb_x(unit="m/s") "omega x b";
+  Real wb_y(unit="m/s");
+  Real wb_z(unit="m/s");
+
+  // Axial effects
+  Real F_spring_y(unit="N") "Axial spring force F_s of the elastic displacement y_e (with the effects)";
+  Real F_el(unit="N") "Elastic force c_y*y_e or the table force at y_e";
+  Real F_tab(unit="N") "Force of the force-displacement table at y_e";
+  Real y_e(unit="m") "Elastic axial displacement after the backlash gap";
+  Real v_e(unit="m/s") "Rate of y_e";
+  Real z_y(unit="1", start=0) "Bouc-Wen yield state";
+  Real z_f(unit="1", start=0) "Bouc-Wen friction state";
+  Real kappa(unit="m", start=0) "Largest elastic displacement |y_e| reached (interface damage)";
+  Real F_spring_u(unit="N") "Axial spring force before damage";
+  Real past(unit="m") "Displacement reached past the onset of damage, softplus(kappa - dmg_y0)";
   Real F_load(unit="N") "Pullout force of the force-driven load case";
-  Real y_drive(unit="m") "Prescribed axial displacement of the motion-driven load case";
+
+  // Monitors (computed by the FMU's solver; here for a Modelica tool)
   discrete Real y_hold(unit="m", start=0, fixed=true) "max |y| at the local maxima of |y| so far";
   discrete Real v_hold(unit="m/s", start=0, fixed=true) "max |v_y| at the local maxima of |v_y| so far";
   Boolean at_rest "|v_y| <= eps_v_eq and |a_y| <= eps_a_eq";
@@ -294,11 +350,6 @@ initial equation
   F_ve = 0;
   kappa = 0;
 
-initial algorithm
-  for i in 2:tab_n loop
-    assert(tab_y[i] > tab_y[i - 1], "tab_y must be strictly increasing over its first tab_n points");
-  end for;
-
 equation
   assert(mode == 1 or mode == 2, "mode must be 1 (force-driven) or 2 (motion-driven)");
   assert(tab_n == 0 or tab_n >= 2 and tab_n <= 16, "tab_n must be 0 or 2..16");
@@ -312,44 +363,77 @@ equation
   der(alpha) = w_alpha;
   der(beta) = w_beta;
   der(gamma) = w_gamma;
-  a = {der(v_x), der(v_y), der(v_z)};
-  theta_dd = {der(w_alpha), der(w_beta), der(w_gamma)};
-  a_y = a[2];
-
-  R = [1, 0, 0; 0, cos(alpha), -sin(alpha); 0, sin(alpha), cos(alpha)]
-    *[cos(beta), 0, sin(beta); 0, 1, 0; -sin(beta), 0, cos(beta)]
-    *[cos(gamma), -sin(gamma), 0; sin(gamma), cos(gamma), 0; 0, 0, 1];
-  G = [cos(beta)*cos(gamma), sin(gamma), 0;
-       -cos(beta)*sin(gamma), cos(gamma), 0;
-       sin(beta), 0, 1];
-  G_d = [-sin(beta)*cos(gamma)*w_beta - cos(beta)*sin(gamma)*w_gamma, cos(gamma)*w_gamma, 0;
-         sin(beta)*sin(gamma)*w_beta - cos(beta)*cos(gamma)*w_gamma, -sin(gamma)*w_gamma, 0;
-         cos(beta)*w_beta, 0, 0];
-  omega = G*{w_alpha, w_beta, w_gamma};
-  omega_d = G*theta_dd + G_d*{w_alpha, w_beta, w_gamma};
-  a_G = a + R*(cross(omega_d, b) + cross(omega, cross(omega, b)));
+  a_y = der(v_y);
+  ca = cos(alpha);
+  sa = sin(alpha);
+  cb = cos(beta);
+  sb = sin(beta);
+  cg = cos(gamma);
+  sg = sin(gamma);
+  R_11 = cb*cg;
+  R_12 = -cb*sg;
+  R_13 = sb;
+  R_21 = sa*sb*cg + ca*sg;
+  R_22 = -sa*sb*sg + ca*cg;
+  R_23 = -sa*cb;
+  R_31 = -ca*sb*cg + sa*sg;
+  R_32 = ca*sb*sg + sa*cg;
+  R_33 = ca*cb;
+  // omega = G*der(theta), G = [cb*cg, sg, 0; -cb*sg, cg, 0; sb, 0, 1]
+  om_x = cb*cg*w_alpha + sg*w_beta;
+  om_y = -cb*sg*w_alpha + cg*w_beta;
+  om_z = sb*w_alpha + w_gamma;
+  gd_x = (-sb*cg*w_beta - cb*sg*w_gamma)*w_alpha + cg*w_gamma*w_beta;
+  gd_y = (sb*sg*w_beta - cb*cg*w_gamma)*w_alpha - sg*w_gamma*w_beta;
+  gd_z = cb*w_beta*w_alpha;
+  // omega_d = G*der(w) + gd, solved for der(w) with inverse(G) = [cg/cb, -sg/cb, 0; sg, cg, 0;
+  // -sb*cg/cb, sb*sg/cb, 1] (det G = cos(beta))
+  der(w_alpha) = (cg*(omd_x - gd_x) - sg*(omd_y - gd_y))/cb;
+  der(w_beta) = sg*(omd_x - gd_x) + cg*(omd_y - gd_y);
+  der(w_gamma) = (-sb*cg*(omd_x - gd_x) + sb*sg*(omd_y - gd_y))/cb + omd_z - gd_z;
 
   // Matrix force element (eq. 1): element outputs with eq. 1's sign
   F_x = c_x*x + d_x*v_x;
-  F_y = F_spring_y + d_y*v_y + F_fric + F_ve "total axial force: eq. 1 plus the effects of MODEL.md";
+  F_y = F_spring_y + d_y*v_y + F_fric + (if ve_k > 0 then F_ve else 0)
+    "total axial force: eq. 1 plus the effects of MODEL.md";
   F_z = c_z*z + d_z*v_z;
   T_alpha = c_alpha*alpha + d_alpha*w_alpha;
   T_beta = c_beta*beta + d_beta*w_beta;
   T_gamma = c_gamma*gamma + d_gamma*w_gamma;
-  // ... acting on the screw: the force at P, the rotational part as generalised forces on the angles
-  F_I = -{F_x, F_y, F_z};
-  Q_I = -{T_alpha, T_beta, T_gamma};
-  transpose(G)*tau_I = Q_I;
+  // ... acting on the screw: the force F_I = -{F_x, F_y, F_z} at P, and the rotational part as
+  // generalised forces Q_I = -{T_alpha, T_beta, T_gamma} on the angles: the body torque tau_I with
+  // transpose(G)*tau_I = Q_I
+  tau_x = -(cg*T_alpha + sg*cb*T_beta - sb*cg*T_gamma)/cb;
+  tau_y = -(-sg*T_alpha + cg*cb*T_beta + sb*sg*T_gamma)/cb;
+  tau_z = -T_gamma;
 
   // Effects beyond eq. 1 (fmu/MODEL.md): the axial spring force F_s and the states of the effects.
   // Backlash gap: the spring sees the elastic displacement y_e (softplus-rounded corners at +-gap).
-  y_e = if gap > 0 then softplus(y - gap, smooth_w) - softplus(-y - gap, smooth_w) else y;
-  v_e = if gap > 0 then (softplusSlope(y - gap, smooth_w) + softplusSlope(-y - gap, smooth_w))*v_y else v_y;
+  y_e = if gap > 0 then ScrewVertebraSoftplus(y - gap, smooth_w) - ScrewVertebraSoftplus(-y - gap, smooth_w) else y;
+  v_e = if gap > 0 then (ScrewVertebraSoftplusSlope(y - gap, smooth_w) + ScrewVertebraSoftplusSlope(-y - gap, smooth_w))*v_y else v_y;
+  // Force-displacement table: piecewise linear through the first tab_n points, linear beyond its ends,
+  // written as the first segment's line plus a ramp at every inner point
+  F_tab = tab_F[1] + tab_s1*(y_e - tab_y[1])
+    + (if tab_n > 2 then (tab_s2 - tab_s1)*max(y_e - tab_y[2], 0) else 0)
+    + (if tab_n > 3 then (tab_s3 - tab_s2)*max(y_e - tab_y[3], 0) else 0)
+    + (if tab_n > 4 then (tab_s4 - tab_s3)*max(y_e - tab_y[4], 0) else 0)
+    + (if tab_n > 5 then (tab_s5 - tab_s4)*max(y_e - tab_y[5], 0) else 0)
+    + (if tab_n > 6 then (tab_s6 - tab_s5)*max(y_e - tab_y[6], 0) else 0)
+    + (if tab_n > 7 then (tab_s7 - tab_s6)*max(y_e - tab_y[7], 0) else 0)
+    + (if tab_n > 8 then (tab_s8 - tab_s7)*max(y_e - tab_y[8], 0) else 0)
+    + (if tab_n > 9 then (tab_s9 - tab_s8)*max(y_e - tab_y[9], 0) else 0)
+    + (if tab_n > 10 then (tab_s10 - tab_s9)*max(y_e - tab_y[10], 0) else 0)
+    + (if tab_n > 11 then (tab_s11 - tab_s10)*max(y_e - tab_y[11], 0) else 0)
+    + (if tab_n > 12 then (tab_s12 - tab_s11)*max(y_e - tab_y[12], 0) else 0)
+    + (if tab_n > 13 then (tab_s13 - tab_s12)*max(y_e - tab_y[13], 0) else 0)
+    + (if tab_n > 14 then (tab_s14 - tab_s13)*max(y_e - tab_y[14], 0) else 0)
+    + (if tab_n > 15 then (tab_s15 - tab_s14)*max(y_e - tab_y[15], 0) else 0);
   // Spring: yield softening replaces c_y*y_e (or the table force) by yield_ratio*F_el +
   // (1 - yield_ratio)*yield_F*z_y; bilinear stiffness adds (nl_ratio - 1)*c_y past the breakpoint.
-  F_el = if tab_n >= 2 then tableForce(y_e, tab_n, tab_y, tab_F) else c_y*y_e;
-  F_spring_u = yield_ratio*F_el + (1 - yield_ratio)*yield_F*z_y
-    + (nl_ratio - 1)*c_y*(softplus(y_e - nl_y_b, smooth_w) - softplus(-y_e - nl_y_b, smooth_w));
+  F_el = if tab_n >= 2 then F_tab else c_y*y_e;
+  F_spring_u = (if yield_on then yield_ratio*F_el + (1 - yield_ratio)*yield_F*z_y else F_el)
+    + (if nl_ratio < 1 or nl_ratio > 1 then (nl_ratio - 1)*c_y*(ScrewVertebraSoftplus(y_e - nl_y_b, smooth_w)
+       - ScrewVertebraSoftplus(-y_e - nl_y_b, smooth_w)) else 0);
   // Bouc-Wen, n = 4: the rate is continuous in (z, v), so the switch H(z*v) needs no event
   der(z_y) = if yield_on then
       smooth(0, v_e/y_Y*(1 - (if noEvent(z_y*v_e > 0) then z_y^4 else 0)))
@@ -357,15 +441,16 @@ equation
   der(z_f) = if fric_F > 0 then
       smooth(0, v_y/fric_x*(1 - (if noEvent(z_f*v_y > 0) then z_f^4 else 0)))
     else 0;
-  F_fric = fric_F*z_f;
+  F_fric = if fric_F > 0 then fric_F*z_f else 0;
   // Interface damage: kappa follows the largest |y_e| reached; the spring softens to the residual force
   der(kappa) = if dmg_rate > 0 then
-      smooth(0, (if noEvent(y_e*v_e > 0) then abs(v_e) else 0)*softplusSlope(abs(y_e) - kappa, smooth_w))
+      smooth(0, (if noEvent(y_e*v_e > 0) then abs(v_e) else 0)*ScrewVertebraSoftplusSlope(abs(y_e) - kappa, smooth_w))
     else 0;
-  dmg_D = if dmg_rate > 0 then 1 - exp(-dmg_rate*softplus(kappa - dmg_y0, smooth_w)) else 0;
-  F_spring_y = (1 - dmg_D)*F_spring_u + dmg_D*dmg_F_res*y_e/(dmg_y0 + softplus(kappa - dmg_y0, smooth_w));
-  // Maxwell branch: spring ve_k in series with a dashpot ve_k*ve_tau
-  der(F_ve) = ve_k*v_y - F_ve/ve_tau;
+  past = ScrewVertebraSoftplus(kappa - dmg_y0, smooth_w);
+  dmg_D = if dmg_rate > 0 then 1 - exp(-dmg_rate*past) else 0;
+  F_spring_y = if dmg_rate > 0 then (1 - dmg_D)*F_spring_u + dmg_D*dmg_F_res*y_e/(dmg_y0 + past) else F_spring_u;
+  // Maxwell branch: spring ve_k in series with a dashpot ve_k*ve_tau (its force stays 0 while ve_k = 0)
+  der(F_ve) = if ve_k > 0 then ve_k*v_y - F_ve/ve_tau else 0;
   // Sensor offsets: biases of the measuring channels
   F_meas = F_pull + F_offset;
   y_meas = y + y_offset;
@@ -376,21 +461,50 @@ equation
              (if time >= t_unload + t_ramp then 0 else F_max*(1 - (time - t_unload)/t_ramp))
            elseif time < t_ramp then F_max*time/t_ramp
            else F_max;
-  y_drive = if use_y_in then y_in else v_pull*time;
   if mode == 2 then
-    y = y_drive "y prescribed; F_pull is the reaction of the drive";
+    y = if use_y_in then y_in else v_pull*time "y prescribed; F_pull is the reaction of the drive";
   else
     F_pull = F_load;
   end if;
-  F_H = {F_ext_x, F_pull + F_ext_y, F_ext_z};
+  F_H_x = F_ext_x;
+  F_H_y = F_pull + F_ext_y;
+  F_H_z = F_ext_z;
 
-  // Newton-Euler equations about the centre of gravity
-  m*a_G = F_I + F_H;
-  I_B*omega_d + cross(omega, I_B*omega) = cross(-b, transpose(R)*F_I) + cross(h, transpose(R)*F_H)
-    + tau_I + transpose(R)*{T_ext_x, T_ext_y, T_ext_z};
+  // Newton-Euler equations about the centre of gravity. Translation, in V:
+  // m*(der(v) + R*e) = F_I + F_H with e = omega_d x b + omega x (omega x b)
+  wb_x = om_y*b_z - om_z*b_y;
+  wb_y = om_z*b_x - om_x*b_z;
+  wb_z = om_x*b_y - om_y*b_x;
+  e_x = omd_y*b_z - omd_z*b_y + om_y*wb_z - om_z*wb_y;
+  e_y = omd_z*b_x - omd_x*b_z + om_z*wb_x - om_x*wb_z;
+  e_z = omd_x*b_y - omd_y*b_x + om_x*wb_y - om_y*wb_x;
+  m*(der(v_x) + R_11*e_x + R_12*e_y + R_13*e_z) = -F_x + F_H_x;
+  m*(der(v_y) + R_21*e_x + R_22*e_y + R_23*e_z) = -F_y + F_H_y;
+  m*(der(v_z) + R_31*e_x + R_32*e_y + R_33*e_z) = -F_z + F_H_z;
+  // Rotation, in S: I_B*omega_d + omega x (I_B*omega) = (-b) x (transpose(R)*F_I) + h x (transpose(R)*F_H)
+  // + tau_I + transpose(R)*T_ext
+  F_Ib_x = -(R_11*F_x + R_21*F_y + R_31*F_z);
+  F_Ib_y = -(R_12*F_x + R_22*F_y + R_32*F_z);
+  F_Ib_z = -(R_13*F_x + R_23*F_y + R_33*F_z);
+  F_Hb_x = R_11*F_H_x + R_21*F_H_y + R_31*F_H_z;
+  F_Hb_y = R_12*F_H_x + R_22*F_H_y + R_32*F_H_z;
+  F_Hb_z = R_13*F_H_x + R_23*F_H_y + R_33*F_H_z;
+  Iom_x = I_xx*om_x + I_xy*om_y + I_xz*om_z;
+  Iom_y = I_xy*om_x + I_yy*om_y + I_yz*om_z;
+  Iom_z = I_xz*om_x + I_yz*om_y + I_zz*om_z;
+  M_x = -(b_y*F_Ib_z - b_z*F_Ib_y) + h_y*F_Hb_z - h_z*F_Hb_y + tau_x
+    + R_11*T_ext_x + R_21*T_ext_y + R_31*T_ext_z - (om_y*Iom_z - om_z*Iom_y);
+  M_y = -(b_z*F_Ib_x - b_x*F_Ib_z) + h_z*F_Hb_x - h_x*F_Hb_z + tau_y
+    + R_12*T_ext_x + R_22*T_ext_y + R_32*T_ext_z - (om_z*Iom_x - om_x*Iom_z);
+  M_z = -(b_x*F_Ib_y - b_y*F_Ib_x) + h_x*F_Hb_y - h_y*F_Hb_x + tau_z
+    + R_13*T_ext_x + R_23*T_ext_y + R_33*T_ext_z - (om_x*Iom_y - om_y*Iom_x);
+  omd_x = J_xx*M_x + J_xy*M_y + J_xz*M_z;
+  omd_y = J_xy*M_x + J_yy*M_y + J_yz*M_z;
+  omd_z = J_xz*M_x + J_yz*M_y + J_zz*M_z;
 
-  // Monitors. |y| has a local maximum where y*v_y changes sign from + to -: the running maximum is
-  // the largest such value so far or the current |y|, whichever is larger (likewise for |v_y|).
+  // Monitors (the FMU's solver computes them; fmu/codegen.py leaves these equations out). |y| has a
+  // local maximum where y*v_y changes sign from + to -: the running maximum is the largest such value so
+  // far or the current |y|, whichever is larger (likewise for |v_y|).
   when y*v_y < 0 then
     y_hold = max(pre(y_hold), abs(y));
   end when;

@@ -72,7 +72,7 @@ def test_inspect_our_fmu(capsys, fmu_path, monkeypatch, contract):
     assert head["model name"] == "ScrewVertebra"
     assert head["interfaces"] == "co-simulation (CS), model identifier ScrewVertebra"
     assert head["binaries"].startswith("linux64") and "this machine, linux64: yes" in head["binaries"]
-    assert head["sources"] == "yes: fmi2.c, model.c, solver.c"
+    assert head["sources"] == "yes: fmi2.c, model.c, solver.c, sv_generated.c"
     assert head["default experiment"] == "start 0 s, stop 12 s, step 0.01 s"
     counts = {c: _count(contract, c) for c in ("parameter", "calculatedParameter", "input", "output")}
     assert counts["calculatedParameter"] == 3 and counts["input"] == 7

@@ -1,0 +1,600 @@
+#!/usr/bin/env python3
+"""Translate the model's equations in modelica/ScrewVertebra.mo into the C the FMU's solver calls.
+
+The Modelica is the one source of the equations. pymoca parses and flattens it into a CasADi DAE
+(residuals in the states, their derivatives, the algebraic variables, parameters, inputs and time);
+this script makes the DAE explicit (block lower triangular order, every block solved symbolically, the
+drive constraint of the motion-driven mode differentiated to the acceleration), builds the right-hand
+side, its exact Jacobian and time derivative, the outputs and the load's kinks, and lets CasADi write
+them as C (``Function.generate``). The FMU's solver (fmu/solver.c) and FMI layer stay hand-written and
+see the model only through ``sv_model.h``, written here too.
+
+Variants: the structural parameter ``mode`` (1 force-driven, 2 motion-driven) and, for speed, a "core"
+variant of each with the effects beyond eq. 1 switched off at their defaults (:data:`CORE_OFF`). The
+core force-driven variant is checked here to have the axial block the exact stepper of the solver
+assumes (linear, constant coefficients), so that the solver's shortcut is the model's structure.
+
+Run: ``python fmu/codegen.py OUTDIR`` (``make fmu`` does, into build/fmu/sources).
+"""
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import casadi as ca
+import pymoca.parser
+from pymoca import ast
+from pymoca.backends.casadi.generator import generate
+
+HERE = Path(__file__).resolve().parent
+MO_FILE = HERE.parent / "modelica" / "ScrewVertebra.mo"
+MODEL = "ScrewVertebra"
+
+#: The FMU's solver states, in its order: the six coordinates, their rates, the states of the effects.
+STATES = ("x", "y", "z", "alpha", "beta", "gamma", "v_x", "v_y", "v_z", "w_alpha", "w_beta", "w_gamma",
+          "z_y", "z_f", "F_ve", "kappa")
+#: The monitored position and velocity (the solver's closed-form monitors and exact axial steps).
+POSITION, VELOCITY = "y", "v_y"
+#: Variables the FMU's solver computes itself (the monitors, its step count) and the Modelica-only
+#: helpers they need: every equation that mentions one is left out of the generated code.
+SOLVER_OWNED = ("y_max", "v_y_max", "y_mean", "v_y_mean", "t_eq", "n_steps",
+                "y_hold", "v_hold", "at_rest", "y_int", "v_abs_int", "t_rest")
+#: The parameters that switch the effects beyond eq. 1 (and the table) off at their defaults; the core
+#: variants are the model with these fixed to the defaults.
+CORE_OFF = ("tab_n", "gap", "yield_ratio", "nl_ratio", "fric_F", "ve_k", "dmg_rate")
+#: Structural parameter: one variant per value.
+MODES = {"force": 1, "motion": 2}
+#: Identity operators of Modelica (they tell a tool about events and smoothness, not about values).
+IDENTITY_CALLS = {"smooth": 1, "noEvent": 0}
+#: Functions pymoca's CasADi backend lacks, folded where their arguments are numbers (parameter defaults).
+FOLDED_CALLS = {"atan2": math.atan2}
+PREFIX = "sv_"
+
+
+# ----------------------------------------------------------------------------------------------- parse
+
+def _mentions(node, names: set[str]) -> bool:
+    """Whether an AST node refers to one of the names anywhere inside."""
+    if isinstance(node, ast.ComponentRef):
+        if node.name in names:
+            return True
+        return any(_mentions(c, names) for c in node.child)
+    if isinstance(node, ast.Node):
+        return any(_mentions(v, names) for v in vars(node).values())
+    if isinstance(node, (list, tuple)):
+        return any(_mentions(v, names) for v in node)
+    if isinstance(node, dict):
+        return any(_mentions(v, names) for v in node.values())
+    return False
+
+
+def _strip_identity(node):
+    """smooth(n, e) and noEvent(e) -> e, everywhere below node (in place where possible)."""
+    if isinstance(node, ast.Expression) and isinstance(node.operator, ast.ComponentRef) \
+            and node.operator.name in IDENTITY_CALLS and not node.operator.child:
+        return _strip_identity(node.operands[IDENTITY_CALLS[node.operator.name]])
+    if isinstance(node, ast.Expression) and isinstance(node.operator, ast.ComponentRef) \
+            and node.operator.name in FOLDED_CALLS and not node.operator.child:
+        args = [_strip_identity(a) for a in node.operands]
+        if all(isinstance(a, ast.Primary) and isinstance(a.value, (int, float)) for a in args):
+            return ast.Primary(value=FOLDED_CALLS[node.operator.name](*[float(a.value) for a in args]))
+    if isinstance(node, ast.Node):
+        for k, v in vars(node).items():
+            if k not in ("parent", "scope"):   # references up the tree, not children
+                setattr(node, k, _strip_identity(v))
+        return node
+    if isinstance(node, list):
+        return [_strip_identity(v) for v in node]
+    return node
+
+
+def _is_assert(eq) -> bool:
+    if isinstance(eq, ast.Function):
+        return eq.name == "assert"
+    left = getattr(eq, "left", None)
+    return isinstance(left, ast.Expression) and isinstance(left.operator, ast.ComponentRef) \
+        and left.operator.name == "assert"
+
+
+def parse_model(path: Path = MO_FILE) -> ast.Tree:
+    """The Modelica source as a pymoca tree, reduced to what the generated code computes: no asserts (the
+    FMU validates its parameters in C), no monitors (the solver's), no initial section (the FMU starts at
+    rest), smooth()/noEvent() read as their argument."""
+    tree = pymoca.parser.parse(path.read_text(encoding="utf-8"))
+    if tree is None:
+        sys.exit(f"{path}: pymoca could not parse the Modelica source")
+    cls = tree.classes.get(MODEL)
+    if cls is None:
+        sys.exit(f"{path}: no model {MODEL}")
+    owned = set(SOLVER_OWNED)
+    missing = owned - set(cls.symbols)
+    if missing:
+        sys.exit(f"{path}: SOLVER_OWNED of {__file__} names {sorted(missing)}, which the model does not declare")
+    kept = []
+    for eq in cls.equations:
+        if isinstance(eq, ast.WhenEquation) or _is_assert(eq) or _mentions(eq, owned):
+            continue
+        kept.append(_strip_identity(eq))
+    cls.equations = kept
+    cls.initial_equations = []
+    cls.initial_statements = []
+    for name in owned:
+        del cls.symbols[name]
+    for sym in cls.symbols.values():
+        sym.class_modification = _strip_identity(sym.class_modification)
+    return tree
+
+
+# ----------------------------------------------------------------------------------------------- DAE
+
+class Dae:
+    """The flattened model in SX: residuals res(t, x, xd, z, p, u) = 0, parameter values and bindings."""
+
+    def __init__(self, tree: ast.Tree) -> None:
+        finals = {n for n, sym in tree.classes[MODEL].symbols.items() if sym.final}
+        model = generate(tree, MODEL)
+        self.model = model
+        names = lambda vs: [v.symbol.name() for v in vs]  # noqa: E731
+        state_names = names(model.states)
+        if sorted(state_names) != sorted(STATES):
+            sys.exit(f"the model's states are {sorted(state_names)}, STATES of {__file__} says {sorted(STATES)}")
+        order = [state_names.index(n) for n in STATES]
+        self.x_mx = [model.states[i].symbol for i in order]
+        self.xd_mx = [model.der_states[i].symbol for i in order]
+        self.z_names = names(model.alg_states)
+        self.z_mx = [v.symbol for v in model.alg_states]
+        self.u_names = names(model.inputs)
+        self.u_mx = [v.symbol for v in model.inputs]
+        self.outputs = list(model.outputs)
+        # parameters: those with a literal value are the FMU's (set by the user); those bound to an
+        # expression of others are derived (computed once per initialisation)
+        self.p_names, self.p_mx, self.p_default = [], [], {}
+        self.d_names, self.d_mx, self.d_expr = [], [], []
+        for v in model.parameters:
+            val, name, n = v.value, v.symbol.name(), v.symbol.numel()
+            if (isinstance(val, ca.MX) and not val.is_constant()) or name in finals:
+                val = ca.MX(val)
+                if n != 1:
+                    sys.exit(f"derived parameter {name} is an array: write it as scalars")
+                self.d_names.append(name)
+                self.d_mx.append(v.symbol)
+                self.d_expr.append(val)
+                continue
+            if isinstance(val, ca.MX):
+                val = ca.evalf(val)
+            vals = ca.DM(val).full().ravel().tolist()
+            if len(vals) == 1:
+                vals = vals * n
+            self.p_mx.append(v.symbol)
+            for k in range(n):
+                entry = f"{name}[{k + 1}]" if n > 1 else name
+                self.p_names.append(entry)
+                self.p_default[entry] = float(vals[k])
+        self.t_mx = model.time
+        res = ca.vertcat(*model.equations)
+        # one SX function, expanded: if-expressions become if_else_zero, functions are inlined
+        args = [self.t_mx, ca.vertcat(*self.x_mx), ca.vertcat(*self.xd_mx), ca.vertcat(*self.z_mx),
+                ca.vertcat(*self.p_mx), ca.vertcat(*self.d_mx), ca.vertcat(*self.u_mx)]
+        f = ca.Function("res", args, [res]).expand()
+        dexpr = ca.Function("derived", [ca.vertcat(*self.p_mx), ca.vertcat(*self.d_mx)],
+                            [ca.vertcat(*self.d_expr)]).expand()
+        self.t = ca.SX.sym("t")
+        self.x = ca.SX.sym("x", len(STATES))
+        self.xd = ca.SX.sym("xd", len(STATES))
+        self.z = ca.SX.sym("z", len(self.z_mx))
+        self.p = ca.SX.sym("p", len(self.p_names))
+        self.d = ca.SX.sym("d", len(self.d_mx))
+        self.u = ca.SX.sym("u", len(self.u_mx))
+        self.ud = ca.SX.sym("ud", len(self.u_mx))
+        self.res = f(self.t, self.x, self.xd, self.z, self.p, self.d, self.u)
+        # derived parameters in terms of the FMU's parameters alone (they may refer to each other)
+        dd = dexpr(self.p, self.d)
+        for _ in range(len(self.d_mx) + 1):
+            nxt = ca.substitute(dd, self.d, dd)
+            if not ca.depends_on(nxt, self.d):
+                dd = nxt
+                break
+            dd = nxt
+        else:
+            sys.exit("the derived parameters refer to each other in a cycle")
+        self.derived = ca.simplify(dd) if False else dd
+
+    def p_index(self, name: str) -> int:
+        return self.p_names.index(name)
+
+    def fix(self, values: dict[str, float]) -> "ca.SX":
+        """The residuals with some FMU parameters fixed (a variant)."""
+        idx = [self.p_index(n) for n in values]
+        psub = ca.vertcat(*[ca.SX(values[n]) if i in idx else self.p[i]
+                            for i, n in enumerate(self.p_names)]) if idx else self.p
+        psub = ca.vertcat(*[ca.SX(values[self.p_names[i]]) if i in idx else self.p[i]
+                            for i in range(self.p.numel())])
+        dsub = ca.substitute(self.derived, self.p, psub)
+        r = ca.substitute(self.res, ca.vertcat(self.p, self.d), ca.vertcat(psub, dsub))
+        return r
+
+
+# ----------------------------------------------------------------------------------------------- solve
+
+def _total_derivative(e, dae: Dae, known_xd: dict[int, "ca.SX"]):
+    """d/dt of e(t, x, u) along the model: the states' rates where an explicit equation gives them
+    (der(q) = qd), the unknown der symbol otherwise; inputs vary linearly within a communication step."""
+    de = ca.jacobian(e, dae.t)
+    for i in range(len(STATES)):
+        if ca.depends_on(e, dae.x[i]):
+            rate = known_xd.get(i, dae.xd[i])
+            de = de + ca.jacobian(e, dae.x[i]) * rate
+    for i in range(dae.u.numel()):
+        if ca.depends_on(e, dae.u[i]):
+            de = de + ca.jacobian(e, dae.u[i]) * dae.ud[i]
+    return de
+
+
+def explicit_ode(dae: Dae, res, nominal: dict[str, float]):
+    """Solve res = 0 for (xd, z): returns xd(t, x, p, d, u, ud), z(...) as SX, and the drive (the
+    prescribed states and their rates, for the motion-driven mode). Blocks of the block lower triangular
+    form are solved one after another; each must be affine in its unknowns (checked) and is solved by
+    Gaussian elimination whose pivots are chosen at a nominal point, preferring constant coefficients."""
+    nx = len(STATES)
+    w = ca.vertcat(dae.xd, dae.z)
+    res = ca.vertcat(*[res[i] for i in range(res.numel())])
+    eqs = [res[i] for i in range(res.numel())]
+    # kinematic equations der(q) = expression without unknowns
+    known_xd: dict[int, ca.SX] = {}
+    for e in eqs:
+        for i in range(nx):
+            if ca.depends_on(e, dae.xd[i]):
+                a = ca.jacobian(e, dae.xd[i])
+                rest = ca.substitute(e, dae.xd[i], ca.SX(0))
+                if a.is_constant() and not ca.depends_on(ca.vertcat(a, rest), w):
+                    known_xd[i] = -rest / a
+    # constraints on states alone (the drive y = y_drive): differentiate until an unknown appears
+    drive = []
+    for k, e in enumerate(eqs):
+        if ca.depends_on(e, w):
+            continue
+        chain = [e]
+        g = e
+        for _ in range(3):
+            g = _total_derivative(g, dae, known_xd)
+            # a derivative given by a kinematic equation is replaced by it
+            g = ca.substitute(g, ca.vertcat(*[dae.xd[i] for i in known_xd]),
+                              ca.vertcat(*[known_xd[i] for i in known_xd])) if known_xd else g
+            if ca.depends_on(g, w):
+                break
+            chain.append(g)
+        else:
+            sys.exit("a constraint on the states does not reach the unknowns after three derivatives")
+        eqs[k] = g
+        drive.append(chain)
+    res = ca.vertcat(*eqs)
+    n = res.numel()
+    if n != w.numel():
+        sys.exit(f"the model has {n} equations for {w.numel()} unknowns (states' rates and algebraic variables)")
+    sp = ca.jacobian(res, w).sparsity()
+    nb, rowperm, colperm, rowblock, colblock, _, _ = sp.btf()
+    sol: dict[int, ca.SX] = {}
+    nominal_f = ca.Function("nom", [dae.t, dae.x, dae.p, dae.d, dae.u, dae.ud, w], [ca.jacobian(res, w)])
+    for b in range(nb):
+        rows = [rowperm[i] for i in range(rowblock[b], rowblock[b + 1])]
+        cols = [colperm[i] for i in range(colblock[b], colblock[b + 1])]
+        if len(rows) != len(cols):
+            sys.exit(f"the equations are structurally singular: {len(rows)} equations for the unknowns "
+                     f"{[_unknown_name(dae, j) for j in cols]}")
+        known = [j for j in sol]
+        r = ca.vertcat(*[res[i] for i in rows])
+        if known:
+            r = ca.substitute(r, ca.vertcat(*[w[j] for j in known]), ca.vertcat(*[sol[j] for j in known]))
+        wb = ca.vertcat(*[w[j] for j in cols])
+        A = ca.jacobian(r, wb)
+        if ca.depends_on(A, wb):
+            names = [_unknown_name(dae, j) for j in cols]
+            sys.exit(f"the equations for {names} are not linear in them: the generator solves only linear blocks")
+        rhs = -ca.substitute(r, wb, ca.SX.zeros(wb.numel()))
+        x = _solve_block(A, rhs, nominal_f, dae, sol, w, nominal)
+        for jj, j in enumerate(cols):
+            sol[j] = x[jj]
+    xd = ca.vertcat(*[sol[i] for i in range(nx)])
+    z = ca.vertcat(*[sol[nx + i] for i in range(dae.z.numel())])
+    return xd, z, drive, known_xd
+
+
+def _unknown_name(dae: Dae, j: int) -> str:
+    nx = len(STATES)
+    return f"der({STATES[j]})" if j < nx else dae.z_names[j - nx]
+
+
+def _solve_block(A, b, nominal_f, dae: Dae, sol, w, nominal):
+    """x with A x = b by Gaussian elimination, pivots chosen once: a constant coefficient where there is
+    one, else the largest at the nominal point."""
+    n = A.shape[0]
+    if n == 1:
+        return [b[0] / A[0, 0]]
+    A = [[A[i, j] for j in range(n)] for i in range(n)]
+    b = [b[i] for i in range(n)]
+    # nominal values of the block's coefficients
+    At = ca.vertcat(*[ca.vertcat(*row) for row in A])
+    known = list(sol)
+    if known:
+        At = ca.substitute(At, ca.vertcat(*[w[j] for j in known]), ca.vertcat(*[sol[j] for j in known]))
+    f = ca.Function("a", [dae.t, dae.x, dae.p, dae.d], [At])
+    num = f(nominal["t"], nominal["x"], nominal["p"], nominal["d"]).full().ravel()
+    val = [[num[i * n + j] for j in range(n)] for i in range(n)]
+    rows, cols = list(range(n)), list(range(n))
+    order = []
+    for _ in range(n):
+        best = None
+        for i in rows:
+            for j in cols:
+                a = A[i][j]
+                if a.is_zero():
+                    continue
+                score = (1 if a.is_constant() else 0, abs(val[i][j]))
+                if score[1] == 0 and not a.is_constant():
+                    continue
+                if best is None or score > best[0]:
+                    best = (score, i, j)
+        if best is None:
+            sys.exit("a linear block of the model is singular at the nominal point")
+        _, pi, pj = best
+        rows.remove(pi)
+        cols.remove(pj)
+        order.append((pi, pj))
+        piv = A[pi][pj]
+        for i in rows:
+            if A[i][pj].is_zero():
+                continue
+            fac = A[i][pj] / piv
+            for j in cols:
+                A[i][j] = A[i][j] - fac * A[pi][j]
+            b[i] = b[i] - fac * b[pi]
+            # numerical values for the next pivot choice
+            vf = val[i][pj] / val[pi][pj] if val[pi][pj] != 0 else 0.0
+            for j in cols:
+                val[i][j] -= vf * val[pi][j]
+            A[i][pj] = ca.SX(0)
+    x = [None] * n
+    for pi, pj in reversed(order):
+        s = b[pi]
+        for j in range(n):
+            if j != pj and x[j] is not None and not A[pi][j].is_zero():
+                s = s - A[pi][j] * x[j]
+        x[pj] = s / A[pi][pj]
+    return x
+
+
+# ----------------------------------------------------------------------------------------------- kinks
+
+def time_kinks(exprs, dae: Dae) -> list:
+    """The times at which a condition on time switches (the load's ramp starts and ends): every
+    comparison in the expressions whose sides differ by an affine function of time alone, as an
+    expression of the parameters. The solver never steps across one."""
+    seen: set[int] = set()
+    out: list = []
+    keys: set[str] = set()
+    stack = [exprs[i] for i in range(exprs.numel())]
+    other = ca.vertcat(dae.x, dae.u, dae.ud)
+    while stack:
+        e = stack.pop()
+        h = e.element_hash()
+        if h in seen:
+            continue
+        seen.add(h)
+        if e.is_op(ca.OP_LT) or e.is_op(ca.OP_LE):
+            g = e.dep(0) - e.dep(1)
+            if ca.depends_on(g, dae.t) and not ca.depends_on(g, other):
+                slope = ca.jacobian(g, dae.t)
+                if ca.depends_on(slope, ca.vertcat(dae.t, other)):
+                    sys.exit("a condition on time is not affine in time: the solver cannot locate its switch")
+                at = -ca.substitute(g, dae.t, ca.SX(0)) / slope
+                key = str(at)
+                if key not in keys:
+                    keys.add(key)
+                    out.append(at)
+        for i in range(e.n_dep()):
+            stack.append(e.dep(i))
+    return sorted(out, key=str)
+
+
+# ----------------------------------------------------------------------------------------------- variants
+
+class Variant:
+    """One explicit model: the right-hand side, its linearisation and the outputs, as SX."""
+
+    def __init__(self, dae: Dae, name: str, fixed: dict[str, float], nominal: dict) -> None:
+        self.name = name
+        self.fixed = fixed
+        res = dae.fix(fixed)
+        xd, z, drive, _ = explicit_ode(dae, res, nominal)
+        self.xd = xd
+        args = ca.vertcat(dae.x, dae.xd, dae.z)
+        self.J = ca.jacobian(xd, dae.x)
+        self.Ft = ca.jacobian(xd, dae.t) + ca.mtimes(ca.jacobian(xd, dae.u), dae.ud)
+        # outputs: every model output that is not a state, from the solved algebraic variables
+        zs = {n: z[i] for i, n in enumerate(dae.z_names)}
+        self.out_names = [n for n in dae.outputs if n not in STATES]
+        missing = [n for n in self.out_names if n not in zs]
+        if missing:
+            sys.exit(f"outputs {missing} are neither states nor algebraic variables of the model")
+        self.out = ca.vertcat(*[zs[n] for n in self.out_names])
+        self.drive = drive
+        del args
+
+    def functions(self, dae: Dae) -> list:
+        ins = [dae.t, dae.x, dae.p, dae.d, dae.u, dae.ud]
+        names = ["t", "x", "p", "d", "u", "ud"]
+        # every output dense: the C reads whole vectors (CasADi writes only the structural non-zeros of a
+        # sparse one)
+        f_rhs = ca.Function(f"{PREFIX}{self.name}_rhs", ins, [ca.densify(self.xd)], names, ["xd"])
+        # J transposed: CasADi writes a dense matrix by columns, the solver reads J by rows
+        f_lin = ca.Function(f"{PREFIX}{self.name}_lin", ins, [ca.densify(self.xd), ca.densify(self.J.T), ca.densify(self.Ft)],
+                            names, ["xd", "J", "Ft"])
+        f_out = ca.Function(f"{PREFIX}{self.name}_out", ins, [ca.densify(self.out)], names, ["out"])
+        return [f_rhs, f_lin, f_out]
+
+
+def drive_function(dae: Dae, variant: Variant):
+    """The prescribed states of the motion-driven mode at time t: each equation of the drive's chain
+    (the constraint, then its derivatives) solved for the one state it fixes."""
+    fixed_states, values = [], []
+    subst_from, subst_to = [], []
+    for chain in variant.drive:
+        for g in chain:
+            if subst_from:
+                g = ca.substitute(g, ca.vertcat(*subst_from), ca.vertcat(*subst_to))
+            deps = [i for i in range(len(STATES)) if ca.depends_on(g, dae.x[i])]
+            if len(deps) != 1:
+                sys.exit(f"a drive equation fixes {[STATES[i] for i in deps]}: it must fix one state")
+            i = deps[0]
+            a = ca.jacobian(g, dae.x[i])
+            if ca.depends_on(a, dae.x):
+                sys.exit(f"the drive equation for {STATES[i]} is not linear in it")
+            val = -ca.substitute(g, dae.x[i], ca.SX(0)) / a
+            fixed_states.append(STATES[i])
+            values.append(val)
+            subst_from.append(dae.x[i])
+            subst_to.append(val)
+    f = ca.Function(f"{PREFIX}{variant.name}_drive", [dae.t, dae.p, dae.d, dae.u, dae.ud],
+                    [ca.densify(ca.vertcat(*values))], ["t", "p", "d", "u", "ud"], ["x_drive"])
+    return f, fixed_states
+
+
+# ----------------------------------------------------------------------------------------------- checks
+
+def check_core_axial_block(dae: Dae, core: Variant) -> None:
+    """The solver takes the axial pullout in exact steps when the core force-driven variant applies
+    (Solver.lin2): that needs the (y, v_y) rows to be y' = v_y, v_y' = -k y - g v_y + f(t) with constant
+    k, g, f affine in t between kinks, and nothing else in those rows when the rest is at rest. Prove it on
+    the generated expressions, so that the shortcut is the model's structure, not an assumption."""
+    iy, iv = STATES.index(POSITION), STATES.index(VELOCITY)
+    rows = ca.vertcat(core.xd[iy], core.xd[iv])
+    J = ca.jacobian(rows, ca.vertcat(dae.x[iy], dae.x[iv]))
+    if ca.depends_on(J, ca.vertcat(dae.x[iy], dae.x[iv], dae.t)):
+        sys.exit("core variant: the axial block's Jacobian depends on y, v_y or t: the exact axial steps of the "
+                 "solver do not hold")
+    ft = ca.jacobian(rows, dae.t)
+    if ca.depends_on(ca.jacobian(ft, dae.t), dae.t):
+        sys.exit("core variant: the axial load is not piecewise affine in time")
+
+
+# ----------------------------------------------------------------------------------------------- emit
+
+def c_ident(name: str) -> str:
+    return name.replace("[", "_").replace("]", "")
+
+
+def build(path: Path = MO_FILE) -> dict:
+    """Every generated function and the facts sv_model.h states."""
+    tree = parse_model(path)
+    dae = Dae(tree)
+    p_default = [dae.p_default[n] for n in dae.p_names]
+    fd = ca.Function(f"{PREFIX}derived", [dae.p], [ca.densify(dae.derived)], ["p"], ["d"])
+    # the nominal point at which block pivots are chosen: default parameters, a small displacement
+    nominal = dict(t=0.5, x=[1e-4] * len(STATES), p=p_default, d=fd(p_default).full().ravel().tolist())
+    off = {n: dae.p_default[n] for n in CORE_OFF}
+    variants = []
+    for mode_name, mode in MODES.items():
+        variants.append(Variant(dae, f"{mode_name}_core", {"mode": mode, **off}, nominal))
+        variants.append(Variant(dae, f"{mode_name}_full", {"mode": mode}, nominal))
+    check_core_axial_block(dae, variants[0])
+    functions = [fd]
+    drives = {}
+    for v in variants:
+        functions += v.functions(dae)
+        if v.drive:
+            f, fixed = drive_function(dae, v)
+            functions.append(f)
+            drives[v.name] = fixed
+    kinks = time_kinks(ca.vertcat(*[v.xd for v in variants]), dae)
+    fk = ca.Function(f"{PREFIX}kinks", [dae.p, dae.d], [ca.densify(ca.vertcat(*kinks))], ["p", "d"], ["t_kink"])
+    functions.append(fk)
+    public = {n for n, sym in tree.classes[MODEL].symbols.items() if sym.visibility == ast.Visibility.PUBLIC}
+    return dict(dae=dae, variants=variants, functions=functions, drives=drives, n_kinks=len(kinks),
+                public=public)
+
+
+def header(info: dict) -> str:
+    dae, variants = info["dae"], info["variants"]
+    fns = info["functions"]
+    lines = ["/* Generated by fmu/codegen.py from modelica/ScrewVertebra.mo: do not edit.",
+             " * The model as the FMU's solver and FMI layer see it: sizes, the order of the states,",
+             " * parameters, inputs and outputs in the vectors of the generated functions (sv_generated.c),",
+             " * and which variant applies. */",
+             "#ifndef SV_MODEL_H", "#define SV_MODEL_H", "", '#include "sv_generated.h"', ""]
+    lines += [f"#define SV_NX {len(STATES)}", f"#define SV_NP {len(dae.p_names)}",
+              f"#define SV_ND {len(dae.d_names)}", f"#define SV_NU {len(dae.u_names)}",
+              f"#define SV_NOUT {len(variants[0].out_names)}", f"#define SV_NKINKS {info['n_kinks']}", ""]
+    for i, n in enumerate(STATES):
+        lines.append(f"#define SV_IX_{n} {i}")
+    lines += [f"#define SV_IX_POSITION SV_IX_{POSITION}", f"#define SV_IX_VELOCITY SV_IX_{VELOCITY}", ""]
+    def table(macro: str, names: list[str], what: str) -> None:
+        lines.append(f"/* X(index, name) for every {what} */")
+        lines.append(f"#define {macro}(X) \\")
+        for i, n in enumerate(names):
+            if n:
+                lines.append(f"    X({i}, {c_ident(n)}) \\")
+        lines.append("")
+    table("SV_PARAMETERS", dae.p_names, "entry of p (the FMU's parameters)")
+    table("SV_DERIVED", dae.d_names, "entry of d (the derived parameters)")
+    table("SV_INPUTS", dae.u_names, "entry of u (the inputs; ud holds their time derivatives)")
+    outs = variants[0].out_names
+    if any(v.out_names != outs for v in variants):
+        sys.exit("the variants disagree on the outputs")
+    table("SV_OUTPUTS", outs, "entry of out")
+    public = info["public"]
+    table("SV_STATE_OUTPUTS", [n if n in public else "" for n in STATES], "state that is a variable of the FMU")
+    table("SV_CALCULATED", [n if n in public else "" for n in dae.d_names],
+          "derived parameter that is a variable of the FMU (calculatedParameter)")
+    for i, n in enumerate(dae.p_names):
+        lines.append(f"#define SV_P_{c_ident(n)} {i}")
+    for i, n in enumerate(dae.d_names):
+        lines.append(f"#define SV_D_{c_ident(n)} {i}")
+    lines.append("")
+    cond = " && ".join(f"(p)[SV_P_{c_ident(n)}] == {dae.p_default[n]!r}" for n in CORE_OFF)
+    lines += ["/* The core variants apply: every effect beyond eq. 1 (and the table) is off. */",
+              f"#define SV_IS_CORE(p) ({cond})", ""]
+    lines.append(f"#define SV_MODE_FORCE {MODES['force']}")
+    lines.append(f"#define SV_MODE_MOTION {MODES['motion']}")
+    drives = list(info["drives"].values())
+    if any(d != drives[0] for d in drives):
+        sys.exit("the motion-driven variants prescribe different states")
+    lines.append(f"#define SV_NDRIVE {len(drives[0])}")
+    table("SV_DRIVE", drives[0], "state the motion drive prescribes (the output of the _drive functions)")
+    sz_arg = max(f.sz_arg() for f in fns)
+    sz_res = max(f.sz_res() for f in fns)
+    sz_iw = max(f.sz_iw() for f in fns)
+    sz_w = max(f.sz_w() for f in fns)
+    lines += ["/* The largest work arrays any generated function needs */",
+              f"#define SV_SZ_ARG {sz_arg}", f"#define SV_SZ_RES {sz_res}", f"#define SV_SZ_IW {max(sz_iw, 1)}",
+              f"#define SV_SZ_W {max(sz_w, 1)}", "", "#endif", ""]
+    return "\n".join(lines)
+
+
+def write(outdir: Path, info: dict) -> list[Path]:
+    outdir.mkdir(parents=True, exist_ok=True)
+    cg = ca.CodeGenerator("sv_generated.c", {"with_header": True, "with_export": False, "verbose": False,
+                                             "casadi_int": "int"})
+    for f in info["functions"]:
+        for i in range(f.n_out()):
+            if not f.sparsity_out(i).is_dense():
+                sys.exit(f"{f.name()}: output {f.name_out(i)} is sparse; the C reads dense vectors")
+        cg.add(f)
+    cg.generate(str(outdir) + "/")
+    # CasADi's functions take arguments some of them do not use: not a defect of this model
+    c = outdir / "sv_generated.c"
+    c.write_text("#if defined(__GNUC__)\n#pragma GCC diagnostic ignored \"-Wunused-parameter\"\n#endif\n"
+                 + c.read_text(encoding="utf-8"), encoding="utf-8")
+    (outdir / "sv_model.h").write_text(header(info), encoding="utf-8")
+    return [outdir / "sv_generated.c", outdir / "sv_generated.h", outdir / "sv_model.h"]
+
+
+def main() -> None:
+    out = Path(sys.argv[1]) if len(sys.argv) > 1 else HERE.parent / "build" / "fmu" / "sources"
+    info = build()
+    for p in write(out, info):
+        print(f"wrote {p}")
+
+
+if __name__ == "__main__":
+    main()
