@@ -293,11 +293,12 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
 #define X(i, name) V(name) = mi->d[i];
     SV_CALCULATED(X)
 #undef X
-    int motion = (int)V(mode) == SV_MODE_MOTION, core = SV_IS_CORE(mi->p);
-    mi->f_rhs = motion ? (core ? sv_motion_core_rhs : sv_motion_full_rhs) : (core ? sv_force_core_rhs : sv_force_full_rhs);
-    mi->f_lin = motion ? (core ? sv_motion_core_lin : sv_motion_full_lin) : (core ? sv_force_core_lin : sv_force_full_lin);
-    mi->f_out = motion ? (core ? sv_motion_core_out : sv_motion_full_out) : (core ? sv_force_core_out : sv_force_full_out);
-    mi->f_drive = motion ? (core ? sv_motion_core_drive : sv_motion_full_drive) : NULL;
+    /* the variant: force-driven with every effect off (core), force-driven, motion-driven (fmu/codegen.py) */
+    int motion = (int)V(mode) == SV_MODE_MOTION, core = !motion && SV_IS_CORE(mi->p);
+    mi->f_rhs = motion ? sv_motion_full_rhs : core ? sv_force_core_rhs : sv_force_full_rhs;
+    mi->f_lin = motion ? sv_motion_full_lin : core ? sv_force_core_lin : sv_force_full_lin;
+    mi->f_out = motion ? sv_motion_full_out : core ? sv_force_core_out : sv_force_full_out;
+    mi->f_drive = motion ? sv_motion_full_drive : NULL;
     mi->time = t0;
     mi->t_inputs = t0;
     memset(mi->u, 0, sizeof(mi->u));   /* at rest in the reference configuration (the Modelica's initial equations) */
@@ -313,7 +314,7 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->max_steps = (long)V(max_steps);
     sv->max_wall_s = V(max_wall_s);
     /* the exact axial steps: the core force-driven variant, whose axial block fmu/codegen.py proves linear */
-    sv->lin2 = !motion && core;
+    sv->lin2 = core;
     sv->eps_v = V(eps_v_eq);
     sv->eps_a = V(eps_a_eq);
     sv->rhs = rhs;

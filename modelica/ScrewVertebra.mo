@@ -2,8 +2,9 @@
 // spring-damper matrix force element of Kramer and Bauer (eq. 1, Sections 2.1-2.3, Table 1), with the
 // optional axial effects beyond eq. 1 of fmu/MODEL.md (the candidates of `fmusa diagnose`).
 //
-// This is the Modelica statement of fmu/MODEL.md; the co-simulation FMU (fmu/model.c) implements the
-// same equations. Its public variables (names, types, causalities, units, defaults, descriptions) are
+// This is the Modelica statement of fmu/MODEL.md and the one source of the FMU's equations: `make fmu`
+// translates the equation section into C (fmu/codegen.py: pymoca, CasADi), which the FMU's solver
+// (fmu/solver.c) integrates. Its public variables (names, types, causalities, units, defaults, descriptions) are
 // the contract fmu/variables.csv, checked against this file by tests/test_modelica.py. Entry k of the
 // arrays tab_y and tab_F is the FMU variable tab_y[k] / tab_F[k] with description "<description> k".
 //
@@ -61,6 +62,11 @@
 //    are continuous in z and v, so no event is needed (the FMU's solver does not locate the switch
 //    either). The effect states z_y, z_f, F_ve are states of the Modelica model (protected z_y, z_f;
 //    output F_ve) and kappa (protected); the FMU carries them as its solver states 13-16.
+//  - The FMU's generated code leaves out the asserts (fmu/model.c validates the parameters before any
+//    run, with messages that name the fix) and the monitors (its solver computes them between steps).
+//    The drive constraint of the motion-driven mode is differentiated twice by the generator, with the
+//    inputs linear within a communication step (so der(v_y) = 0 there), as a tool's index reduction does.
+
 // Functions of the model, at the top level of the file: the generator (fmu/codegen.py) names a function
 // by a plain identifier, so they cannot be nested in the model.
 function ScrewVertebraSoftplus

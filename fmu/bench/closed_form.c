@@ -4,7 +4,7 @@
  *     F_max over t_ramp, hold to the stop time), piece by piece: the matrix exponential (phi functions)
  *     of each piece, the extrema and the start of the rest by root finding on the closed form. It runs
  *     the FMU solver's own exact-piece code on a bare 2-state right-hand side (no model, no 6-DOF state,
- *     no complex-step Jacobian: J and the load are given).
+ *     Jacobian evaluation: J and the load are given).
  *   model_run_us: the FMU's model layer as the FMI layer drives it (start values, parameters,
  *     initialisation, one step to the stop time, outputs), without fmpy and ctypes.
  * Usage: closed_form c d F_max t_ramp stop repeats; prints JSON. */
@@ -16,11 +16,11 @@
 
 typedef struct { double m, c, d, F, T; } Axial2;
 
-static int rhs2(void *ctx, cplx t, const cplx *u, cplx *du, char *msg, size_t len)
+static int rhs2(void *ctx, double t, const double *u, double *du, char *msg, size_t len)
 {
     const Axial2 *a = ctx;
     (void)msg; (void)len;
-    cplx F = creal(t) < a->T ? a->F * t / a->T : a->F;
+    double F = t < a->T ? a->F * t / a->T : a->F;
     du[0] = u[1];
     du[1] = (F - a->c * u[0] - a->d * u[1]) / a->m;
     return 0;
