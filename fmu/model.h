@@ -19,7 +19,7 @@ typedef struct {
     double start;
 } VarInfo;
 
-/* The variable table (generated from fmu/variables.csv); vr -> entry, NULL for unknown vr. */
+/* The variable table (generated from modelica/ScrewVertebra.mo); vr -> entry, NULL for unknown vr. */
 const VarInfo *model_variable(unsigned int vr);
 
 /* State vector: q = (x, y, z, alpha, beta, gamma), then dq/dt, then the states of the axial effects

@@ -4,8 +4,10 @@
 //
 // This is the Modelica statement of fmu/MODEL.md; the co-simulation FMU (fmu/model.c) implements the
 // same equations. Its public variables (names, types, causalities, units, defaults, descriptions) are
-// the contract fmu/variables.csv, checked against this file by tests/test_modelica.py. Entry k of the
-// arrays tab_y and tab_F is the FMU variable tab_y[k] / tab_F[k] with description "<description> k".
+// the FMU's variable contract: fmu/generate.py derives modelDescription.xml and variables.h from them
+// (value references in declaration order), and tests/test_modelica.py checks the result against pymoca's
+// reading of this file. Entry k of the arrays tab_y and tab_F is the FMU variable tab_y[k] / tab_F[k]
+// with description "<description> k".
 //
 // Frames: V is fixed to the vertebra (origin at the vertebra's interaction point, y = screw axis out of
 // the bone, the pullout direction). S is fixed to the screw (origin at the head centre H, y along the
