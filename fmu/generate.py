@@ -387,7 +387,7 @@ def parse_model(text: str, source: str = "<string>") -> Model:
             start_expr = binding if causality == "parameter" and binding is not None \
                 else None if causality == "calculatedParameter" else attributes.get("start", (False, None))[1]
             if start_expr is None and causality in ("parameter", "input"):
-                raise ModelicaError(f"{name}: a {causality} needs a start value (binding or start=...)")
+                raise ModelicaError(f"{name}: the {causality} needs a start value (a binding or start=...)")
             entries = [list(i) for i in itertools.product(*(range(1, n + 1) for n in dims))]
             if start_expr is None:
                 starts = [""] * len(entries)
@@ -396,21 +396,21 @@ def parse_model(text: str, source: str = "<string>") -> Model:
                 value = env[name] if start_expr is binding else evaluate(start_expr, env)
                 values = [value] * len(entries) if each or not dims else _scalar_values(value, dims, f"{name} start")
                 starts = [format_start(type_name, v, f"{name} start") for v in values]
-            unit = ""
+            units = [""] * len(entries)
             if "unit" in attributes:
                 each, expression = attributes["unit"]
-                unit = evaluate(expression, env)
-                if dims and not each:
-                    raise ModelicaError(f"{name}: the unit of an array needs 'each'")
-                if unit not in UNITS:
-                    raise ModelicaError(f"{name}: unit {unit!r} is not in UNITS of fmu/generate.py")
+                value = evaluate(expression, env)
+                units = [value] * len(entries) if each or not dims else _scalar_values(value, dims, f"{name} unit")
+                for unit in units:
+                    if unit not in UNITS:
+                        raise ModelicaError(f"{name}: unit {unit!r} is not in UNITS of fmu/generate.py")
             for k, index in enumerate(entries):
                 suffix = ",".join(map(str, index))
                 variables.append(Variable(
                     vr=len(variables) + 1, name=f"{name}[{suffix}]" if dims else name, type=type_name,
                     causality=causality, variability=variability,
                     initial={"parameter": "exact", "calculatedParameter": "calculated"}.get(causality, ""),
-                    start=starts[k], unit=unit, description=f"{description} {suffix}" if dims else description))
+                    start=starts[k], unit=units[k], description=f"{description} {suffix}" if dims else description))
     return Model(model_description, variables)
 
 

@@ -518,3 +518,28 @@ def test_model_description_is_generated_from_the_modelica_source(fmu, tmp_path):
     assert (tmp_path / "modelDescription.xml").read_bytes() == shipped_xml, \
         "dist FMU's modelDescription.xml differs from fmu/generate.py's output: stale FMU? (make fmu)"
     assert (tmp_path / "sources" / "variables.h").read_bytes() == shipped_header
+
+
+def test_c_code_uses_only_value_references_of_the_contract(fmu):
+    """Every VR_<name> (and V(<name>), model.c's shorthand for mi->v[VR_<name>]) in the C sources the FMU
+    ships is a variable of variables.h (an unknown one also fails the compile, this names it), and the
+    arrays the C code indexes as VR_tab_y_1 + k have consecutive value references."""
+    with zipfile.ZipFile(fmu) as z:
+        header = z.read("sources/variables.h").decode()
+        code = {n: z.read(n).decode() for n in z.namelist()
+                if n.startswith("sources/") and n.endswith((".c", ".h")) and n != "sources/variables.h"}
+    defined = {m[1]: int(m[2]) for m in re.finditer(r"^#define VR_(\w+) (\d+)$", header, flags=re.M)}
+    assert len(defined) == len(contract.variables())
+    used: dict[str, set[str]] = {}
+    for name, text in code.items():
+        text = re.sub(r"/\*.*?\*/|//[^\n]*", "", text, flags=re.S)          # not in comments
+        for ref in re.findall(r"\bVR_(\w+)", text) + re.findall(r"\bV\((\w+)\)", text):
+            used.setdefault(ref, set()).add(name)
+    used.pop("name", None)                                  # the macro's own parameter: #define V(name) ... VR_##name
+    assert {"c_y", "tab_y_1", "t_eq", "F_ext_x"} <= set(used)                 # not vacuous
+    unknown = {ref: sorted(files) for ref, files in used.items() if ref not in defined}
+    assert not unknown, f"value references the C code uses that variables.h does not define: {unknown}"
+    for v in contract.variables():
+        m = re.fullmatch(r"(\w+)\[(\d+)\]", v.name)
+        if m:
+            assert v.vr == defined[f"{m[1]}_1"] + int(m[2]) - 1, f"{v.name}: not consecutive with {m[1]}[1]"

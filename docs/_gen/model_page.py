@@ -67,8 +67,8 @@ def variables_tables(rows: list) -> str:
         out.append("")
     left = {r.causality for r in rows} - {c for c, _ in CAUSALITIES}
     if left:
-        raise RuntimeError(f"modelica/ScrewVertebra.mo has causalities {sorted(left)} that the model page does not list; "
-                           f"add them to CAUSALITIES in docs/_gen/model_page.py")
+        raise RuntimeError(f"modelica/ScrewVertebra.mo has causalities {sorted(left)} that the model page does "
+                           "not list; add them to CAUSALITIES in docs/_gen/model_page.py")
     return "\n".join(out)
 
 
