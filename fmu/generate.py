@@ -379,28 +379,29 @@ def parse_model(text: str, source: str = "<string>") -> Model:
                 raise ModelicaError(f"{name}: attributes {unsupported} are not carried to the FMU (only {ATTRIBUTES})")
             description = "".join(modelica_string(s) for s in component.comment().string_comment().STRING())
             causality, variability = _causality(prefixes, "final" in flags, binding is not None, type_name, name)
-            parameter = causality in ("parameter", "calculatedParameter")
-
-            # Values of the whole array (or scalar), then per entry.
-            if parameter and binding is not None:
-                env[name] = evaluate(binding, env)
-            start_expr = binding if causality == "parameter" and binding is not None \
-                else None if causality == "calculatedParameter" else attributes.get("start", (False, None))[1]
-            if start_expr is None and causality in ("parameter", "input"):
-                raise ModelicaError(f"{name}: the {causality} needs a start value (a binding or start=...)")
             entries = [list(i) for i in itertools.product(*(range(1, n + 1) for n in dims))]
-            if start_expr is None:
-                starts = [""] * len(entries)
-            else:
-                each = attributes.get("start", (False, None))[0] and start_expr is not binding
-                value = env[name] if start_expr is binding else evaluate(start_expr, env)
-                values = [value] * len(entries) if each or not dims else _scalar_values(value, dims, f"{name} start")
-                starts = [format_start(type_name, v, f"{name} start") for v in values]
+
+            def per_entry(each: bool, value: object, what: str) -> list:
+                """The value of each entry: a scalar of an array applies to all with 'each'."""
+                return [value] * len(entries) if each or not dims else _scalar_values(value, dims, f"{name} {what}")
+
+            # Bindings of parameters are values (later bindings may use them); a calculated parameter has
+            # no start in the XML, a parameter its binding (else its start), an input or output its start.
+            if causality in ("parameter", "calculatedParameter") and binding is not None:
+                env[name] = evaluate(binding, env)
+            starts: list = [None] * len(entries)
+            if causality == "parameter" and binding is not None:
+                starts = per_entry(False, env[name], "binding")
+            elif causality != "calculatedParameter" and "start" in attributes:
+                each, expression = attributes["start"]
+                starts = per_entry(each, evaluate(expression, env), "start")
+            elif causality in ("parameter", "input"):
+                raise ModelicaError(f"{name}: the {causality} needs a start value (a binding or start=...)")
+            starts = ["" if s is None else format_start(type_name, s, f"{name} start") for s in starts]
             units = [""] * len(entries)
             if "unit" in attributes:
                 each, expression = attributes["unit"]
-                value = evaluate(expression, env)
-                units = [value] * len(entries) if each or not dims else _scalar_values(value, dims, f"{name} unit")
+                units = per_entry(each, evaluate(expression, env), "unit")
                 for unit in units:
                     if unit not in UNITS:
                         raise ModelicaError(f"{name}: unit {unit!r} is not in UNITS of fmu/generate.py")
