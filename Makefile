@@ -45,8 +45,10 @@ $(VENV): $(STAMP)
 # ---------------------------------------------------------------- FMU
 # The FMU carries its C sources (plus the FMI 2 headers taken from fmpy) so that other tools, or
 # fmpy.build.build_platform_binary, can rebuild the binary from them.
-$(FMU_BUILD)/modelDescription.xml $(FMU_BUILD)/sources/variables.h &: fmu/generate.py fmu/variables.csv
-	$(PYTHON) fmu/generate.py $(FMU_BUILD)
+# modelDescription.xml and variables.h are derived from the public declarations of the Modelica model,
+# parsed with modelica-builder (the fmu extra): the venv's python, order-only on the venv like the headers.
+$(FMU_BUILD)/modelDescription.xml $(FMU_BUILD)/sources/variables.h &: fmu/generate.py modelica/ScrewVertebra.mo | $(STAMP)
+	$(VPY) fmu/generate.py $(FMU_BUILD)
 
 $(FMU_GEN) &: fmu/codegen.py modelica/ScrewVertebra.mo | $(STAMP)
 	$(VPY) fmu/codegen.py $(FMU_BUILD)/sources

@@ -20,7 +20,7 @@ typedef struct {
     double start;
 } VarInfo;
 
-/* The variable table (generated from fmu/variables.csv); vr -> entry, NULL for unknown vr. */
+/* The variable table (generated from modelica/ScrewVertebra.mo); vr -> entry, NULL for unknown vr. */
 const VarInfo *model_variable(unsigned int vr);
 
 /* The solver's states, in the order of the generated model (sv_model.h): the six coordinates, their rates,

@@ -2,11 +2,13 @@
 // spring-damper matrix force element of Kramer and Bauer (eq. 1, Sections 2.1-2.3, Table 1), with the
 // optional axial effects beyond eq. 1 of fmu/MODEL.md (the candidates of `fmusa diagnose`).
 //
-// This is the Modelica statement of fmu/MODEL.md and the one source of the FMU's equations: `make fmu`
-// translates the equation section into C (fmu/codegen.py: pymoca, CasADi), which the FMU's solver
-// (fmu/solver.c) integrates. Its public variables (names, types, causalities, units, defaults, descriptions) are
-// the contract fmu/variables.csv, checked against this file by tests/test_modelica.py. Entry k of the
-// arrays tab_y and tab_F is the FMU variable tab_y[k] / tab_F[k] with description "<description> k".
+// This is the Modelica statement of fmu/MODEL.md and the one source of the FMU's equations and variables:
+// `make fmu` translates the equation section into C (fmu/codegen.py: pymoca, CasADi), which the FMU's
+// solver (fmu/solver.c) integrates. Its public variables (names, types, causalities, units, defaults,
+// descriptions) are the FMU's variable contract: fmu/generate.py derives modelDescription.xml and
+// variables.h from them (value references in declaration order), and tests/test_modelica.py checks the
+// result against pymoca's reading of this file. Entry k of the arrays tab_y and tab_F is the FMU variable
+// tab_y[k] / tab_F[k] with description "<description> k".
 //
 // Frames: V is fixed to the vertebra (origin at the vertebra's interaction point, y = screw axis out of
 // the bone, the pullout direction). S is fixed to the screw (origin at the head centre H, y along the
@@ -205,7 +207,7 @@ model ScrewVertebra
   output Real v_y_max(unit="m/s") "Monitor: max |v_y| so far";
   output Real y_mean(unit="m") "Monitor: time average of y over [0, t]";
   output Real v_y_mean(unit="m/s") "Monitor: time average of |v_y| over [0, t]";
-  output Real t_eq(unit="s") "Monitor: time since which |v_y| <= eps_v_eq and |a_y| <= eps_a_eq hold; -1 while not at rest";
+  output Real t_eq(unit="s", start=-1) "Monitor: time since which |v_y| <= eps_v_eq and |a_y| <= eps_a_eq hold; -1 while not at rest";
   discrete output Integer n_steps "Internal solver steps taken so far";
 
   // Outputs: effects beyond eq. 1

@@ -91,7 +91,8 @@ __all__ = ["DEFAULTS", "DRIVES", "EFFECTS", "MAIN_PARAMETER", "Protocol", "simul
            "main_parameter",
            "draw_case", "synthesize", "synthesize_protocol", "full_params", "PROTOCOLS"]
 
-#: MODEL.md / variables.csv defaults of every parameter used here (effects off).
+#: MODEL.md / modelica/ScrewVertebra.mo defaults of every parameter used here (effects off; checked against
+#: the contract by tests/test_effects_reference.py).
 DEFAULTS = {
     "m": 0.00029, "c_y": 823224.0, "d_y": 488.0,
     "gap": 0.0, "nl_ratio": 1.0, "nl_y_b": 0.0005, "yield_ratio": 1.0, "yield_F": 100.0,

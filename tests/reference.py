@@ -1,6 +1,7 @@
 """Independent reference solutions for the ScrewVertebra FMU tests.
 
-Written from ``fmu/MODEL.md`` and ``fmu/variables.csv`` only (never from the C code):
+Written from ``fmu/MODEL.md`` and the variable contract (the public declarations of
+``modelica/ScrewVertebra.mo``, read by ``fmu/generate.py``) only (never from the C code):
 
 * the axial pullout problem  m y'' + d y' + c y = F(t), y(0) = y'(0) = 0, with the ramp load
   F = F_max t / t_ramp (t < t_ramp), F_max afterwards, solved exactly in multiple precision
@@ -40,9 +41,7 @@ Brent's method on a bracket in which the signal is monotone (one root guaranteed
 
 from __future__ import annotations
 
-import csv
 import math
-import pathlib
 from dataclasses import dataclass
 
 import mpmath
@@ -50,35 +49,32 @@ import numpy as np
 from scipy.integrate import Radau, solve_ivp
 from scipy.optimize import brentq
 
+import contract
+
 # A private multiple-precision context: never touch mpmath's global one.
 MP = mpmath.MPContext()
 MP.dps = 40
 BASE_DPS = 40
 MAX_DPS = 2000
 
-VARIABLES_CSV = pathlib.Path(__file__).resolve().parents[1] / "fmu" / "variables.csv"
-
-
 # --------------------------------------------------------------------------------------------
 # Defaults (the contract)
 # --------------------------------------------------------------------------------------------
-def read_defaults(path: pathlib.Path = VARIABLES_CSV) -> dict:
-    """Start values of all parameters of variables.csv (Real -> float, Integer -> int,
+def read_defaults() -> dict:
+    """Start values of all parameters of the contract (Real -> float, Integer -> int,
     Boolean -> bool); calculated parameters (I_1, I_2, I_3) are derived as in MODEL.md."""
     out = {}
-    with open(path, newline="") as fh:
-        for row in csv.DictReader(fh):
-            if row["causality"] != "parameter":
-                continue
-            start = row["start"]
-            if row["type"] == "Real":
-                out[row["name"]] = float(start)
-            elif row["type"] == "Integer":
-                out[row["name"]] = int(start)
-            elif row["type"] == "Boolean":
-                out[row["name"]] = start.strip().lower() in ("true", "1")
-            else:  # pragma: no cover - no strings in the contract
-                out[row["name"]] = start
+    for v in contract.variables():
+        if v.causality != "parameter":
+            continue
+        if v.type == "Real":
+            out[v.name] = float(v.start)
+        elif v.type == "Integer":
+            out[v.name] = int(v.start)
+        elif v.type == "Boolean":
+            out[v.name] = v.start == "true"
+        else:  # pragma: no cover - no strings in the contract
+            out[v.name] = v.start
     return out
 
 

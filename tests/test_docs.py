@@ -256,4 +256,4 @@ def test_generated_reference_agrees_with_the_code() -> None:
         assert issubclass(cls, FmusaError) and f"### `{cls.__name__}`" in errors
     model = model_page.render()
     for row in model_page.variable_rows():
-        assert f"| `{row['name']}` | {row['vr']} |" in model
+        assert f"| `{row.name}` | {row.vr} |" in model

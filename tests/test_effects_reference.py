@@ -547,3 +547,12 @@ def test_every_effect_is_visible(drive):
             else:
                 assert rms > 2.0 * s and mx > 5.0 * s, (eff, drive, seed, rms / s, mx / s)
     assert time.perf_counter() - t0 < 15.0
+
+
+def test_defaults_are_the_fmu_contract():
+    """The hand-written defaults are the start values of the model's parameters (the FMU's contract,
+    modelica/ScrewVertebra.mo), so the synthetic data and the FMU start from the same model."""
+    import contract
+
+    starts = {v.name: float(v.start) for v in contract.variables() if v.causality == "parameter" and v.type == "Real"}
+    assert {k: starts[k] for k in er.DEFAULTS} == er.DEFAULTS

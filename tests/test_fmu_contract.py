@@ -10,11 +10,10 @@
 - The FMI state machine and argument checks: every illegal call returns fmi2Error, is logged with a
   message naming the call or the variable, and fmi2Reset makes the instance usable again.
 - The calculated parameters I_1..I_3 are the solid-cylinder moments.
-- modelDescription.xml is what fmu/generate.py makes from fmu/variables.csv.
+- modelDescription.xml and variables.h are what fmu/generate.py makes from modelica/ScrewVertebra.mo.
 """
 from __future__ import annotations
 
-import csv
 import math
 import re
 import shutil
@@ -39,6 +38,8 @@ from fmpy.fmi2 import (
 )
 from fmpy.logging import addLoggerProxy
 from fmpy.validation import validate_fmu
+
+import contract
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = "ScrewVertebra"
@@ -501,19 +502,44 @@ def test_calculated_inertia_is_solid_cylinder(params, unzipdir, md, vrs):
 
 # ---------------------------------------------------------------------------------------------- single source
 
-def test_model_description_is_generated_from_variables_csv(fmu, tmp_path):
-    with open(ROOT / "fmu" / "variables.csv", newline="") as f:
-        csv_names = [row["name"] for row in csv.DictReader(f)]
+def test_model_description_is_generated_from_the_modelica_source(fmu, tmp_path):
+    names = [v.name for v in contract.variables()]
+    assert len(names) >= 118                                                   # not vacuous
     with zipfile.ZipFile(fmu) as z:
         shipped_xml = z.read("modelDescription.xml")
         shipped_header = z.read("sources/variables.h")
     root = ET.fromstring(shipped_xml)
     xml_names = [sv.get("name") for sv in root.findall("./ModelVariables/ScalarVariable")]
-    assert xml_names == csv_names
+    assert xml_names == names
     vrs = [int(sv.get("valueReference")) for sv in root.findall("./ModelVariables/ScalarVariable")]
-    assert vrs == list(range(1, len(csv_names) + 1))
-    # and the generator, run now on the table, reproduces the shipped files byte for byte
+    assert vrs == list(range(1, len(names) + 1))
+    # and the generator, run now on the Modelica source, reproduces the shipped files byte for byte
     subprocess.run([sys.executable, str(ROOT / "fmu" / "generate.py"), str(tmp_path)], check=True)
     assert (tmp_path / "modelDescription.xml").read_bytes() == shipped_xml, \
         "dist FMU's modelDescription.xml differs from fmu/generate.py's output: stale FMU? (make fmu)"
     assert (tmp_path / "sources" / "variables.h").read_bytes() == shipped_header
+
+
+def test_c_code_uses_only_value_references_of_the_contract(fmu):
+    """Every VR_<name> (and V(<name>), model.c's shorthand for mi->v[VR_<name>]) in the C sources the FMU
+    ships is a variable of variables.h (an unknown one also fails the compile, this names it), and the
+    arrays the C code indexes as VR_tab_y_1 + k have consecutive value references."""
+    with zipfile.ZipFile(fmu) as z:
+        header = z.read("sources/variables.h").decode()
+        code = {n: z.read(n).decode() for n in z.namelist()
+                if n.startswith("sources/") and n.endswith((".c", ".h")) and n != "sources/variables.h"}
+    defined = {m[1]: int(m[2]) for m in re.finditer(r"^#define VR_(\w+) (\d+)$", header, flags=re.M)}
+    assert len(defined) == len(contract.variables())
+    used: dict[str, set[str]] = {}
+    for name, text in code.items():
+        text = re.sub(r"/\*.*?\*/|//[^\n]*", "", text, flags=re.S)          # not in comments
+        for ref in re.findall(r"\bVR_(\w+)", text) + re.findall(r"\bV\((\w+)\)", text):
+            used.setdefault(ref, set()).add(name)
+    used.pop("name", None)                                  # the macro's own parameter: #define V(name) ... VR_##name
+    assert {"c_y", "tab_y_1", "t_eq", "rtol"} <= set(used)                    # not vacuous
+    unknown = {ref: sorted(files) for ref, files in used.items() if ref not in defined}
+    assert not unknown, f"value references the C code uses that variables.h does not define: {unknown}"
+    for v in contract.variables():
+        m = re.fullmatch(r"(\w+)\[(\d+)\]", v.name)
+        if m:
+            assert v.vr == defined[f"{m[1]}_1"] + int(m[2]) - 1, f"{v.name}: not consecutive with {m[1]}[1]"

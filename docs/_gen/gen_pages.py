@@ -4,7 +4,8 @@ Run by ``mkdocs build`` (``make docs``); nothing it writes is committed. It need
 (``make docs`` builds it first).
 
 - reference/study-keys.md: the study file's keys, from ``fmusa.study.schema`` (checked against the loader);
-- reference/model.md: the ScrewVertebra model, from fmu/MODEL.md, the Modelica source and fmu/variables.csv;
+- reference/model.md: the ScrewVertebra model, from fmu/MODEL.md and the Modelica source (its equations and
+  public declarations);
 - reference/troubleshooting.md: every FmusaError subclass, found by introspection, with its fix;
 - reference/api.md: the public Python API, from the docstrings (mkdocstrings);
 - figures/: the paper's study run through the FMU (studies/paper.yaml, about 8 s) and a pullout, drawn by

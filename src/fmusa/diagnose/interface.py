@@ -3,7 +3,7 @@
 A diagnosis imposes the measured drive (displacement or force) on the FMU and compares one of its
 outputs with the measured response. Which variables do that is a property of the FMU, not of the
 method: :class:`ModelInterface` names them, and :data:`SCREW_VERTEBRA` is the one place that holds
-the names of this repository's FMU (``fmu/variables.csv``). Pass another interface to
+the names of this repository's FMU (the public declarations of ``modelica/ScrewVertebra.mo``). Pass another interface to
 :func:`fmusa.diagnose.run.diagnose` to diagnose an FMU with other variable names.
 """
 from __future__ import annotations
@@ -79,7 +79,7 @@ class ModelInterface:
         return self.parameter_names.get(parameter, parameter)
 
 
-#: The ScrewVertebra FMU of this repository (fmu/variables.csv): mode 2 follows the input y_in (with
+#: The ScrewVertebra FMU of this repository (modelica/ScrewVertebra.mo): mode 2 follows the input y_in (with
 #: its derivative) when use_y_in is true; mode 1 applies F_ext_y on top of a ramp to F_max, set to 0.
 SCREW_VERTEBRA = ModelInterface(
     mode_variable="mode",
