@@ -179,13 +179,13 @@ def test_what_the_lean_path_does_not_cover_goes_to_fmpy(tmp_path, screw):
         assert lean_view(spec_on(d, ("freqHz",), ("outputs[1]",), 0.1, 0.05), read_fmu_info(d)) is None
 
 
-def _pool_batches(spec: PlanSpec, values: np.ndarray, lean: bool, monkeypatch) -> tuple:
+def _pool_batches(spec: PlanSpec, values: np.ndarray, method: str, lean: bool, monkeypatch) -> tuple:
     monkeypatch.setenv("FMUSA_LEAN_WORKERS", "1" if lean else "0")
-    pool = WorkerPool(spec, 2, 30.0, PoolOptions(start_method="spawn"))
+    pool = WorkerPool(spec, 1, 30.0, PoolOptions(start_method=method, retries=0))
     got = []
     try:
-        pool.map((np.arange(len(values)), values), got.append, 3)
-        assert (pool.lean is not None) == lean
+        pool.map((np.arange(len(values)), values), got.append, len(values))
+        assert (pool.lean is not None) == (lean and method == "spawn")
     finally:
         pool.close()
     from fmusa.runs.spec import RunBatch
@@ -195,24 +195,42 @@ def _pool_batches(spec: PlanSpec, values: np.ndarray, lean: bool, monkeypatch) -
     return b.run_ids[order], b.metrics[order], b.ok[order], msgs
 
 
-def test_spawned_pool_lean_equals_fmpy_on_misbehaving_runs(tmp_path, monkeypatch):
-    """Through the pool: NaN outputs, fmi2Error and a segfault (each on some runs) give the same metrics,
-    the same failures and the same messages whether spawned workers take the lean path or fmpy's."""
+@pytest.fixture(scope="module")
+def misbehave(tmp_path_factory) -> Path:
+    """tests/fmus/misbehave unpacked (a spring y = F/k that misbehaves for k in [fault_lo, fault_hi])."""
     from fmusa.bench import _misbehave_fmu
-    fmu = _misbehave_fmu(tmp_path)
+    tmp = tmp_path_factory.mktemp("misbehave")
+    fmu = _misbehave_fmu(tmp)
     if fmu is None:
         pytest.skip("needs gcc and Linux to build tests/fmus/misbehave")
-    folder = extract_fmu(fmu, tmp_path / "x", to_run=True)
-    ks = np.array([[1e6], [2e6], [3e6], [4e6], [5e6], [6e6], [7e6], [8e6]])
-    for kind in (3, 4, 1):       # NaN, fmi2Error, segfault for 2.5e6 <= k <= 4.5e6
-        spec = spec_on(folder, ("k",), ("y", "y_peak"), 1.0, 0.5,
-                       (("F", 411.0), ("fault", 1.0), ("fault_kind", kind), ("fault_lo", 2.5e6), ("fault_hi", 4.5e6)))
-        ids, m_lean, ok_lean, msg_lean = _pool_batches(spec, ks, True, monkeypatch)
-        _, m_fmpy, ok_fmpy, msg_fmpy = _pool_batches(spec, ks, False, monkeypatch)
-        assert ok_lean.tolist() == ok_fmpy.tolist() == [True, True, False, False, True, True, True, True]
-        np.testing.assert_array_equal(m_lean, m_fmpy)
-        assert msg_lean == msg_fmpy and len(msg_lean) == 2
-        np.testing.assert_array_equal(m_lean[ok_lean, 0], 411.0 / ks[ok_lean, 0])
+    return extract_fmu(fmu, tmp / "x", to_run=True)
+
+
+def misbehave_spec(folder: Path, kind: int) -> PlanSpec:
+    return spec_on(folder, ("k",), ("y", "y_peak"), 1.0, 0.5,
+                   (("F", 411.0), ("fault", 1.0), ("fault_kind", kind), ("fault_lo", 2.5e6), ("fault_hi", 4.5e6)))
+
+
+@pytest.mark.parametrize("kind", [3, 4])     # NaN outputs, fmi2Error from fmi2DoStep
+def test_misbehaving_runs_say_what_fmpy_says(misbehave, kind):
+    ref = assert_same(misbehave_spec(misbehave, kind), [(1e6,), (3e6,), (5e6,), (4e6,), (1e6,)])
+    assert [type(r) for r in ref] == [bytes, str, bytes, str, bytes]
+    assert ("non-finite output y, y_peak" if kind == 3 else "fmi2DoStep returned Error") in ref[1]
+
+
+def test_spawned_pool_lean_equals_fmpy_around_segfaults(misbehave, monkeypatch):
+    """Through a spawned pool whose workers take the lean path, with runs that segfault their worker: the
+    same metrics, failures and messages as workers on the fmpy path (forked, where fork exists)."""
+    import multiprocessing as mp
+    ks = np.array([[1e6], [3e6], [5e6], [4e6], [6e6]])
+    spec = misbehave_spec(misbehave, 1)
+    ids, m_lean, ok_lean, msg_lean = _pool_batches(spec, ks, "spawn", True, monkeypatch)
+    ref = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+    _, m_fmpy, ok_fmpy, msg_fmpy = _pool_batches(spec, ks, ref, False, monkeypatch)
+    assert ok_lean.tolist() == ok_fmpy.tolist() == [True, False, True, False, True]
+    np.testing.assert_array_equal(m_lean, m_fmpy)
+    assert msg_lean == msg_fmpy and "SIGSEGV" in msg_lean[1] and "SIGSEGV" in msg_lean[3]
+    np.testing.assert_array_equal(m_lean[ok_lean, 0], 411.0 / ks[ok_lean, 0])
 
 
 def test_a_lean_worker_imports_neither_numpy_nor_fmpy(screw):
