@@ -325,5 +325,5 @@ def from_lean(spec: PlanSpec, view: LeanView, batch, values: np.ndarray) -> RunB
             metrics[okl] = reduce_series(view.times, data[0], spec.rules)
         else:
             metrics[okl] = reduce_batch(view.times, data, spec.rules)
-    return RunBatch(np.asarray(batch.ids, dtype=np.int64), np.asarray(values, dtype=float).reshape(n, -1),
+    return RunBatch(np.asarray(batch.ids, dtype=np.int64), np.array(values, dtype=float).reshape(n, -1),
                     metrics, ok, np.frombuffer(batch.seconds, dtype=float).copy(), dict(batch.messages))
