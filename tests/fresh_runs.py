@@ -7,6 +7,7 @@ metric reduced with plain numpy.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Mapping
 
@@ -15,7 +16,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+#: ../shared beside the repository, or $FMUSA_SHARED_DIR (a git worktree elsewhere)
+SHARED = Path(os.environ.get("FMUSA_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 VENDOR = SHARED / "vendor-fmus"
 
 

@@ -421,7 +421,8 @@ def paper_study_child() -> dict:
 
 def crash_study_child(fmu: str, runs: int, workers: int) -> dict:
     """A study of ``runs`` runs of tests/fmus/misbehave that each segfault their worker, in THIS process:
-    its wall time and how many runs failed (all of them, each on a fresh worker)."""
+    its wall time, how many runs failed (all of them, each on a fresh worker) and the CPU seconds of the
+    workers and of this process."""
     import dataclasses
     from fmusa.study.loader import parse_study
     from fmusa.api import run_study
@@ -433,9 +434,14 @@ def crash_study_child(fmu: str, runs: int, workers: int) -> dict:
             f"    values:\n      k: [{', '.join(repr(float(k)) for k in ks)}]\nexecution:\n  workers: {workers}\n")
     with tempfile.TemporaryDirectory(prefix="fmusa-bench-crash-") as tmp:
         study = parse_study(text, Path(tmp) / "crash.yaml")
+        cpu0 = _cpu_s()
         t0 = time.perf_counter()
         res = run_study(study, Path(tmp) / "out", figures=False, progress=False)
-        return {"wall_s": time.perf_counter() - t0, "runs": res.summary["runs"], "failed": res.summary["failed"]}
+        wall = time.perf_counter() - t0
+        cpu1 = _cpu_s()
+        # CPU does not depend on what else the machine runs: the workers' (ended children) and this process's
+        return {"wall_s": wall, "runs": res.summary["runs"], "failed": res.summary["failed"],
+                "cpu_s_workers": cpu1[1] - cpu0[1], "cpu_s_parent": cpu1[0] - cpu0[0]}
 
 
 def _misbehave_fmu(folder: Path) -> Path | None:
@@ -490,7 +496,8 @@ def bench_start_methods(methods: tuple[str, ...] = ("fork", "spawn"), sobol_runs
                 cr = _child(f"import json; from fmusa.bench import crash_study_child; print('@@' + json.dumps("
                             f"crash_study_child({str(crash_fmu)!r}, {CRASH_RUNS}, {int(workers)})))", env,
                             f"the crash-heavy study under {m}")
-                row.update(crash_study_wall_s=cr["wall_s"], crash_study_failed=cr["failed"])
+                row.update(crash_study_wall_s=cr["wall_s"], crash_study_failed=cr["failed"],
+                           crash_study_cpu_s_workers=cr["cpu_s_workers"], crash_study_cpu_s_parent=cr["cpu_s_parent"])
             out["start_methods"][m] = row
             out["start_methods_loadavg_1min"].append(_load())
     base = out["start_methods"].get("fork", {})

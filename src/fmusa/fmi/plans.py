@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -262,3 +263,101 @@ class DrivenPlan:
         return data
 
 
+
+
+# ---------------------------------------------------------------------- the lean worker's plan
+class _Declared:
+    """What FMURunner's checks read (its variables and model description), without an instance: the
+    lean plan is checked as a RunPlan is, in the parent, where no FMU is loaded."""
+    lookup = FMURunner.lookup
+    by_type = FMURunner.by_type
+    validate = FMURunner.validate
+    coerce = staticmethod(FMURunner.coerce)
+
+    def __init__(self, info) -> None:
+        self.variables = {v.name: v for v in info.variables}
+        self.model_description = info.model_description
+
+
+#: The types of the values a lean plan carries as they are (plain data: a worker unpickles no numpy).
+_PLAIN = (float, int, bool, str)
+
+
+def lean_plan(fmu_dir: str, info, varied: Sequence[str], fixed: Sequence[tuple[str, Value]],
+              inputs: Sequence[tuple[str, float]], outputs: Sequence[str], stop_time: float, step: float | None,
+              *, interface: str = "auto", solver: str | None = None, relative_tolerance: float | None = None,
+              step_size: float | None = None, reuse: str = "reset", keep: Sequence[int] | None = None
+              ) -> dict | None:
+    """The plain data :class:`fmusa.fmi.lean.LeanFMU` needs to make a RunPlan's runs of the FMU unpacked in
+    ``fmu_dir`` (``info``: its FMUInfo) without fmpy or numpy, or None when the lean path does not cover
+    them: anything but an FMI 2.0 co-simulation FMU with its binary for this platform in place, an output
+    that is not a Real, a value not of a plain type, or a set-up FMURunner or RunPlan would refuse (they run
+    then, and say why). ``keep``: the communication points whose rows a run sends back (None: all)."""
+    import inspect
+
+    import fmpy
+    from fmpy.fmi2 import FMU2Slave
+
+    from fmusa.fmi.info import select_interface
+    from fmusa.fmi.runner import REUSE_MODES, experiment_tolerance
+
+    try:
+        if info.is_fmi3 or select_interface(info, interface) != "co-simulation":
+            return None
+        if solver is not None or step_size is not None or reuse not in REUSE_MODES:
+            return None
+        if relative_tolerance is not None and not (math.isfinite(relative_tolerance) and relative_tolerance > 0):
+            return None
+        folder = Path(fmu_dir)
+        model_id = info.interfaces["co-simulation"]
+        library = folder / "binaries" / fmpy.platform / (model_id + fmpy.sharedLibraryExtension)
+        if not (folder.is_absolute() and folder.is_dir() and library.is_file()):
+            return None
+        if any(type(x) not in _PLAIN for _, x in fixed) or any(type(x) not in _PLAIN for _, x in inputs):
+            return None
+        d = _Declared(info)
+        FMURunner.check_time(stop_time, step)
+        fixed_d, inputs_d = dict(fixed), dict(inputs)
+        d.validate(fixed_d, list(outputs), inputs_d)
+        vs = [d.lookup(n, VARIED, "parameter") for n in varied]
+        if any(v.type != "Real" or (v.causality == "parameter" and v.variability not in ("fixed", "tunable"))
+               for v in vs):
+            return None
+        outs = [d.lookup(n, _PLAN_READABLE, "output") for n in outputs]
+        if any(o.type != "Real" for o in outs):
+            return None
+        calls = []
+        for values, allowed, role in ((fixed_d, ("parameter",), "parameter"), (inputs_d, ("input",), "input")):
+            groups = d.by_type(values, allowed, role)
+            if any(t not in ("Real", "Integer", "Enumeration", "Boolean") for t in groups):
+                return None
+            calls.append([("Integer" if t == "Enumeration" else t, list(vrs),
+                           [bool(x) if t == "Boolean" else x for x in vals]) for t, (vrs, vals) in groups.items()])
+    except Exception:  # noqa: BLE001 - whatever the checks refuse: the fmpy path runs, and says why
+        return None
+    md = info.model_description
+    tol = relative_tolerance if relative_tolerance is not None else experiment_tolerance(md)
+    cats = [c.name for c in getattr(md, "logCategories", [])]
+    proxy = Path(fmpy.__file__).parent / "logging" / fmpy.platform / ("logging" + fmpy.sharedLibraryExtension)
+    times = communication_points(float(stop_time), step)
+    return {
+        "library": str(library),
+        "required": sorted(n for n, _ in inspect.getmembers(FMU2Slave) if n.startswith("fmi2")),
+        "logger_proxy": str(proxy),
+        "model_name": str(md.modelName),
+        "instance_name": "fmusa",
+        "guid": str(md.guid),
+        "resource_uri": Path(fmu_dir, "resources").as_uri(),     # fmpy's; fmu_dir is absolute
+        "tolerance": None if tol is None else float(tol),
+        "debug_logging": [c for c in cats if c in ("logStatusError", "logStatusWarning")],
+        "reuse": reuse,
+        "varied": list(varied),
+        "varied_vrs": [int(v.valueReference) for v in vs],
+        "fixed": [(k, x) for k, x in fixed],
+        "fixed_calls": calls[0],
+        "input_calls": calls[1],
+        "outputs": list(outputs),
+        "output_vrs": [int(o.valueReference) for o in outs],
+        "times": times.tolist(),
+        "keep": None if keep is None else [int(i) for i in keep],
+    }

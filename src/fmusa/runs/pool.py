@@ -22,6 +22,7 @@ import shutil
 import sys
 import threading
 import time
+from array import array
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -30,12 +31,19 @@ import numpy as np
 from fmusa.errors import UsageError
 from fmusa.fmi.archive import extract_fmu
 from fmusa.runs import worker as _worker_side
-from fmusa.runs.spec import PlanSpec, RunBatch, as_arrays
+from fmusa.runs.lean import LeanBatch
+from fmusa.runs.spec import LeanView, PlanSpec, RunBatch, as_arrays, from_lean, lean_view
 from fmusa.runs.timelimit import timeout_reason
 
 START_METHODS = _worker_side.START_METHODS
 #: The environment variable that picks the start method when the study does not.
 ENV_START_METHOD = "FMUSA_START_METHOD"
+#: The start methods whose workers take the lean path (:mod:`fmusa.fmi.lean`: ctypes, no numpy or fmpy)
+#: where it covers the runs: a spawned worker imports everything itself, a forked one (fork, forkserver,
+#: whose server has imported numpy and fmpy once) has it already.
+LEAN_METHODS = ("spawn",)
+#: Set to 0 to give every worker the fmpy path (to compare the two; the results are the same).
+ENV_LEAN = "FMUSA_LEAN_WORKERS"
 #: Seconds a new worker may take to load its FMU and say "ready" (a model description of 200k variables
 #: takes seconds; a worker that takes longer is counted as one that could not start).
 STARTUP_LIMIT_S = 600.0
@@ -149,7 +157,7 @@ def _lean_info(info, spec: PlanSpec):
 _START_LOCK = threading.Lock()
 
 
-def _start_lean(proc, method: str) -> None:
+def start_process(proc, method: str) -> None:
     """Start ``proc`` without running the program's main module again in it: ``spawn`` and ``forkserver``
     re-import ``__main__`` (for the ``fmusa`` command, the whole CLI and what it imports) in every child,
     and a worker's target and arguments never refer to it."""
@@ -177,7 +185,9 @@ def _start_lean(proc, method: str) -> None:
 class _Worker:
     """One supervised worker process and the runs it has been given but not answered yet."""
 
-    def __init__(self, ctx, method: str, payload: bytes, n_varied: int) -> None:
+    def __init__(self, ctx, method: str, payload: bytes, n_varied: int, lean: bool = False) -> None:
+        #: the worker takes chunks as plain data (a lean worker unpickles no numpy array)
+        self.lean = lean
         self.conn, child = ctx.Pipe()
         #: the worker watches the other end: it reads EOF when this process, the only writer, is gone
         death_r, self.death = ctx.Pipe(duplex=False)
@@ -188,7 +198,7 @@ class _Worker:
         ends = _worker_side.PARENT_ENDS
         ends.extend((self.conn, self.death))     # a forked child closes its copies of these at once
         try:
-            _start_lean(self.proc, method)
+            start_process(self.proc, method)
         except BaseException:
             self._forget()
             raise
@@ -214,7 +224,12 @@ class _Worker:
     def _send(self, now: float) -> None:
         self.given_at = now
         self.sent = True
-        self.conn.send((self.ids, self.values))
+        if self.lean:
+            values = array("d")
+            values.frombytes(np.ascontiguousarray(self.values, dtype=float).tobytes())
+            self.conn.send((self.ids.tolist(), values))
+        else:
+            self.conn.send((self.ids, self.values))
 
     def on_ready(self, now: float) -> None:
         self.ready = True
@@ -324,6 +339,8 @@ class WorkerPool:
         self._start_failures = 0
         self._last_exit = ""
         self._payload: bytes | None = None
+        #: the lean path's plan and what turns its answers into RunBatches (None: the fmpy path)
+        self.lean: LeanView | None = None
         #: workers started, and the replacements among them (crashes, time limits, recycling), for the record
         self.started = 0
         self.replaced = 0
@@ -341,10 +358,17 @@ class WorkerPool:
                     adopt_fmu_info(info)      # forked workers inherit it; this process reads it again so
                 except Exception:  # noqa: BLE001 - the workers report the problem, run by run
                     info = None
+            if (info is not None and self.method in LEAN_METHODS
+                    and os.environ.get(ENV_LEAN, "").strip() not in ("0", "no", "false")):
+                self.lean = lean_view(self.spec, info)
             if info is not None and self.method != "fork":
                 info = _lean_info(info, self.spec)
             self._payload = pickle.dumps((self.spec, None if self.method == "fork" else info),
                                          protocol=pickle.HIGHEST_PROTOCOL)
+            if self.lean is not None:
+                self._payload = pickle.dumps(("lean", self.lean.plan, tuple(self.spec.scale),
+                                              tuple(self.spec.offset), self._payload),
+                                             protocol=pickle.HIGHEST_PROTOCOL)
         return self._payload
 
     def _start_worker(self) -> _Worker:
@@ -357,10 +381,10 @@ class WorkerPool:
         config = mp.current_process()._config
         daemon = config.get("daemon")
         if not daemon:
-            return _Worker(self.ctx, self.method, payload, len(self.spec.varied))
+            return _Worker(self.ctx, self.method, payload, len(self.spec.varied), self.lean is not None)
         config["daemon"] = False
         try:
-            return _Worker(self.ctx, self.method, payload, len(self.spec.varied))
+            return _Worker(self.ctx, self.method, payload, len(self.spec.varied), self.lean is not None)
         finally:
             config["daemon"] = daemon
 
@@ -447,6 +471,8 @@ class WorkerPool:
                     self._start_failures = 0
                     w.on_ready(now)
                     continue
+                if isinstance(res, LeanBatch):    # the lean path's answer: the metrics are reduced here
+                    res = from_lean(self.spec, self.lean, res, w.values[:len(res)])
                 w.answer(len(res))
                 take(res)
                 if not w.pending:

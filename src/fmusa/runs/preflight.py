@@ -315,13 +315,14 @@ def _isolated_once(spec: PlanSpec, a, b, timeout_s: float | None, start_method: 
     crash; how many of its runs had started; the limit in force when it stopped)."""
     import multiprocessing as mp
 
-    from fmusa.runs.pool import resolve_start_method
+    from fmusa.runs.pool import resolve_start_method, start_process
 
-    ctx = mp.get_context(resolve_start_method(start_method))
+    method = resolve_start_method(start_method)
+    ctx = mp.get_context(method)
     recv, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(send, spec, list(a), list(b), timeout_s), name="fmusa-preflight",
                        daemon=True)
-    proc.start()
+    start_process(proc, method)     # spawn, forkserver: without running the program's main module again
     send.close()
     # the process's start and the FMU's loading, then each run within the study's limit of a run: a run
     # that hangs in one doStep is stopped here, with the whole check

@@ -278,3 +278,52 @@ def run_chunk(spec: PlanSpec, chunk: Sequence[tuple[int, tuple[float, ...]]]) ->
     """Run a chunk of parameter sets; a failing run is recorded with its reason and the rest go on."""
     ids, vals = as_arrays(chunk)
     return run_batch(spec, ids, vals).results()
+
+
+# ---------------------------------------------------------------------- the lean worker path
+@dataclass(frozen=True)
+class LeanView:
+    """A lean worker's plan (:func:`fmusa.fmi.plans.lean_plan`) and what the parent needs to turn its
+    answers into RunBatches: the sampling times the metrics are reduced on and the outputs per row."""
+    plan: dict
+    times: np.ndarray
+    n_outputs: int
+
+
+def lean_view(spec: PlanSpec, info) -> LeanView | None:
+    """The lean path for ``spec``'s runs (its FMU unpacked, ``info`` read from it), or None where it does not
+    cover them (then the worker runs them with fmpy): refined peaks re-run the FMU around each peak."""
+    from fmusa.fmi.plans import lean_plan
+    from fmusa.fmi.runner import communication_points
+
+    if spec.refine_factor or info is None:
+        return None
+    times = communication_points(float(spec.stop_time), spec.step)
+    keep = None
+    if spec.subsample > 1:      # as _run_rows: every subsample-th point and the last
+        keep = np.unique(np.r_[np.arange(0, len(times), spec.subsample), len(times) - 1])
+        times = times[keep]
+    plan = lean_plan(spec.fmu_path, info, spec.varied, spec.fixed, spec.inputs, spec.outputs, spec.stop_time,
+                     spec.step, interface=spec.interface, solver=spec.solver,
+                     relative_tolerance=spec.relative_tolerance, step_size=spec.step_size, reuse=spec.reuse,
+                     keep=None if keep is None else keep.tolist())
+    return None if plan is None else LeanView(plan, times, len(spec.outputs))
+
+
+def from_lean(spec: PlanSpec, view: LeanView, batch, values: np.ndarray) -> RunBatch:
+    """The RunBatch of a lean worker's answer ``batch`` (a :class:`fmusa.runs.lean.LeanBatch`) for runs whose
+    study values are ``values`` (one row each): the metrics reduced as :func:`_run_rows` reduces them."""
+    n = len(batch)
+    metrics = np.full((n, len(spec.rules)), np.nan)
+    ok = np.ones(n, dtype=bool)
+    if batch.messages:
+        ok[list(batch.messages)] = False
+    okl = np.flatnonzero(ok)
+    if len(okl):
+        data = np.frombuffer(batch.data, dtype=float).reshape(len(okl), len(view.times), view.n_outputs)
+        if len(okl) == 1:
+            metrics[okl] = reduce_series(view.times, data[0], spec.rules)
+        else:
+            metrics[okl] = reduce_batch(view.times, data, spec.rules)
+    return RunBatch(np.asarray(batch.ids, dtype=np.int64), np.array(values, dtype=float).reshape(n, -1),
+                    metrics, ok, np.frombuffer(batch.seconds, dtype=float).copy(), dict(batch.messages))

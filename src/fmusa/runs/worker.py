@@ -56,9 +56,11 @@ def watch_parent(death) -> None:
 
 def main(conn, death, started, payload: bytes) -> None:
     """A pool worker. ``payload`` (pickled by the parent): (the PlanSpec, the parent's FMU info for the
-    spec's unpacked FMU or None, run limit). The worker loads the FMU, says ``("ready", pid)``, then
-    receives chunks (run ids, study values) and sends back RunBatches, one message per chunk (more for a
-    chunk that takes longer than half a second). Before each run it counts up ``started`` and stamps its
+    spec's unpacked FMU or None), or for the lean path ("lean", the plan of :mod:`fmusa.fmi.lean`, scale,
+    offset, that first payload pickled, for an FMU the lean path cannot load). The worker loads the FMU,
+    says ``("ready", pid)``, then receives chunks (run ids, study values) and sends back RunBatches (lean:
+    LeanBatches, which the parent turns into RunBatches), one message per chunk (more for a chunk that
+    takes longer than half a second). Before each run it counts up ``started`` and stamps its
     start time, so the parent knows which run crashed or hangs, and since when. ``None`` ends it."""
     import faulthandler
     import signal
@@ -72,16 +74,36 @@ def main(conn, death, started, payload: bytes) -> None:
     watch_parent(death)
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # the parent decides when to stop
     faulthandler.disable()   # a crashing FMU is reported by the parent, not by a Python stack dump
-    spec, info = pickle.loads(payload)
-    if info is not None:     # the parent's reading of the model description: not parsed again here
-        from fmusa.fmi.info import adopt_fmu_info
-        adopt_fmu_info(info)
-    from fmusa.runs.spec import plan_for, run_batch
+    # numpy's OpenBLAS starts a thread per core at import, ~0.1 s of CPU of a spawned worker's start, for
+    # nothing: a worker's numpy reduces small arrays, and the pool runs one worker per core already (set
+    # before the payload is unpickled: the fmpy path's spec brings numpy)
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    job = pickle.loads(payload)
+    lean_chunks = job[0] == "lean"
+    if lean_chunks:          # ("lean", plan, scale, offset, the fmpy payload): ctypes only, when it loads
+        _, plan, scale, offset, fallback = job
+        fmu = _lean_fmu(plan)
+        if fmu is not None:
+            _serve_lean(conn, started, fmu, scale, offset)
+            return
+        job = pickle.loads(fallback)     # the FMU as fmpy loads it: runs and errors are then fmpy's
+    _serve(conn, started, *job, lean_chunks=lean_chunks)
 
-    try:                     # load and instantiate now, before the first run is timed
-        plan_for(spec)
-    except Exception:  # noqa: BLE001 - run_batch fails each run with the reason
-        pass
+
+def _lean_fmu(plan: dict):
+    """The FMU loaded and instantiated on ctypes alone (:mod:`fmusa.fmi.lean`), or None when that fails in
+    any way: the fmpy path then loads it, and the runs fail, if they must, with fmpy's reasons."""
+    try:
+        from fmusa.fmi.lean import LeanFMU
+        return LeanFMU(plan)
+    except Exception:  # noqa: BLE001 - fmpy's path says why
+        return None
+
+
+def _serve_lean(conn, started, fmu, scale, offset) -> None:
+    """The lean worker's loop: chunks (run ids, study values as array('d')) in, LeanBatches out."""
+    from fmusa.runs.lean import run_rows
+
     conn.send(("ready", os.getpid()))
     while True:
         try:
@@ -91,4 +113,32 @@ def main(conn, death, started, payload: bytes) -> None:
         if msg is None:
             return
         ids, values = msg
+        conn.send(run_rows(fmu, ids, values, scale, offset, started, emit=conn.send))
+
+
+def _serve(conn, started, spec, info, lean_chunks: bool = False) -> None:
+    """The fmpy path's loop: chunks in, RunBatches out (chunks as a lean worker gets them: made arrays)."""
+    if info is not None:     # the parent's reading of the model description: not parsed again here
+        from fmusa.fmi.info import adopt_fmu_info
+        adopt_fmu_info(info)
+    from fmusa.runs.spec import plan_for, run_batch
+
+    try:                     # load and instantiate now, before the first run is timed
+        plan_for(spec)
+    except Exception:  # noqa: BLE001 - run_batch fails each run with the reason
+        pass
+    if lean_chunks:
+        import numpy as np
+    conn.send(("ready", os.getpid()))
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        ids, values = msg
+        if lean_chunks:
+            ids = np.asarray(ids, dtype=np.int64)
+            values = np.frombuffer(values, dtype=float).reshape(len(ids), len(spec.varied))
         conn.send(run_batch(spec, ids, values, started, emit=conn.send))
