@@ -22,7 +22,9 @@ T1 parameter bindings: a subscripted parameter array in a parameter's binding (t
    (tab_F[2] - tab_F[1])/...) is left as an array subscript by the package's flattener, whose code
    generator then stops with "array equations are not supported yet"; in equations the same flattener
    already writes the scalar tab_F[2]. T1 does that renaming in bindings too (Subscript(tab_F, 2) ->
-   the flat scalar tab_F[2], which holds the same value).
+   the flat scalar tab_F[2], which holds the same value). And an array modifier (tab_y = {0, 1e-4, ...},
+   how a case sets the table) binds every flat element tab_y[k] to the whole array literal; T1 binds
+   tab_y[k] to the literal's k-th entry, which is what the modifier means.
 T2 inputs: the package has no input channel (an input is a known it never sets; a modifier binding it
    becomes an equation with no unknown left). The cases here hold every input constant, so each
    top-level input becomes a parameter bound to that constant (0 where the case sets none: the
@@ -134,6 +136,17 @@ def _scalar_subscript(node: Any) -> Any | None:
     return None
 
 
+def _array_entry(name: str, binding: Any) -> Any:
+    """T1: the flat element a[k] bound to a whole array literal {e1, e2, ...} -> e_k."""
+    base, _, rest = name.partition("[")
+    if isinstance(binding, ir.Array) and rest.endswith("]") and rest[:-1].isdigit():
+        k = int(rest[:-1])
+        if not 1 <= k <= len(binding.elements):
+            raise ValueError(f"{name}: the array literal has {len(binding.elements)} entries")
+        return binding.elements[k - 1]
+    return binding
+
+
 def _names(node: Any) -> set[str]:
     """Every variable name an IR node (expression, equation, when-clause) reads or assigns."""
     found: set[str] = set()
@@ -159,7 +172,8 @@ def transform(flat: FlatModel, inputs: dict[str, float]) -> tuple[FlatModel, lis
         if v.name in drop:
             continue
         if v.is_constant and v.binding is not None:                                     # T1
-            binding = map_expr(v.binding, _scalar_subscript)
+            binding = _array_entry(v.name, v.binding)
+            binding = map_expr(binding, _scalar_subscript)
             if binding != v.binding:
                 log.append(f"T1 {v.name}: subscripts in the binding as flat scalars")
                 v = dataclasses.replace(v, binding=binding)
