@@ -10,15 +10,16 @@ simulates with its own code generator, symbolic Jacobian and SciPy's BDF. The FM
 venv with fmpy (tests/fmu_run.py). The two share nothing but the .mo file.
 
 Cases (tests/second_tool/cases.py): the paper's pullout (the defaults, 411 N over 10 s, 12 s), the 6-DOF
-load case (b) of tests/test_six_dof.py (large angles, lateral force, three torques, the interaction point off
-the centre of gravity), and every effect in both drive modes (mode 1: a 200 N load-hold-unload; mode 2: a
+load case of studies/six_dof.yaml (411 N over 50 ms, lateral forces 20 N and -10 N, a torque about the axis),
+case (b) of tests/test_six_dof.py (angles of 0.1-0.2 rad, a lateral force, three torques, the interaction
+point off the centre of gravity), and every effect in both drive modes (mode 1: a 200 N load-hold-unload; mode 2: a
 constant-velocity pull). Compared at every communication point: y, v_y, F_y, F_pull and the effect's own
 outputs (F_fric, F_ve, dmg_D, F_meas, y_meas; all 12 coordinates and rates in the 6-DOF case), each as
 max |tool - FMU| / max |FMU| of that signal.
 
-Tolerances: the tool runs at rtol 1e-8 with atol 1e-14 (its default absolute tolerance equals its relative
-one, 1e-8, which is the whole displacement scale here: set both), the FMU at rtol 1e-9, so the tool's error
-dominates. TOLERANCE holds the bound asserted per case: the error measured on this machine (worst signal,
+Tolerances: the tool runs at rtol 1e-8 with atol 1e-13 (its default absolute tolerance equals its relative
+one, 1e-8, which is the whole scale of the lateral displacements here: set both), the FMU at rtol 1e-9, so
+the tool's error dominates (the errors hardly move when the FMU runs at 1e-10 or 1e-8). TOLERANCE holds the bound asserted per case: the error measured on this machine (worst signal,
 in the comment) times about 5, and never below 1e-12 (a case that is algebraic in the drive agrees to round-
 off; 1e-12 leaves room for a different libm). Every effect changes the compared signals by far more than its
 bound (checked against the FMU without the effect), and a parameter that differs between the two runs by
@@ -52,31 +53,32 @@ TOOL_PYTHON = TOOL_VENV / "bin" / "python"
 SUITE = "second tool (modelica 0.0.205) vs FMU"
 
 TOOL_RTOL = 1e-8
-TOOL_ATOL = 1e-14
+TOOL_ATOL = 1e-13   # 1e-14 made BDF crawl on the 6-DOF load case (> 2 minutes; 1 s at 1e-13)
 TOOL_METHOD = "BDF"   # Radau stalls in the Bouc-Wen holds (yield, force-driven); LSODA timed out on two cases
 FMU_RTOL = 1e-9
 TOOL_TIMEOUT_S = 300
 
 #: case -> asserted bound on max |tool - FMU| / peak over the compared signals (measured worst in the comment)
 TOLERANCE: dict[str, float] = {
-    "paper-pullout": 3e-10,         # 6.4e-11 v_y
-    "six-dof": 3e-7,                # 5.6e-8 v_z
-    "gap-force": 2e-7,              # 4.0e-8 v_y
+    "paper-pullout": 1.5e-8,        # 2.6e-9 v_y (y, F_y 1.5e-13)
+    "six-dof": 7e-7,                # 1.3e-7 v_x, v_z (x, z 2.3e-8; angles 5e-9)
+    "six-dof-large-angles": 3.5e-7, # 6.6e-8 v_z (angles 1.3e-9)
+    "gap-force": 3e-7,              # 6.1e-8 v_y (y 5.7e-10)
     "gap-motion": 1e-12,            # 1.7e-16 F_y
-    "nonlinear-force": 7e-7,        # 1.4e-7 v_y
+    "nonlinear-force": 1e-6,        # 2.1e-7 v_y (y 5.8e-10)
     "nonlinear-motion": 1e-12,      # 2.0e-16 F_y
-    "yield-force": 1e-6,            # 2.0e-7 v_y
+    "yield-force": 7e-7,            # 1.4e-7 v_y (y 1.3e-8)
     "yield-motion": 3e-7,           # 5.5e-8 F_y
-    "friction-force": 7e-7,         # 1.5e-7 v_y
-    "friction-motion": 3e-7,        # 5.4e-8 F_fric
-    "viscoelastic-force": 3e-7,     # 6.2e-8 F_ve
+    "friction-force": 7e-7,         # 1.5e-7 v_y (F_fric 3.0e-8)
+    "friction-motion": 3e-7,        # 5.3e-8 F_fric
+    "viscoelastic-force": 3e-7,     # 5.9e-8 F_ve
     "viscoelastic-motion": 4e-7,    # 7.8e-8 F_ve
-    "offset-force": 2e-9,           # 3.4e-10 v_y
+    "offset-force": 2.5e-9,         # 4.8e-10 v_y
     "offset-motion": 1e-12,         # 1.4e-16 F_y
-    "table-force": 5e-8,            # 1.0e-8 v_y
+    "table-force": 5e-8,            # 8.8e-9 v_y
     "table-motion": 1e-12,          # 1.7e-16 F_y
-    "damage-force": 1.5e-6,         # 2.8e-7 v_y
-    "damage-motion": 3e-7,          # 5.7e-8 dmg_D
+    "damage-force": 2e-6,           # 3.8e-7 v_y (dmg_D 2.9e-8)
+    "damage-motion": 3.5e-7,        # 6.4e-8 dmg_D
 }
 CASES = cases()
 

@@ -3,9 +3,10 @@
 Kept apart from the test so that a case can be run by hand: `python tests/second_tool/cases.py NAME` (in the
 project's venv) prints the case file the runner reads.
 
-Parameter values: the paper's pullout is the FMU's defaults; the 6-DOF case is tests/test_six_dof.py's case (b)
-(soft rotations, large angles, the interaction point off the centre of gravity and the axis, lateral force and
-three torques); each effect runs in both drive modes with values inside the ranges of
+Parameter values: the paper's pullout is the FMU's defaults; the 6-DOF load case is studies/six_dof.yaml's (411 N
+ramped over 50 ms, lateral forces 20 N and -10 N, 5 N mm about the screw axis, 0.1 s), and "six-dof-large-angles"
+tests/test_six_dof.py's case (b) (soft rotations, angles of 0.1-0.2 rad, the interaction point off the centre of
+gravity and the axis, a lateral force and three torques); each effect runs in both drive modes with values inside the ranges of
 tests/effects_reference.py's generator (draw_case), scaled to these load cases:
 * mode 1 (force-driven): 200 N ramped over 1 s, held to 2 s, unloaded over 1 s, 1 s at rest (the loop shows
   hysteresis, creep and residual set); linear peak displacement y_lin = 200 N / c_y = 0.24 mm;
@@ -54,10 +55,14 @@ def cases() -> dict[str, dict[str, Any]]:
     """name -> {params, inputs, stop, step, outputs}."""
     out: dict[str, dict[str, Any]] = {
         "paper-pullout": dict(params={}, inputs={}, stop=12.0, step=0.05, outputs=BASE_OUTPUTS),
-        "six-dof": dict(params=dict(F_max=1.0, t_ramp=0.01, c_alpha=0.05, c_beta=0.02, c_gamma=0.05,
-                                    d_alpha=1e-4, d_beta=1e-4, d_gamma=1e-4, rI_x=0.0005, rI_y=-0.012),
-                        inputs=dict(F_ext_x=0.5, T_ext_x=0.005, T_ext_y=0.004, T_ext_z=-0.004),
-                        stop=0.05, step=5e-4, outputs=SIX_DOF_OUTPUTS),
+        "six-dof": dict(params=dict(F_max=411.0, t_ramp=0.05),
+                        inputs=dict(F_ext_x=20.0, F_ext_z=-10.0, T_ext_y=0.005),
+                        stop=0.1, step=1e-3, outputs=SIX_DOF_OUTPUTS),
+        "six-dof-large-angles": dict(params=dict(F_max=1.0, t_ramp=0.01, c_alpha=0.05, c_beta=0.02,
+                                                 c_gamma=0.05,
+                                                 d_alpha=1e-4, d_beta=1e-4, d_gamma=1e-4, rI_x=0.0005, rI_y=-0.012),
+                                     inputs=dict(F_ext_x=0.5, T_ext_x=0.005, T_ext_y=0.004, T_ext_z=-0.004),
+                                     stop=0.05, step=5e-4, outputs=SIX_DOF_OUTPUTS),
     }
     for effect, (force, motion, own) in EFFECTS.items():
         out[f"{effect}-force"] = dict(params={**FORCE_LOAD, **force}, inputs={}, stop=4.0, step=0.02,

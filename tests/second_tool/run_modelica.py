@@ -1,7 +1,7 @@
 """A second Modelica tool simulates modelica/ScrewVertebra.mo: the pure-Python `modelica` package.
 
-Runs INSIDE the environment that `make modelica-venv` creates (Python >= 3.12, modelica[sim] pinned in the
-Makefile), never in the project's venv: tests/test_second_tool.py starts it in a subprocess per case and
+Runs INSIDE the environment that `make modelica-venv` creates (Python >= 3.12, modelica[sim] pinned in
+tests/second_tool/requirements.txt), never in the project's venv: tests/test_second_tool.py starts it in a subprocess per case and
 compares what it writes with the FMU. Nothing here imports fmusa, fmpy or the FMU's code, so an error in
 fmu/codegen.py, CasADi or fmu/solver.c cannot hide in this tool's answer.
 
@@ -9,8 +9,10 @@ Usage: python run_modelica.py CASE.json OUT.json
 
 CASE.json: {"mo": path of the .mo, "params": {name: value}, "inputs": {name: constant value},
 "times": [communication points, from 0], "tolerance": relative tolerance, "absolute": absolute tolerance,
-"outputs": [names]}. Parameters named like the FMU's variables (tab_y[3] for the table's entries).
-OUT.json: {"t": [...], name: [...] for each output, "states": [...], "events": n, "timing": {...}}.
+"outputs": [names], "method": SciPy's integrator, default Radau}. Parameters named like the FMU's
+variables (tab_y[3] for the table's entries).
+OUT.json: {"t": [...], name: [...] for each output, "states": [...], "events": n, "transformations": [what
+each changed], "timing": {...}}.
 
 The model is simulated exactly as written, with the case's parameters set as modifiers of an extends
 clause (plain Modelica: `model SecondToolCase extends ScrewVertebra(c_y = ..., mode = 2); end ...`, so
@@ -40,9 +42,15 @@ T5 the y_mean and v_y_mean monitors: `y_mean = if time > 0 then y_int/time else 
    time > 0 sits at zero at the start; the package fires it as an event at t = 0 and latches it true
    there, so the model divides by time = 0 (ZeroDivisionError in the Jacobian, before any step).
    y_mean, v_y_mean and their integrals y_int, v_abs_int (the FMU solver's monitors) are removed.
+T6 the y_max and v_y_max monitors: `when y*v_y < 0 then y_hold = ...` (and v_y*a_y < 0). At rest both
+   products are exactly 0 at t = 0, and so is `time < 0` of the load; the package hands every
+   when-condition and relation to SciPy's event location, whose root bracketing fails on an indicator
+   that is 0 at both ends of the first step ("no crossing could be located at t = 0 -- 'y * v_y < 0',
+   'v_y * a_y < 0', 'time < 0' sit at zero"). Without the two when-clauses only `time < 0` is left at
+   zero and the run goes through. y_max, v_y_max, y_hold and v_hold (the FMU solver's monitors) are
+   removed.
 
-The other monitors (y_max, v_y_max through their when-clauses) are kept as written: the package takes
-them, and the test compares them with the FMU's.
+So every monitor is the FMU solver's alone and none is compared; everything else is simulated as written.
 """
 from __future__ import annotations
 
@@ -64,11 +72,14 @@ MODEL = "ScrewVertebra"
 CASE_MODEL = "SecondToolCase"
 TABLE_ARRAYS = ("tab_y", "tab_F")
 TABLE_SIZE = 16
-#: T4: the t_eq monitor's variables (removed with the when-clause that assigns t_rest)
-T_EQ_MONITOR = ("t_rest", "t_eq", "at_rest")
-#: T5: the time-average monitors and their integrals
-MEAN_MONITORS = ("y_mean", "v_y_mean", "y_int", "v_abs_int", "y_max", "v_y_max", "y_hold", "v_hold")
-REMOVED = frozenset({"n_steps", *T_EQ_MONITOR, *MEAN_MONITORS})
+#: T3-T6: the variables removed, with every equation and when-clause that names one of them
+REMOVED_BY: dict[str, frozenset[str]] = {
+    "T3": frozenset({"n_steps"}),
+    "T4": frozenset({"t_rest", "t_eq", "at_rest"}),
+    "T5": frozenset({"y_mean", "v_y_mean", "y_int", "v_abs_int"}),
+    "T6": frozenset({"y_max", "v_y_max", "y_hold", "v_hold"}),
+}
+REMOVED = frozenset().union(*REMOVED_BY.values())
 
 
 # ------------------------------------------------------------------------------------------ parameters
@@ -161,7 +172,7 @@ def _names(node: Any) -> set[str]:
 
 
 def transform(flat: FlatModel, inputs: dict[str, float]) -> tuple[FlatModel, list[str]]:
-    """T1-T5 of the module docstring; returns the flat model and a log of what each changed."""
+    """T1-T6 of the module docstring; returns the flat model and a log of what each changed."""
     log: list[str] = []
     variables: list[FlatVariable] = []
     unknown_inputs = set(inputs) - {v.name for v in flat.variables if v.causality == "input"}
@@ -183,26 +194,24 @@ def transform(flat: FlatModel, inputs: dict[str, float]) -> tuple[FlatModel, lis
             v = dataclasses.replace(v, variability="parameter", causality="none",
                                     binding=ir.RealLiteral(value))
         variables.append(v)
+    # T3-T6: an equation or when-clause naming a removed variable goes. Were one of them to define a kept
+    # variable, the model would lose an equation and causalize() would refuse it as unbalanced.
+    def removed_by(node: Any) -> str | None:
+        names = _names(node)
+        return next((tag for tag, group in REMOVED_BY.items() if names & group), None)
+
     equations = []
     for e in flat.equations:
-        names = _names(e)
-        if "n_steps" in names:                                                          # T3
-            log.append("T3 removed n_steps = 0")
-            continue
-        if names & set(T_EQ_MONITOR):                                                   # T4
-            log.append(f"T4 removed an equation of {sorted(names & set(T_EQ_MONITOR))}")
-            continue
-        if names & set(MEAN_MONITORS):                                                  # T5
-            log.append(f"T5 removed an equation of {sorted(names & set(MEAN_MONITORS))}")
+        tag = removed_by(e)
+        if tag:
+            log.append(f"{tag} removed the equation of {sorted(_names(e) & REMOVED)}")
             continue
         equations.append(e)
     whens = []
     for w in flat.whens:
-        if _names(w) & set(T_EQ_MONITOR):                                               # T4
-            log.append("T4 removed when {initial(), at_rest} then t_rest = time")
-            continue
-        if _names(w) & set(MEAN_MONITORS):                                              # T5
-            log.append(f"T5 removed a when-clause of {sorted(_names(w) & set(MEAN_MONITORS))}")
+        tag = removed_by(w)
+        if tag:
+            log.append(f"{tag} removed the when-clause of {sorted(_names(w) & REMOVED)}")
             continue
         whens.append(w)
     kept = {v.name for v in variables}
