@@ -34,7 +34,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 import pytest
@@ -114,7 +114,8 @@ def tool_python() -> Path:
 
 
 @pytest.fixture(scope="module")
-def runner(fmu_path):
+def runner(fmu_path: Path) -> Iterator[FmuRunner]:
+    """One FMU instance for the module (reset per case)."""
     r = FmuRunner(fmu_path)
     yield r
     r.close()
@@ -155,7 +156,7 @@ def run_fmu(runner: FmuRunner, case: dict[str, Any], params: dict[str, Any] | No
     return runner.simulate(p, t, case["outputs"], inputs=case["inputs"] or None)
 
 
-def errors(tool: dict[str, Any], fmu: dict[str, np.ndarray], outputs) -> dict[str, tuple[float, float]]:
+def errors(tool: dict[str, Any], fmu: dict[str, np.ndarray], outputs: Iterable[str]) -> dict[str, tuple[float, float]]:
     """signal -> (max |tool - FMU| / max |FMU|, the time of that worst point)."""
     t = np.asarray(tool["t"])
     np.testing.assert_array_equal(t, fmu["t"])
@@ -176,7 +177,8 @@ def _summary(errs: dict[str, tuple[float, float]]) -> str:
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_second_tool_matches_fmu(tool_python, runner, name):
+def test_second_tool_matches_fmu(tool_python: Path, runner: FmuRunner, name: str) -> None:
+    """The tool's trajectories agree with the FMU's to the case's measured bound, signal by signal."""
     case = CASES[name]
     tool = ToolRun(tool_python, case)
     fmu = run_fmu(runner, case)
@@ -189,7 +191,7 @@ def test_second_tool_matches_fmu(tool_python, runner, name):
 
 @pytest.mark.parametrize("effect", list(EFFECTS))
 @pytest.mark.parametrize("mode", ["force", "motion"])
-def test_every_effect_is_visible(runner, effect, mode):
+def test_every_effect_is_visible(runner: FmuRunner, effect: str, mode: str) -> None:
     """Each effect moves the compared signals by >= 1000 x its case's bound (its comparison is a real test)."""
     name = f"{effect}-{mode}"
     case = CASES[name]
@@ -201,7 +203,7 @@ def test_every_effect_is_visible(runner, effect, mode):
     assert shift >= 1e3 * TOLERANCE[name], f"{name}: the effect moves the signals by only {shift:.2e} of the peak"
 
 
-def test_a_parameter_that_differs_is_caught(tool_python, runner):
+def test_a_parameter_that_differs_is_caught(tool_python: Path, runner: FmuRunner) -> None:
     """The comparison fails when one parameter differs between the two runs by 1 % (c_y in the 6-DOF case)."""
     case = CASES["six-dof"]
     changed = dict(case["params"], c_y=1.01 * 823224.0)
@@ -211,5 +213,6 @@ def test_a_parameter_that_differs_is_caught(tool_python, runner):
     assert worst > 1e3 * TOLERANCE["six-dof"], f"c_y differs by 1 % and the comparison sees only {worst:.2e}"
 
 
-def test_every_case_has_a_tolerance():
+def test_every_case_has_a_tolerance() -> None:
+    """A new case needs its own measured bound (no default that could hide a loose one)."""
     assert set(TOLERANCE) == set(CASES)
