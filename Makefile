@@ -29,7 +29,7 @@ MINGW_CFLAGS := -std=c99 -O3 -shared -Wall -Wextra -static-libgcc -s -Wl,--no-in
 HAVE_MINGW := $(if $(MINGW_CC),$(shell command -v $(MINGW_CC) 2>/dev/null))
 FMU_BINARIES := $(FMU_SO) $(if $(HAVE_MINGW),$(FMU_DLL))
 
-.PHONY: all fmu sweep test identifiability slow bench diagnose docs clean
+.PHONY: all fmu modelica-venv sweep test identifiability slow bench diagnose docs clean
 .DELETE_ON_ERROR:
 
 all: fmu
@@ -41,6 +41,31 @@ $(STAMP): pyproject.toml
 	touch $@
 
 $(VENV): $(STAMP)
+
+# ---------------------------------------------------------------- second Modelica tool
+# tests/test_second_tool.py simulates modelica/ScrewVertebra.mo with a second tool, the pure-Python `modelica`
+# package (tests/second_tool/requirements.txt pins it), which needs Python >= 3.12: its own venv, built from
+# the first interpreter of $(MODELICA_PYTHON) and pyenv's 3.12+ (a pyenv shim that cannot run counts as
+# none). Without one the recipe says how to get one and the test skips, saying so too.
+MODELICA_PYTHON ?= python3.12
+MODELICA_VENV := build/modelica-venv
+MODELICA_STAMP := $(MODELICA_VENV)/.installed
+MODELICA_REQ := tests/second_tool/requirements.txt
+
+$(MODELICA_STAMP): $(MODELICA_REQ)
+	@py=; for c in $(MODELICA_PYTHON) python3.13 $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.1[2-9].*/bin/python; do \
+	  if "$$c" -c 'import sys; sys.exit(sys.version_info < (3, 12))' >/dev/null 2>&1; then py=$$c; break; fi; \
+	done; \
+	if [ -z "$$py" ]; then \
+	  echo "NOTE: no Python >= 3.12 for the second Modelica tool (tests/test_second_tool.py will skip): install one" \
+	       "(pyenv install 3.12, or apt-get install python3.12) or name it with MODELICA_PYTHON=/path/to/python3.12"; \
+	  exit 0; \
+	fi; \
+	echo "second Modelica tool: $$("$$py" -V) -> $(MODELICA_VENV)"; \
+	rm -rf $(MODELICA_VENV) && "$$py" -m venv $(MODELICA_VENV) && \
+	$(MODELICA_VENV)/bin/pip install -q -r $(MODELICA_REQ) && touch $@
+
+modelica-venv: $(MODELICA_STAMP)
 
 # ---------------------------------------------------------------- FMU
 # The FMU carries its C sources (plus the FMI 2 headers taken from fmpy) so that other tools, or
@@ -88,7 +113,7 @@ fmu: $(FMU)
 sweep: $(STAMP) $(FMU)
 	$(VENV)/bin/fmusa sweep studies/paper.yaml --out out/paper
 
-test: $(STAMP) $(FMU)
+test: $(STAMP) $(FMU) $(MODELICA_STAMP)
 	$(VENV)/bin/pytest -q -p no:cacheprovider tests
 
 # The whole identifiability table through the FMU (`make test` runs a representative subset of its cells).
