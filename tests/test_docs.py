@@ -218,7 +218,13 @@ def test_every_example_block_is_known() -> None:
     assert seen == SKIPPED, f"pinned skips no longer on the pages: {sorted(SKIPPED - seen)}"
 
 
-@pytest.mark.parametrize("page", [p.name for p in PAGES])
+#: Pages whose examples run only with --run-slow (`make slow`), to keep `make test` under 15 minutes: the
+#: clusters page starts Dask clusters and sweeps the paper study three times (about 28 s).
+SLOW_PAGES = {"clusters.md"}
+
+
+@pytest.mark.parametrize("page", [pytest.param(p.name, marks=pytest.mark.slow) if p.name in SLOW_PAGES else p.name
+                                  for p in PAGES])
 def test_examples_of_page_run(runner: Runner, page: str) -> None:
     path = next(p for p in PAGES if p.name == page)
     last = ""
