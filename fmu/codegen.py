@@ -235,7 +235,6 @@ def explicit_ode(dae: Dae, res, nominal: dict[str, float]):
     Gaussian elimination whose pivots are chosen at a nominal point, preferring constant coefficients."""
     nx = len(STATES)
     w = ca.vertcat(dae.xd, dae.z)
-    res = ca.vertcat(*[res[i] for i in range(res.numel())])
     eqs = [res[i] for i in range(res.numel())]
     # kinematic equations der(q) = expression without unknowns
     known_xd: dict[int, ca.SX] = {}
@@ -272,7 +271,6 @@ def explicit_ode(dae: Dae, res, nominal: dict[str, float]):
     sp = ca.jacobian(res, w).sparsity()
     nb, rowperm, colperm, rowblock, colblock, _, _ = sp.btf()
     sol: dict[int, ca.SX] = {}
-    nominal_f = ca.Function("nom", [dae.t, dae.x, dae.p, dae.d, dae.u, dae.ud, w], [ca.jacobian(res, w)])
     for b in range(nb):
         rows = [rowperm[i] for i in range(rowblock[b], rowblock[b + 1])]
         cols = [colperm[i] for i in range(colblock[b], colblock[b + 1])]
@@ -289,7 +287,7 @@ def explicit_ode(dae: Dae, res, nominal: dict[str, float]):
             names = [_unknown_name(dae, j) for j in cols]
             sys.exit(f"the equations for {names} are not linear in them: the generator solves only linear blocks")
         rhs = -ca.substitute(r, wb, ca.SX.zeros(wb.numel()))
-        x = _solve_block(A, rhs, nominal_f, dae, sol, w, nominal)
+        x = _solve_block(A, rhs, dae, sol, w, nominal)
         for jj, j in enumerate(cols):
             sol[j] = x[jj]
     xd = ca.vertcat(*[sol[i] for i in range(nx)])
@@ -302,7 +300,7 @@ def _unknown_name(dae: Dae, j: int) -> str:
     return f"der({STATES[j]})" if j < nx else dae.z_names[j - nx]
 
 
-def _solve_block(A, b, nominal_f, dae: Dae, sol, w, nominal):
+def _solve_block(A, b, dae: Dae, sol, w, nominal):
     """x with A x = b by Gaussian elimination, pivots chosen once: a constant coefficient where there is
     one, else the largest at the nominal point."""
     n = A.shape[0]

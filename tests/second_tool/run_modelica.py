@@ -200,20 +200,18 @@ def transform(flat: FlatModel, inputs: dict[str, float]) -> tuple[FlatModel, lis
         names = _names(node)
         return next((tag for tag, group in REMOVED_BY.items() if names & group), None)
 
-    equations = []
-    for e in flat.equations:
-        tag = removed_by(e)
-        if tag:
-            log.append(f"{tag} removed the equation of {sorted(_names(e) & REMOVED)}")
-            continue
-        equations.append(e)
-    whens = []
-    for w in flat.whens:
-        tag = removed_by(w)
-        if tag:
-            log.append(f"{tag} removed the when-clause of {sorted(_names(w) & REMOVED)}")
-            continue
-        whens.append(w)
+    def kept_of(nodes: list, what: str) -> list:
+        out = []
+        for node in nodes:
+            tag = removed_by(node)
+            if tag:
+                log.append(f"{tag} removed the {what} of {sorted(_names(node) & REMOVED)}")
+            else:
+                out.append(node)
+        return out
+
+    equations = kept_of(flat.equations, "equation")
+    whens = kept_of(flat.whens, "when-clause")
     kept = {v.name for v in variables}
     for a in flat.asserts:
         missing = _names(a) & drop

@@ -74,8 +74,24 @@ class LeanRunError(Exception):
     """A run the FMU rejected or whose result is unusable; the message is FMURunner's, word for word."""
 
 
-def _label(status: int) -> str:
+def status_label(status: int) -> str:
+    """An fmi2Status by name ("Error"), as fmusa's messages give it (also FMURunner's: one spelling)."""
     return _STATUS[status] if 0 <= status < len(_STATUS) else f"status {status}"
+
+
+def failure_head(function: str | None, status: int | None, exc: BaseException, what: str) -> str:
+    """The first line's cause of a failed run: the FMI call and its status, or the exception."""
+    if function is not None:
+        return f"{function} returned {status_label(status)} {what}"
+    return f"{type(exc).__name__}: {exc} {what}"
+
+
+def failure_text(model_name: str, head: str, params, messages) -> str:
+    """A failed run's message (FMURunner's and the lean worker's alike): the cause, the parameters set and
+    the FMU's log."""
+    log = "\n".join(f"  [{st}] {cat}: {msg}" for st, cat, msg in messages)
+    changed = ", ".join(f"{k}={v!r}" for k, v in params.items()) or "none (FMU defaults)"
+    return f"{model_name}: {head}\nparameters set: {changed}\nFMU log:\n{log if log else '  (no messages)'}"
 
 
 def _c_runtime():
@@ -218,7 +234,7 @@ class LeanFMU:
     def _log_message(self, env, instance_name, status, category, message) -> None:
         def text(b):
             return b.decode("utf-8", "replace") if b else ""
-        self.messages.append((_label(status), text(category), text(message)))
+        self.messages.append((status_label(status), text(category), text(message)))
 
     def restore(self) -> None:
         """Back to the state right after instantiation (FMURunner.restore)."""
@@ -247,21 +263,14 @@ class LeanFMU:
     # ------------------------------------------------------------------ running
     def _fail(self, exc: BaseException, values) -> LeanRunError:
         """FMURunner.fail's error for ``exc``, which ended the run at ``values``."""
-        what = self.phase
-        if isinstance(exc, FMICallError):
-            head = f"{exc.function} returned {_label(exc.status)} {what}"
-            if exc.status >= 4:      # fmi2Fatal: the instance must not be used again
-                self._free()
-            else:
-                self._state = "failed"
+        call = isinstance(exc, FMICallError)
+        head = failure_head(exc.function if call else None, exc.status if call else None, exc, self.phase)
+        if call and exc.status >= 4:      # fmi2Fatal: the instance must not be used again
+            self._free()
         else:
-            head = f"{type(exc).__name__}: {exc} {what}"
             self._state = "failed"
         params = {**self.fixed, **dict(zip(self.varied, values))}
-        log = "\n".join(f"  [{st}] {cat}: {msg}" for st, cat, msg in self.messages)
-        changed = ", ".join(f"{k}={v!r}" for k, v in params.items()) or "none (FMU defaults)"
-        return LeanRunError(f"{self.model_name}: {head}\nparameters set: {changed}\n"
-                            f"FMU log:\n{log if log else '  (no messages)'}")
+        return LeanRunError(failure_text(self.model_name, head, params, self.messages))
 
     def run(self, values: list, out: array) -> None:
         """One run with the varied parameters at ``values`` (FMU units): its outputs at the kept

@@ -44,6 +44,7 @@ import numpy as np
 from fmusa.errors import UsageError
 from fmusa.fmi.archive import extract_fmu
 from fmusa.fmi.build import compile_sources
+from fmusa.fmi.lean import failure_head, failure_text, status_label
 from fmusa.fmi.info import (SOLVERS, FMUError, FMUNotFoundError, FMURunError, Value, binary_problem,
                             default_fmu_path, read_fmu_info, select_interface)
 
@@ -51,16 +52,11 @@ from fmusa.fmi.info import (SOLVERS, FMUError, FMUNotFoundError, FMURunError, Va
 #: always returned and cannot be asked for).
 READABLE = ("output", "parameter", "calculatedParameter", "local", "input")
 
-_STATUS = ["OK", "Warning", "Discard", "Error", "Fatal", "Pending"]
 #: How a runner brings its instance back to the state right after instantiation between two runs.
 REUSE_MODES = ("reset", "snapshot", "fresh")
 
 #: The range of an fmi2Integer (a C int).
 INT_MIN, INT_MAX = -2**31, 2**31 - 1
-
-
-def _label(status: int) -> str:
-    return _STATUS[status] if 0 <= status < len(_STATUS) else f"status {status}"
 
 
 def communication_points(stop_time: float, step: float | None) -> np.ndarray:
@@ -253,7 +249,7 @@ class FMURunner:
     def _log_message(self, env, instance_name, status, category, message) -> None:
         def text(b):
             return b.decode("utf-8", "replace") if b else ""
-        self.messages.append((_label(status), text(category), text(message)))
+        self.messages.append((status_label(status), text(category), text(message)))
 
     def close(self) -> None:
         """Free the FMU instance and delete the extracted files."""
@@ -409,20 +405,13 @@ class FMURunner:
         from fmpy.fmi1 import FMICallException
 
         what = self.phase if what is None else what
-        if isinstance(exc, FMICallException):
-            head = f"{exc.function} returned {_label(exc.status)} {what}"
-            if exc.status >= 4:  # fmi2Fatal: the instance must not be used again
-                self._free()
-            else:
-                self._state = "failed"
+        call = isinstance(exc, FMICallException)
+        head = failure_head(exc.function if call else None, exc.status if call else None, exc, what)
+        if call and exc.status >= 4:  # fmi2Fatal: the instance must not be used again
+            self._free()
         else:
-            head = f"{type(exc).__name__}: {exc} {what}"
             self._state = "failed"
-        log = "\n".join(f"  [{st}] {cat}: {msg}" for st, cat, msg in self.messages)
-        changed = ", ".join(f"{k}={v!r}" for k, v in params.items()) or "none (FMU defaults)"
-        return FMURunError(f"{self.model_description.modelName}: {head}\n"
-                           f"parameters set: {changed}\n"
-                           f"FMU log:\n{log if log else '  (no messages)'}")
+        return FMURunError(failure_text(self.model_description.modelName, head, params, self.messages))
 
     def reject(self, message: str, error: type[FMURunError] = FMURunError) -> FMURunError:
         """The error (an ``error``) to raise for a run whose result is unusable (e.g. non-finite outputs) or

@@ -100,10 +100,8 @@ def _lean_fmu(plan: dict):
         return None
 
 
-def _serve_lean(conn, started, fmu, scale, offset) -> None:
-    """The lean worker's loop: chunks (run ids, study values as array('d')) in, LeanBatches out."""
-    from fmusa.runs.lean import run_rows
-
+def _serve_chunks(conn, answer) -> None:
+    """Say "ready", then answer chunk after chunk (run ids, study values) until the parent sends None or goes."""
     conn.send(("ready", os.getpid()))
     while True:
         try:
@@ -112,8 +110,14 @@ def _serve_lean(conn, started, fmu, scale, offset) -> None:
             return
         if msg is None:
             return
-        ids, values = msg
-        conn.send(run_rows(fmu, ids, values, scale, offset, started, emit=conn.send))
+        conn.send(answer(*msg))
+
+
+def _serve_lean(conn, started, fmu, scale, offset) -> None:
+    """The lean worker's loop: chunks (run ids, study values as array('d')) in, LeanBatches out."""
+    from fmusa.runs.lean import run_rows
+
+    _serve_chunks(conn, lambda ids, values: run_rows(fmu, ids, values, scale, offset, started, emit=conn.send))
 
 
 def _serve(conn, started, spec, info, lean_chunks: bool = False) -> None:
@@ -129,16 +133,11 @@ def _serve(conn, started, spec, info, lean_chunks: bool = False) -> None:
         pass
     if lean_chunks:
         import numpy as np
-    conn.send(("ready", os.getpid()))
-    while True:
-        try:
-            msg = conn.recv()
-        except (EOFError, OSError):
-            return
-        if msg is None:
-            return
-        ids, values = msg
+
+    def answer(ids, values):
         if lean_chunks:
             ids = np.asarray(ids, dtype=np.int64)
             values = np.frombuffer(values, dtype=float).reshape(len(ids), len(spec.varied))
-        conn.send(run_batch(spec, ids, values, started, emit=conn.send))
+        return run_batch(spec, ids, values, started, emit=conn.send)
+
+    _serve_chunks(conn, answer)
