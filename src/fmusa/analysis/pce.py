@@ -36,7 +36,7 @@ TRUNCATION_Q = 0.5
 #: Degrees tried past the best one before the search stops.
 PATIENCE = 4
 #: Largest candidate basis tried (terms): beyond it LARS costs more than the runs it saves.
-MAX_CANDIDATES = 3000
+MAX_CANDIDATES = 1000
 
 
 @dataclass
@@ -168,14 +168,17 @@ def _fit_degree(X, y, marginals, degree, basis, enum, joint):
 
 
 def fit_pce(X: np.ndarray, y: np.ndarray, marginals: Sequence[tuple[str, Sequence[float]]],
-            max_degree: int = 20) -> PCEFit:
+            max_degree: int = 20, good_enough: float = 0.0, start_degree: int = 1,
+            patience: int = PATIENCE) -> PCEFit:
     """The sparse expansion of ``y`` over the design ``X`` (sampled space), degree chosen by its
-    validation error (see the module's docstring)."""
+    validation error (see the module's docstring); the degrees stop rising once the error is below
+    ``good_enough`` (a tenth of the study's target: higher degrees cost time and change no index).
+    ``start_degree``: the lowest degree tried (a grown design starts near the degree of the last round)."""
     X = np.asarray(X, dtype=float)
     y = np.asarray(y, dtype=float)
     basis, enum, joint = _basis(marginals)
     best, worse = None, 0
-    for degree in range(1, max_degree + 1):
+    for degree in range(max(1, min(start_degree, max_degree)), max_degree + 1):
         fit, size = _fit_degree(X, y, marginals, degree, basis, enum, joint)
         if fit is None:
             break
@@ -183,9 +186,9 @@ def fit_pce(X: np.ndarray, y: np.ndarray, marginals: Sequence[tuple[str, Sequenc
             best, worse = fit, 0
         else:
             worse += 1
-            if worse >= PATIENCE:
+            if worse >= patience:
                 break
-        if best.loo_error == 0.0:
+        if best.loo_error <= good_enough:
             break
     if best is None:   # pragma: no cover - degree 1 of any dimension fits under MAX_CANDIDATES
         raise ValueError("no expansion could be fitted")
@@ -230,7 +233,8 @@ def bootstrap_indices(fit: PCEFit, y: np.ndarray, resamples: int, seed: int,
 
 # ---------------------------------------------------------------------------- one output, one table
 def analyse_output(Z: np.ndarray, y: np.ndarray, marginals, names: Sequence[str], max_degree: int,
-                   bootstrap: int, seed: int) -> tuple[dict, dict, np.ndarray]:
+                   bootstrap: int, seed: int, good_enough: float = 0.0,
+                   start_degree: int = 1) -> tuple[dict, dict, np.ndarray]:
     """The expansion of one output: ({parameter: {S1, S1_lo, S1_hi, ST, ST_lo, ST_hi}}, its validation
     {loo_error, degree, terms, candidates, mean, variance}, the leave-one-out predictions)."""
     y = np.asarray(y, dtype=float)
@@ -238,7 +242,7 @@ def analyse_output(Z: np.ndarray, y: np.ndarray, marginals, names: Sequence[str]
         table = {n: {"S1": 0.0, "S1_lo": 0.0, "S1_hi": 0.0, "ST": 0.0, "ST_lo": 0.0, "ST_hi": 0.0} for n in names}
         return table, {"loo_error": 0.0, "degree": 0, "terms": 1, "candidates": 1, "mean": float(y[0]) if len(y)
                        else None, "variance": 0.0}, y.copy()
-    fit = fit_pce(Z, y, marginals, max_degree=max_degree)
+    fit = fit_pce(Z, y, marginals, max_degree=max_degree, good_enough=good_enough, start_degree=start_degree)
     s1, st = pce_indices(fit.multi_indices, fit.coefficients)
     ci = bootstrap_indices(fit, y, bootstrap, seed)
     table = {}
@@ -251,9 +255,13 @@ def analyse_output(Z: np.ndarray, y: np.ndarray, marginals, names: Sequence[str]
     return table, val, fit.loo_predictions
 
 
-def validation_error(Z: np.ndarray, y: np.ndarray, marginals, max_degree: int) -> float:
-    """The corrected leave-one-out error of the expansion of ``y`` (0 for a constant output)."""
+def validation_error(Z: np.ndarray, y: np.ndarray, marginals, max_degree: int, good_enough: float = 0.0,
+                     start_degree: int = 1) -> tuple[float, int]:
+    """The corrected leave-one-out error of the expansion of ``y`` and its degree ((0, 0) for a constant
+    output): the check between two rounds, with a shorter search over degrees than the final fit's."""
     y = np.asarray(y, dtype=float)
     if not np.ptp(y) > 0:
-        return 0.0
-    return float(fit_pce(Z, y, marginals, max_degree=max_degree).loo_error)
+        return 0.0, 0
+    fit = fit_pce(Z, y, marginals, max_degree=max_degree, good_enough=good_enough, start_degree=start_degree,
+                  patience=2)
+    return float(fit.loo_error), int(fit.degree)

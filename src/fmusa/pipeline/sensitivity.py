@@ -325,6 +325,7 @@ def pce_rounds(stage, store: RunStore, evaluator, metrics: Sequence[str], output
     marg = sampled_marginals(stage)
     out_idx = [list(metrics).index(m) for m in outputs]
     rounds: list[dict] = []
+    degrees = {m: 1 for m in outputs}        # each round starts two degrees below the last one's best
     simulated, total, met = 0, 0, 0
     while True:
         total = min(total + batch, opt.max_runs)
@@ -336,11 +337,14 @@ def pce_rounds(stage, store: RunStore, evaluator, metrics: Sequence[str], output
         errors = {}
         for j, m in zip(out_idx, outputs):
             good = np.isfinite(Y[:, j])
-            errors[m] = (validation_error(Z[good], Y[good, j], marg, opt.max_degree)
-                         if good.sum() > k + 1 else float("inf"))
+            errors[m] = float("inf")
+            if good.sum() > k + 1:
+                errors[m], deg = validation_error(Z[good], Y[good, j], marg, opt.max_degree, opt.target_error / 10,
+                                                  max(1, degrees[m] - 2))
+                degrees[m] = max(deg, 1)
         worst = max(errors.values())
         rounds.append({"runs": total, "simulated": sim, "failed": int((~np.isfinite(Y[:, out_idx])).any(axis=1).sum()),
-                       "loo_error": errors, "worst": worst})
+                       "loo_error": errors, "degree": dict(degrees), "worst": worst})
         met = met + 1 if worst <= opt.target_error else 0
         if met >= 2 or total >= opt.max_runs:
             return keys, Z, rounds, simulated
@@ -360,7 +364,9 @@ def analyse_pce(stage, Z: np.ndarray, Y: np.ndarray, outputs: Sequence[str], rou
         if good.sum() <= len(names) + 1:
             messages.append(f"pce: {m}: only {int(good.sum())} of {n} runs have a value; no expansion")
             continue
-        tab, v, pred = analyse_output(Z[good], Y[good, j], marg, names, opt.max_degree, opt.bootstrap, stage.seed)
+        start = max(1, ((rounds[-1].get("degree") or {}).get(m, 1) if rounds else 1) - 2)
+        tab, v, pred = analyse_output(Z[good], Y[good, j], marg, names, opt.max_degree, opt.bootstrap, stage.seed,
+                                      opt.target_error / 10, start)
         failed = int((~good).sum())
         v.update(runs=n, failed=failed, target_error=opt.target_error,
                  trusted=bool(v["loo_error"] <= opt.target_error and not failed))

@@ -809,7 +809,7 @@ def _check_sensitivity_size(p: _Parser, m: _Map, where: str, methods, n: int, r:
         if r * (k + 1) > cap:
             raise p.error(node, f"{_key('morris_trajectories', where)} = {r} asks for r·(k + 1) = "
                                 f"{r * (k + 1):,} runs, more than the cap of {cap:,}; lower it, or {raise_it}")
-    if "pce" in methods and pce.max_runs > cap:
+    if pce.max_runs > cap:
         raise p.error(m.items["pce"][1], f"{_key('max_runs', where + '.pce')} = {pce.max_runs:,} is more "
                                          f"than the cap of {cap:,}; lower it, or {raise_it}")
 
