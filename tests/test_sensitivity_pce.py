@@ -158,3 +158,22 @@ def test_a_tiny_or_odd_n_from_the_api_is_said_in_the_studys_words_and_gives_no_i
                 if d[k] is not None:     # an index is in [0, 1] within its interval, or not reported
                     assert -d[f"{k}_conf"] - 1e-9 <= d[k] <= 1 + d[f"{k}_conf"] + 1e-9
         json.dumps(s, default=str)
+
+
+def test_pce_on_the_six_dof_study_agrees_with_saltelli_at_n_4096_for_three_outputs(fmu_path, tmp_path):
+    # The cheap version of `make bench`'s check (all 7 outputs, <= 400 runs): the three outputs one input
+    # owns, all 16 inputs, <= 160 runs, against the recorded Saltelli reference (N = 4096, 73,728 runs).
+    import dataclasses
+    from fmusa.study.loader import load_study
+    from fmusa.study.schema import PCEOptions
+    ref = json.loads((Path(__file__).parent / "data" / "six_dof_saltelli_4096.json").read_text())
+    study = dataclasses.replace(load_study(Path(__file__).parents[1] / "studies" / "six_dof.yaml"), fmu=fmu_path)
+    outputs = ["x_final", "z_final", "gamma_final"]
+    stage = dataclasses.replace(study.stages["sensitivity"], methods=["pce"], outputs=outputs,
+                                pce=PCEOptions(max_runs=160, batch=64, target_error=1e-3))
+    runner = SimpleNamespace(evaluator=SimpleNamespace(workers=2, scheduler=None), simulated=0)
+    res = run_sensitivity(study, stage, tmp_path, runner, progress=False, resume=False, accuracy_samples=0)
+    s = res["summary"]
+    assert s["pce_validation"]["runs"] <= 160 and all(v["trusted"] for v in s["pce_validation"]["metrics"].values())
+    worst = max(abs(s["pce"][m][p]["ST"] - ref["sobol"][m][p]["ST"]) for m in outputs for p in s["pce"][m])
+    assert worst <= 0.02, worst

@@ -246,6 +246,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if par:      # the search in rounds (search.parallel): its rounds against the sequential search's
         print(f"search: {par['rounds']} rounds of up to {par['workers']} runs ({par['runs']} runs); the "
               f"sequential search: {par['sequential_rounds']} rounds")
+    for note in sens.get("messages") or []:    # the sensitivity stage's notes (SALib's warnings among them)
+        print(f"sensitivity: {note}")
     for name in ("runs.csv", "summary.json", "report.md"):
         if (args.out / name).exists():
             print(f"wrote {args.out / name}")
