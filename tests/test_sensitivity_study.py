@@ -120,3 +120,24 @@ def test_distributions_and_pce_options_load():
     assert st.methods == ["pce"]
     assert (st.pce.target_error, st.pce.max_runs, st.pce.batch, st.pce.design) == (0.002, 300, 50, "lhs")
     assert st.pce.batch_size(16) == 50
+
+
+def test_huge_n_through_the_python_api_is_refused_before_any_allocation(fmu_path, tmp_path):
+    import dataclasses
+    from types import SimpleNamespace
+
+    from fmusa.errors import UsageError
+    from fmusa.pipeline.sensitivity import run_sensitivity
+    study = dataclasses.replace(parse_study(SIX_TEXT, ROOT / "studies" / "six_dof.yaml"), fmu=fmu_path)
+    runner = SimpleNamespace(evaluator=SimpleNamespace(workers=1, scheduler=None), simulated=0)
+    for n in (10 ** 9, 5 * 10 ** 7):
+        stage = dataclasses.replace(study.stages["sensitivity"], methods=["sobol"], n=n)
+        tracemalloc.start()
+        try:
+            with pytest.raises(UsageError, match="FMUSA_MAX_SENSITIVITY_RUNS"):
+                run_sensitivity(study, stage, tmp_path / str(n), runner, progress=False, resume=False,
+                                accuracy_samples=0)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 50e6 and runner.simulated == 0

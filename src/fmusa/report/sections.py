@@ -606,7 +606,7 @@ def _with_interval(method: str, d: Mapping, key: str) -> str:
     else:
         h = d.get(f"{key}_conf")
         lo, hi = (None, None) if h is None else (v - h, v + h)
-    return f"{fmt(v, 3)} [{fmt(lo, 2)}, {fmt(hi, 2)}]" if lo is not None else fmt(v, 3)
+    return f"{fmt(v, 3)} [{fmt(lo, 3)}, {fmt(hi, 3)}]" if lo is not None else fmt(v, 3)
 
 
 def _top_inputs(ctx: ReportContext, summ: Mapping) -> list[Row]:
@@ -617,7 +617,7 @@ def _top_inputs(ctx: ReportContext, summ: Mapping) -> list[Row]:
                 continue
             key, label = _RANK_INDEX[method]
             order = sorted((n for n in tab if tab[n].get(key) is not None), key=lambda n: -tab[n][key])[:4]
-            unit = ctx.u(metric) if method == "morris" else "–"
+            unit = (ctx.u(metric) or "–") if method == "morris" else "–"
             rows.append((method, metric, f"{label} [{unit}]",
                          "; ".join(f"{n} {_with_interval(method, tab[n], key)}" for n in order)))
     return rows
