@@ -160,6 +160,7 @@ def test_a_tiny_or_odd_n_from_the_api_is_said_in_the_studys_words_and_gives_no_i
         json.dumps(s, default=str)
 
 
+@pytest.mark.slow   # 16-dimensional expansions: minutes on a loaded machine (make slow; make bench runs all outputs)
 def test_pce_on_the_six_dof_study_agrees_with_saltelli_at_n_4096_for_three_outputs(fmu_path, tmp_path):
     # The cheap version of `make bench`'s check (all 7 outputs, <= 400 runs): the three outputs one input
     # owns, all 16 inputs, <= 160 runs, against the recorded Saltelli reference (N = 4096, 73,728 runs).
