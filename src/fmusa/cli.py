@@ -215,7 +215,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed reruns the failed runs of a study in --out: give it with --resume")
+    from fmusa.study.loader import files_outside
+
     study = load_study(args.study)
+    for note in files_outside(study):    # the study file may come from someone else: say what it reads
+        print(f"note: {note}", file=sys.stderr)
 
     def kept() -> set[Path]:
         return set(args.out.glob("runs.previous-*.csv")) if args.out.is_dir() else set()
