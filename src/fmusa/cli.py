@@ -403,6 +403,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
             _quiet_stdout()
         if note:
             print(f"fmusa inspect: {note}", file=sys.stderr)
+        if info.unsafe:
+            print(f"fmusa inspect: UNSAFE: {'; '.join(info.unsafe)}: fmusa refuses to build or run this FMU",
+                  file=sys.stderr)
         return 0
     plat = info.host_platform
     names = {"co-simulation": "co-simulation (CS)", "model-exchange": "model exchange (ME)"}
@@ -458,6 +461,12 @@ def cmd_inspect(args: argparse.Namespace) -> int:
                 for v in arrays) + "  (elements 1-based, as a study names them)"))
     else:
         head.append(("variables", f"{len(info.variables)} ({summary})"))
+    if info.unsafe:      # names that lead outside the folder: said here, refused by sweep, diagnose, pullout
+        head.append(("UNSAFE", "; ".join(info.unsafe) + ": fmusa refuses to build or run this FMU"))
+    # an FMU's text may hold terminal control sequences: shown, not obeyed
+    from fmusa.format import printable
+    head = [(k, printable(v)) for k, v in head]
+    rows = [{k: printable(v) for k, v in r.items()} for r in rows]
     width = _shutil.get_terminal_size((120, 24)).columns
     try:
         _print_inspect(head, info, note, rows, causality, args, width)
