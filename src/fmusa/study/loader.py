@@ -1033,6 +1033,20 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None,
                  fixed_units=fixed_units, lines=dict(p.lines))
 
 
+def _check_depth(p: _Parser, text: str) -> None:
+    """Refuse nesting deeper than MAX_DEPTH from the parser's events (it does not recurse; composing the
+    tree does, and would die of a RecursionError)."""
+    depth = 0
+    for ev in yaml.parse(text, Loader=_Loader):
+        if isinstance(ev, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+            depth += 1
+            if depth > MAX_DEPTH:
+                raise StudyError(f"{p.label}:{ev.start_mark.line + 1}: lists or mappings nested more than "
+                                 f"{MAX_DEPTH} levels deep; a study file nests a few levels")
+        elif isinstance(ev, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+            depth -= 1
+
+
 def _check_graph(p: _Parser, root: Node | None) -> None:
     """Refuse a node that contains itself (a recursive alias, ``x: &r {y: *r}``) and nesting deeper than
     MAX_DEPTH, before anything walks the tree recursively; each node is visited once (aliases are shared)."""
@@ -1084,6 +1098,7 @@ def parse_study(text: str, path: str | os.PathLike = "<string>",
         study_path = Path(path).expanduser().resolve()
         base_dir = study_path.parent
     try:
+        _check_depth(p, text)
         root = yaml.compose(text, Loader=_Loader)
         _check_graph(p, root)
     except RecursionError:
