@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 
 def fmt(x: float, sig: int = 3, strip: bool = True, plain_min: float = 1e-2) -> str:
@@ -37,9 +38,13 @@ def fmt(x: float, sig: int = 3, strip: bool = True, plain_min: float = 1e-2) -> 
 
 
 
-#: Characters that Markdown or HTML give a meaning: escaped with a backslash by :func:`md_text`.
-_MD_SPECIAL = set("\\`*_{}[]()#+-.!~")
-_HTML = {"<": "&lt;", ">": "&gt;", "&": "&amp;", '"': "&quot;", "|": "&#124;"}
+#: Characters that Markdown gives a meaning anywhere in a line: escaped with a backslash by :func:`md_text`
+#: (``(`` and ``!`` make a link or an image only next to a ``[``, which is escaped).
+_MD_SPECIAL = set("\\`*_[]~")
+#: HTML's and the table's characters, as entities (a backslash would not stop a ``|`` in every renderer)
+_HTML = {"<": "&lt;", ">": "&gt;", "&": "&amp;", "|": "&#124;"}
+#: A line that starts like a heading, a list, a quote or a rule
+_BLOCK_START = re.compile(r"^(?:[#+=>-]|\d+[.)])")
 
 
 def printable(text: object) -> str:
@@ -54,7 +59,12 @@ def md_text(text: object) -> str:
     log message, a column name) shows as written and never becomes a link, a table cell, markup or HTML
     (``<script>`` stays text, ``|`` stays in its cell)."""
     s = " ".join(printable(str(text).replace("\r", " ").replace("\n", " ").replace("\t", " ")).split())
-    return "".join(_HTML.get(ch) or ("\\" + ch if ch in _MD_SPECIAL else ch) for ch in s)
+    out = "".join(_HTML.get(ch) or ("\\" + ch if ch in _MD_SPECIAL else ch) for ch in s)
+    m = _BLOCK_START.match(out)
+    if m is None:
+        return out
+    k = m.end() - 1          # the character that makes the block: escaped (``\\- item``, ``1\\. item``)
+    return out[:k] + "\\" + out[k:]
 
 
 def md_code(text: object) -> str:
