@@ -271,8 +271,8 @@ def test_csv_dialects_are_detected_and_read_as_the_plain_file(tmp_path, sep, dec
 def test_decimal_commas_read_as_points_are_named_with_the_option(tmp_path):
     from fmusa.diagnose.measured import ColumnSpec, MeasuredDataError, load_experiment
     f = _csv(tmp_path / "eu.csv", "time;displacement;force", ";", ",")
-    with pytest.raises(MeasuredDataError, match=r"eu.csv:2: column 'force' \(force\): '0,25' is not a number; the "
-                                                r"file writes decimal commas: give --decimal ','"):
+    with pytest.raises(MeasuredDataError, match=r"eu.csv:2: column 'force' \(force\): '0,25' is not a number; write "
+                                                r"decimals with '.', not ','; .*give --decimal ','"):
         load_experiment(f, "displacement", ColumnSpec(decimal="."))
 
 

@@ -422,8 +422,8 @@ def _numeric(path: Path, df: pd.DataFrame, spec: ColumnSpec, roles: list[str],
     else:
         what, fix = f"'{cell}' is not a number", "fix or delete the row"
         if re.fullmatch(r"[-+]?\d+,\d+", cell):
-            fix = (f"the file writes decimal commas: give {OPTIONS['decimal']} ',' (ColumnSpec.decimal), with "
-                   f"another delimiter than ','")
+            fix = (f"write decimals with '.', not ','; if the file writes decimal commas throughout, give "
+                   f"{OPTIONS['decimal']} ',' (ColumnSpec.decimal), with another delimiter than ','")
     more = f" ({count - 1} more bad cell{'s' if count > 2 else ''} in this column)" if count > 1 else ""
     raise MeasuredDataError(f"{_where(path, row + 2)}: {_label(spec, role, drive)}: {what}; "
                             f"{fix}{more}")

@@ -28,7 +28,7 @@ PREFIX = "fmusa-fmu-"
 #: The lock file of an extraction folder (it also names the owner's process id, for people).
 OWNER_FILE = ".fmusa-owner"
 #: A lock file younger than this is not judged: its folder may be being made right now.
-GRACE_S = 30.0
+GRACE_S = 2.0
 _CHUNK = 1 << 20
 #: folder -> the open, locked owner file of each extraction folder this process made
 _HELD: dict[str, object] = {}
