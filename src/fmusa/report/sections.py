@@ -663,8 +663,8 @@ def _statements_text(summ: Mapping) -> str:
         for metric, items in per.items():
             for it in items:
                 lines.append(f"- {group} / {metric}: {it}")
-    for m in summ.get("messages") or []:
-        lines.append(f"- {m}")
+    for m in summ.get("messages") or []:     # SALib's words among them: escaped
+        lines.append(f"- {md_text(m)}")
     if not lines:
         return ""
     return "What these indices do not tell:\n\n" + "\n".join(lines) + "\n\n"
