@@ -60,6 +60,9 @@ __all__ = ["run_sensitivity",
 #: Solver tolerance of the accuracy check's reference runs.
 REFERENCE_RTOL = 1e-9
 RUNS_FILE = "sensitivity_runs.csv"
+#: A validation error above this (and above the study's target) says the expansion does not follow the output:
+#: its indices may be off by more than 0.01 (measured on Sobol's G function with a kink), and are not trusted.
+TRUST_ERROR = 0.01
 ACCURACY_FILE = "sensitivity_accuracy.csv"
 #: Parameter sets named per failing metric in its error message; ``failed_runs`` lists up to
 #: ``_MAX_FAILED_LISTED`` (every failed run stays in sensitivity_runs.csv).
@@ -368,14 +371,21 @@ def analyse_pce(stage, Z: np.ndarray, Y: np.ndarray, outputs: Sequence[str], rou
         tab, v, pred = analyse_output(Z[good], Y[good, j], marg, names, opt.max_degree, opt.bootstrap, stage.seed,
                                       opt.target_error / 10, start)
         failed = int((~good).sum())
-        v.update(runs=n, failed=failed, target_error=opt.target_error,
-                 trusted=bool(v["loo_error"] <= opt.target_error and not failed))
-        if v["loo_error"] > opt.target_error:
+        err = v["loo_error"]
+        status = ("not trusted" if err > max(TRUST_ERROR, opt.target_error) or failed else
+                  "above target" if err > opt.target_error else "reached")
+        v.update(runs=n, failed=failed, target_error=opt.target_error, status=status, trusted=status != "not trusted")
+        if status == "not trusted" and err > max(TRUST_ERROR, opt.target_error):
             messages.append(
-                f"pce: {m}: the validation (leave-one-out) error {v['loo_error']:.2g} is above the target "
-                f"{opt.target_error:g} after {n} runs: the expansion does not follow this output (a kink, a "
-                f"discontinuity or a region of failed runs does this), so its indices cannot be trusted; use "
-                f"method sobol (Saltelli's scheme) for it")
+                f"pce: {m}: the validation (leave-one-out) error {err:.2g} is above {max(TRUST_ERROR, opt.target_error):g} "
+                f"after {n} runs (target {opt.target_error:g}): the expansion does not follow this output (a kink, a "
+                f"discontinuity or a region of failed runs does this), so its indices cannot be trusted; use method "
+                f"sobol (Saltelli's scheme) for it")
+        elif status == "above target":
+            messages.append(
+                f"pce: {m}: the validation (leave-one-out) error {err:.2g} is above the target {opt.target_error:g} "
+                f"after {n} runs (the budget): its indices may be off by about that share of the variance; raise "
+                f"pce.max_runs for a closer answer")
         if failed:
             messages.append(f"pce: {m}: {failed} of {n} runs failed; the expansion is fitted on the others and "
                             f"knows nothing of where they failed: its indices cannot be trusted there; use method "

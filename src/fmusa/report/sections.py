@@ -635,7 +635,8 @@ def _pce_rows(summ: Mapping) -> list[Row]:
     rows = []
     for metric, v in (val.get("metrics") or {}).items():
         rows.append((metric, fmt(v.get("loo_error"), 2), fmt(v.get("target_error"), 2), v.get("degree"),
-                     v.get("terms"), v.get("runs"), v.get("failed"), "yes" if v.get("trusted") else "**no**"))
+                     v.get("terms"), v.get("runs"), v.get("failed"),
+                     v.get("status", "") if v.get("trusted") else "**not trusted**"))
     return rows
 
 
@@ -647,11 +648,12 @@ def _pce_text(summ: Mapping) -> str:
            f"{len(val.get('rounds') or [])} rounds of up to {val.get('batch')} runs, budget {val.get('max_runs')}), "
            f"{'stopped at its target' if val.get('reached') else 'stopped by its budget, target not reached'}. "
            f"The validation error is the leave-one-out error (corrected for the basis size) as a share of the "
-           f"output's variance; an output above the target is not trusted. Intervals: 95 % bootstrap over the "
+           f"output's variance; above the target the indices may be off by about that share, above 0.01 the "
+           f"expansion does not follow the output and its indices are not trusted. Intervals: 95 % bootstrap over the "
            f"design (they do not hold the expansion's own error, which the validation error measures).\n\n")
     rows = _pce_rows(summ)
     if rows:
-        out += table(["output", "validation error", "target", "degree", "terms", "runs", "failed", "trusted"],
+        out += table(["output", "validation error", "target", "degree", "terms", "runs", "failed", "verdict"],
                      rows) + "\n\n"
     return out
 

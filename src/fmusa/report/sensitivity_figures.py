@@ -223,7 +223,7 @@ def plot_sensitivity(result: Mapping, figdir: str | Path) -> list[Path]:
                                      f"no second order); bars: 95 % confidence intervals", "sobol"))
     if summary.get("pce"):
         val = summary.get("pce_validation") or {}
-        notes = {m: (f"error {v['loo_error']:.2g}" + ("" if v.get("trusted", True) else ": not trusted"))
+        notes = {m: (f"validation error {v['loo_error']:.2g}" + ("" if v.get("trusted", True) else ": not trusted"))
                  for m, v in (val.get("metrics") or {}).items()}
         paths.append(_indices_figure(summary["pce"], meta, figdir / "sensitivity_pce.png",
                                      f"Sobol indices from a sparse polynomial chaos ({val.get('runs', '?')} runs); "
