@@ -34,7 +34,7 @@ def refine_intervals(t: np.ndarray, data: np.ndarray, rules: Sequence[MetricRule
     for r in rules:
         x = data[:, r.column]
         if r.reduce in PEAK_REDUCTIONS:
-            k = peak_index(x, r.reduce)
+            k = peak_index(x, r.raw_reduce)
             out.update(i for i in (k - 1, k) if 0 <= i < n - 1)
         elif r.reduce == "settle":
             k = settle_index(x, r.settle_tol)
@@ -155,7 +155,7 @@ def sampling_check(spec, plan, fmu_values: Sequence[float], reference_factor: in
         row = {"metric": r.name, "reduce": r.reduce, "value": float(metrics[k]), "reference": float(ref_v),
                "step": float(spec.step), "factor": factor}
         if r.reduce in PEAK_REDUCTIONS:
-            d2, h = peak_curvature(grid_t, x, r.reduce)
+            d2, h = peak_curvature(grid_t, x, r.raw_reduce)
             row.update(curvature=d2 * abs(r.scale), h=h, bound=h * h / 8 * d2 * abs(r.scale))
         else:
             k_s = settle_index(x, r.settle_tol)
