@@ -241,7 +241,17 @@ def cmd_sweep(args: argparse.Namespace) -> int:
           f"{failed} failed) in {s.get('wall_s', 0.0):.2f} s")
     if s.get("optimum"):
         opt = ", ".join(f"{k} = {v:.6g}" for k, v in s["optimum"].items())
-        print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}")
+        print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}"
+              + ("" if s.get("optimum_reliable", True) else " (unreliable: see the warnings)"))
+    acc = s.get("accuracy")
+    if acc:      # a check after the stages moved a metric a constraint reads
+        print(f"warning: the accuracy checks moved the constrained metric{'s' if len(acc['metrics']) > 1 else ''} "
+              f"{', '.join(acc['metrics'])}: every run's feasibility"
+              f"{' and the optimum' if s.get('optimum') else ''} may be wrong", file=sys.stderr)
+        for w in acc["warnings"][:3]:
+            print(f"  {w}", file=sys.stderr)
+        if len(acc["warnings"]) > 3:
+            print(f"  ({len(acc['warnings']) - 3} more in summary.json, key accuracy)", file=sys.stderr)
     par = (s.get("search") or {}).get("parallel")
     if par:      # the search in rounds (search.parallel): its rounds against the sequential search's
         print(f"search: {par['rounds']} rounds of up to {par['workers']} runs ({par['runs']} runs); the "

@@ -30,7 +30,7 @@ from fmusa.files import atomic_write, move_aside, writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
 from fmusa.pipeline.sampling_check import sampling_summary
-from fmusa.pipeline.solver_check import implausible_runs, solver_summary
+from fmusa.pipeline.solver_check import accuracy_verdict, implausible_runs, solver_summary
 from fmusa.study.plan import check_fmu, grid_points, reset_check_points, run_fingerprint, study_plan_spec
 from fmusa.runs.preflight import preflight
 
@@ -275,10 +275,15 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
             ts = time.perf_counter()
             steps = solver_summary(study, runs, summary.get("optimum"), runner.evaluator.local_spec(),
                                    isolate=runner.evaluator.isolate, workers=runner.evaluator.workers,
-                                   scheduler=runner.evaluator.scheduler)
+                                   scheduler=runner.evaluator.scheduler, sampling=summary.get("sampling"))
             if steps is not None:
                 steps["wall_s"] = time.perf_counter() - ts
                 summary["fmu_steps"] = steps
+        accuracy = accuracy_verdict(study, summary.get("sampling"), summary.get("fmu_steps"))
+        if accuracy is not None:     # a constrained metric moved when checked finer: the optimum rests on it
+            summary["accuracy"] = accuracy
+        if summary.get("optimum"):
+            summary["optimum_reliable"] = accuracy is None
         implausible = implausible_runs(runs, runner.metrics)
         if implausible:
             summary["implausible"] = implausible

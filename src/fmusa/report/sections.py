@@ -286,6 +286,11 @@ def optimum_section(ctx: ReportContext, label: str | None = None, sig: Sig = _si
         out += f"\nStop rule of {stop_label}: {res.search.stop_reason}.\n"
         for w in res.search.warnings:
             out += f"\n- warning: {w}\n"
+    acc = res.summary.get("accuracy")
+    if opt is not None and acc:
+        out += (f"\n**This optimum is unreliable**: the accuracy checks (sections on sampling and on the FMU's "
+                f"steps) moved the constrained metric(s) {', '.join(acc['metrics'])}, on which every run's "
+                f"feasibility rests:\n\n" + "".join(f"- {w}\n" for w in acc["warnings"]))
     return out
 
 
