@@ -243,6 +243,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         opt = ", ".join(f"{k} = {v:.6g}" for k, v in s["optimum"].items())
         print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}"
               + ("" if s.get("optimum_reliable", True) else " (unreliable: see the warnings)"))
+    for note in s.get("optimum_at_edge") or []:
+        print(f"note: {note}")
+    for note in (s.get("optimum_free") or {}).values():
+        print(f"note: {note}")
     acc = s.get("accuracy")
     if acc:      # a check after the stages moved a metric a constraint reads
         print(f"warning: the accuracy checks moved the constrained metric{'s' if len(acc['metrics']) > 1 else ''} "

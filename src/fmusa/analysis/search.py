@@ -117,6 +117,35 @@ def _changed(a: dict, b: dict, metrics: Sequence[str], rtol: float,
     return False
 
 
+def edge_notes(result: "SearchResult", region: Region, rtol: float) -> list[str]:
+    """Where the optimum sits at an edge of the range searched, in words (empty when it lies inside): the
+    inner value at the region's top (no boundary found below it), at its bottom (the boundary lies below),
+    or the outer value at the top of its range because the first halving already had no feasible inner
+    value (the search stopped at its first level)."""
+    opt = result.optimum
+    if not opt:
+        return []
+    out = []
+    lo, hi = region.inner_range
+    x = opt[result.inner]
+    if x >= hi * (1 - rtol) and hi > lo:
+        out.append(f"{result.inner} = {x:.6g} is the top of the range searched ([{lo:.6g}, {hi:.6g}]): the "
+                   f"constraints are met there but the search found no boundary inside the range; widen the "
+                   f"grid of {result.inner} above {hi:.6g}, or check that the constraints are met at larger "
+                   f"{result.inner} (the search assumes they are)")
+    elif x <= lo:
+        out.append(f"{result.inner} = {x:.6g} is the bottom of the range searched ([{lo:.6g}, {hi:.6g}]): the "
+                   f"boundary lies below it")
+    if result.outer is not None and region.outer_range is not None:
+        z = opt[result.outer]
+        found = [lv for lv in result.levels if lv.inner is not None]
+        if z >= region.outer_range[1] and len(found) == 1:
+            out.append(f"{result.outer} = {z:.6g} is the top of the range searched ([{region.outer_range[0]:.6g}, "
+                       f"{region.outer_range[1]:.6g}]): the search stopped at its first level ({result.stop_reason}), "
+                       f"so this is the edge of the range, not a boundary found inside it")
+    return out
+
+
 def _point(inner: str, outer: str | None, x: float, z: float | None) -> dict[str, float]:
     return {inner: x} if outer is None else {inner: x, outer: z}
 

@@ -12,7 +12,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol, Sequence
+from typing import Any, Mapping, Protocol, Sequence
 
 import numpy as np
 import pandas as pd
@@ -21,11 +21,11 @@ from fmusa.runs.evaluator import Evaluator
 from fmusa.fmi.info import FMUCompileError, default_fmu_path
 from fmusa.fmi.build import prepare_fmu
 from fmusa.analysis.regression import fit_by_level
-from fmusa.analysis.roi import grid_findings, Region, automatic_region, manual_region
+from fmusa.analysis.roi import Region, automatic_region, floor_region, grid_findings, inert_parameters, manual_region
 from fmusa.runs.inflight import track_in_flight
 from fmusa.runs.store import RunStore
 from fmusa.runs.timelimit import own_fmu
-from fmusa.analysis.search import SearchResult, nested_binary_search, search_in_rounds
+from fmusa.analysis.search import SearchResult, edge_notes, nested_binary_search, search_in_rounds
 from fmusa.files import atomic_write, move_aside, writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
@@ -223,13 +223,15 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                 if search_stage is None:
                     raise StudyError(f"{study.path}: stages.roi needs stages.search (the region spans its inner and outer parameters)")
                 inner, outer = search_stage.inner, search_stage.outer      # outer None: an inner range
+                runner.defaults.update(stage.at or {})     # where the search holds the other parameters
                 if stage.manual:
                     result.region = manual_region(stage.manual, inner, outer)
                 else:
                     if grid_df is None:
                         raise StudyError(f"{study.path}: an automatic region of interest needs stages.grid "
                                          f"before stages.roi (or give roi.manual)")
-                    # the grid runs where the search will run: the other parameters at their defaults
+                    # the grid runs where the search will run: the other parameters at roi.at, else at
+                    # their first grid values
                     at = {k: v for k, v in runner.defaults.items() if k not in (inner, outer)}
                     result.region = automatic_region(grid_df, inner, outer, at, study.constraints,
                                                      list(study.parameters))
@@ -237,10 +239,19 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
             elif name == "search":
                 if result.region is None:
                     raise StudyError(f"{study.path}: stages.search needs stages.roi before it")
+                result.region = floor_region(result.region, stage.inner_rtol)
+                summary["roi"] = result.region.as_dict()
                 result.search = runner.search(result.region, stage, "search")
                 summary["optimum"] = result.search.optimum      # {inner: x} when the search has no outer
                 summary["binding_constraint"] = result.search.binding
                 summary["search"] = search_summary(result.search)
+                if result.search.optimum:
+                    notes = edge_notes(result.search, result.region, stage.inner_rtol)
+                    free = _free_in_optimum(study, grid_df, result.search.optimum)
+                    if notes:
+                        summary["optimum_at_edge"] = notes
+                    if free:
+                        summary["optimum_free"] = free
             elif name == "regression":
                 # the search's runs, or the grid's in a study without search (the loader decides: source)
                 runs = runner.store.frame()
@@ -299,6 +310,19 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         runner.close()
     write_summary(result)
     return result
+
+
+def _free_in_optimum(study: Study, grid: pd.DataFrame | None, optimum: Mapping[str, float]) -> dict[str, str]:
+    """The parameters of ``optimum`` that move none of the constrained metrics across the grid: their
+    value there is only where the search held them or stopped (any other value does as well)."""
+    constrained = sorted({c.metric for c in study.constraints})
+    if grid is None or not constrained:
+        return {}
+    inert = inert_parameters(grid, list(study.parameters), constrained)
+    return {p: (f"{p} moves none of the constrained metrics ({', '.join(constrained)}) across its grid: its "
+                f"value in the optimum ({optimum[p]:.6g}) is only where the search held or stopped it, and any "
+                f"value in its range meets the constraints as well")
+            for p in optimum if p in inert}
 
 
 def _stage_runs(runner: StudyRunner, asked0: int, simulated0: int, rounds0: int) -> dict[str, int]:

@@ -281,9 +281,15 @@ class RoiStage:
         ``manual``, a ``grid`` stage must come first. A ``search`` stage is also required: its ``inner`` and
         ``outer`` parameters span the region. Without ``outer``, the region is a range of ``inner`` alone: the
         grid neighbours that bracket its smallest feasible grid value (rule 1 of ``fmusa/analysis/roi.py``),
-        taken at the other study parameters' first grid values.
+        taken at the other study parameters' first grid values (or at ``at``).
+    :param at: Study parameter → value: where the study parameters that the search does not vary are held,
+        both for the region computed from the grid and for the search's runs (default: each one's first grid
+        value). Each value must be one of the parameter's grid values when the region is computed from the
+        grid. Use it when the constraints are met only at other values of those parameters; the error of a
+        grid without a feasible point there names the values where grid points are feasible.
     """
     manual: dict[str, tuple[float, float]] | None = None
+    at: dict[str, float] | None = None
 
 
 @dataclass(frozen=True)
