@@ -12,7 +12,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping, Protocol, Sequence
+from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import numpy as np
 import pandas as pd
@@ -50,6 +50,8 @@ class SweepResult:
     sensitivity: dict | None = None
     #: results of study extensions, by extension name (plain data the report renders)
     extra: dict = field(default_factory=dict)
+    #: releases the lock on ``out`` held for the report (run_study's ``hold_lock``); a no-op otherwise
+    release: Callable[[], None] = field(default=lambda: None, repr=False)
 
 
 class StudyExtension(Protocol):
@@ -120,11 +122,13 @@ class StudyRunner:
         #: values of the study parameters a stage does not vary (the first grid point)
         self.defaults: dict[str, float] = {}
 
-    def close(self) -> None:
+    def close(self, keep_lock: bool = False) -> None:
+        """Stop the workers and close runs.csv; ``keep_lock``: the folder stays locked for this study until
+        ``self.store.release()`` (its report is still to be written)."""
         self.evaluator.close()
         if self.evaluator.marker is not None:
             self.evaluator.marker.close()
-        self.store.close()
+        self.store.close(keep_lock=keep_lock)
 
     def evaluate(self, points: list[dict[str, float]], stage: str) -> list[dict]:
         """Rows for ``points`` (study parameter name → value), simulating only the new ones."""
@@ -183,10 +187,12 @@ class StudyRunner:
 
 def run_study(study: Study, out: str | Path, resume: bool = False, workers: int | None = None,
               scheduler: str | None = None, progress: bool = True,
-              extensions: Sequence[StudyExtension] = (), retry_failed: bool = False) -> SweepResult:
+              extensions: Sequence[StudyExtension] = (), retry_failed: bool = False,
+              hold_lock: bool = False) -> SweepResult:
     """Run every stage of ``study`` into ``out`` (runs.csv as runs finish, summary.json at the end) and
     then each extension's ``after_stages``. Draws nothing: :func:`fmusa.report.markdown.write_report`
-    renders the result."""
+    renders the result. ``hold_lock``: a study that ends well keeps ``out`` locked against another study
+    until ``result.release()`` (called once its report is written)."""
 
 
     out = writable_folder(out, "output folder (--out)")
@@ -195,6 +201,7 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     summary: dict[str, Any] = {"study": study.name, "study_file": str(study.path),
                                "fmu_runs": runner.reuse.as_dict()}
     result = SweepResult(study, out, pd.DataFrame(), summary)
+    ended_well = False
     try:
         stage_times: dict[str, float] = {}
         stage_runs: dict[str, dict[str, int]] = {}     # FMU runs each stage asked for / simulated
@@ -306,10 +313,17 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         summary["stage_runs"] = stage_runs
         summary["rounds"] = int(runner.rounds)
         summary["wall_s"] = time.perf_counter() - t0
+        runner.store.check_present()      # runs.csv still where it was written (its folder not removed)
+        write_summary(result)
+        ended_well = True
     finally:
-        runner.close()
-    write_summary(result)
+        runner.close(keep_lock=hold_lock and ended_well)
+    result.release = runner.store.release if hold_lock else _nothing
     return result
+
+
+def _nothing() -> None:
+    """No lock to release."""
 
 
 def _free_in_optimum(study: Study, grid: pd.DataFrame | None, optimum: Mapping[str, float]) -> dict[str, str]:
