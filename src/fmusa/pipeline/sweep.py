@@ -312,6 +312,7 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         summary["stage_wall_s"] = stage_times
         summary["stage_runs"] = stage_runs
         summary["rounds"] = int(runner.rounds)
+        summary["run_counts"] = run_counts(summary)
         summary["wall_s"] = time.perf_counter() - t0
         runner.store.check_present()      # runs.csv still where it was written (its folder not removed)
         write_summary(result)
@@ -337,6 +338,19 @@ def _free_in_optimum(study: Study, grid: pd.DataFrame | None, optimum: Mapping[s
                 f"value in the optimum ({optimum[p]:.6g}) is only where the search held or stopped it, and any "
                 f"value in its range meets the constraints as well")
             for p in optimum if p in inert}
+
+
+def run_counts(summary: Mapping) -> dict[str, int]:
+    """The study's one count of runs (docs: "Runs and how they are counted"): ``runs``, every distinct
+    parameter set the FMU was run at and stored (runs.csv, sensitivity_runs.csv and the sensitivity stage's
+    reference runs); of them ``simulated_now`` in this session and ``failed``; and the parts. The checks
+    after the stages (reset, sampling, FMU steps) are not runs of the study and are not counted."""
+    sens = summary.get("sensitivity") or {}
+    reference = int(((sens.get("accuracy_check") or {}).get("samples")) or 0)
+    parts = {"runs_csv": int(summary.get("runs", 0)), "sensitivity": int(sens.get("runs", 0) or 0),
+             "sensitivity_reference": reference}
+    return {"runs": sum(parts.values()), "simulated_now": int(summary.get("simulated_this_session", 0)),
+            "failed": int(summary.get("failed", 0)) + int(sens.get("failed", 0) or 0), **parts}
 
 
 def _stage_runs(runner: StudyRunner, asked0: int, simulated0: int, rounds0: int) -> dict[str, int]:
