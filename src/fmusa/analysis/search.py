@@ -31,8 +31,8 @@ are k-sectioned, and independent levels share rounds. The paper's study on 16 wo
 of 357 (224 runs instead of 381); ``result.rounds`` says what it cost and what the sequential search takes.
 With one worker (one point per round) the walk on the lattice usually costs far fewer runs than the
 sequential bisection, since a level predicted by its neighbour costs the two ends of a cell (paper study: 95
-runs instead of 227); against the sequential warm start it can cost a few runs more or fewer (paper: 62
-instead of 66), because the warm start leaves the lattice while the walk stays on it.
+runs instead of 227); against the sequential warm start it can cost a few runs more or fewer, because the
+warm start leaves the lattice while the walk stays on it.
 """
 from __future__ import annotations
 
