@@ -5,7 +5,8 @@
 and outputs computed at every communication point from C expressions of the parameters and ``t``.
 ``refuse`` is a C condition on the parameters under which fmi2ExitInitializationMode returns fmi2Error
 (an FMU that refuses a value, such as a stiffness of 0), with ``refuse_message`` logged. Every value an
-output takes is known in closed form, so a test can hold fmusa's numbers to it.
+output takes is known in closed form, so a test can hold fmusa's numbers to it. Parameters may not be named
+``m`` or ``t`` (the C code's own names).
 """
 from __future__ import annotations
 
@@ -60,8 +61,8 @@ fmi2Status fmi2SetupExperiment(fmi2Component c, fmi2Boolean a, fmi2Real b, fmi2R
                                fmi2Real e) { (void)a; (void)b; (void)d; (void)e; ((Model *)c)->t = t0;
     return fmi2OK; }
 fmi2Status fmi2EnterInitializationMode(fmi2Component c) { (void)c; return fmi2OK; }
-fmi2Status fmi2ExitInitializationMode(fmi2Component c) {
-    Model *m = c;
+fmi2Status fmi2ExitInitializationMode(fmi2Component comp_) {
+    Model *m = comp_;
     %(unpack)s
     if (%(refuse)s) {
         if (m->logger) m->logger(m->env, m->name, fmi2Error, "logStatusError", "%(refuse_message)s");

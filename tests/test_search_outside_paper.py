@@ -5,7 +5,8 @@ One C FMU (tests/formula_fmu.py) holds four closed forms, constant in time:
   1000]; the region is found at roi.at, default the first grid value);
 - ``y_p = 1000 / pP``, which pT does not move (an outer parameter with no effect);
 - ``q = htc·air / (htc + air)``, rising in both (a heat exchanger: feasible only at the top of the range);
-- ``y_k = 1 / k``, refused (fmi2Error) at k <= 0.
+- ``y_k = 1 / k``, refused (fmi2Error) at k <= 0;
+- ``y_cd = 1/c + 1/(1 + d)``: a paper-like boundary c(d), for the search in rounds and the regression.
 """
 from __future__ import annotations
 
@@ -18,9 +19,10 @@ from formula_fmu import build_formula_fmu
 from fmusa.api import parse_study, run_study
 from fmusa.study.schema import StudyError
 
-PARAMS = {"k": 1.0, "dplin": 10.0, "load": 1.0, "pP": 1.0, "pT": 1.0, "htc": 100.0, "air": 100.0}
+PARAMS = {"k": 1.0, "dplin": 10.0, "load": 1.0, "pP": 1.0, "pT": 1.0, "htc": 100.0, "air": 100.0,
+          "c": 1.0, "d": 1.0}
 OUTPUTS = {"y_k": "1.0 / k", "y_load": "load * (dplin >= 500 ? 1.0 : 0.01)", "y_p": "1000.0 / pP",
-           "q": "htc * air / (htc + air)"}
+           "q": "htc * air / (htc + air)", "y_cd": "1.0 / c + 1.0 / (1.0 + d)"}
 
 
 @pytest.fixture(scope="module")
@@ -103,3 +105,15 @@ def test_a_bound_at_zero_gets_an_absolute_floor(fmu, tmp_path):
     assert 1.0 <= s["optimum"]["k"] <= 1.0 + 1.1e-3
     assert s["stage_runs"]["search"]["asked"] < 30 and s["failed"] == 0
     assert not math.isclose(s["optimum"]["k"], 0.0, abs_tol=1e-6)
+
+
+def test_regression_levels_are_the_search_path(fmu, tmp_path):
+    """A search in rounds of 4 also asks for levels past its stop; the regression by the outer parameter fits
+    the levels on the search's path only."""
+    stages = ("  grid: {values: {c: [1, 4, 16, 64], d: [1, 4, 16, 64]}}\n  roi:\n"
+              "  search: {inner: c, outer: d, inner_rtol: 1.0e-3, parallel: 4}\n"
+              "  regression: {x: c, y: [y_cd], by: d, degree: 1}\n")
+    s = sweep(study(fmu, ["c", "d"], "y_cd", "{name: cap, metric: y_cd, max: 0.5}", stages), tmp_path)
+    path = {f"{lv['outer']:.10g}" for lv in s["search"]["levels"]}
+    assert s["search"]["parallel"]["speculative_runs"] > 0
+    assert set(s["regression"]["y_cd"]) <= path, (set(s["regression"]["y_cd"]), path)

@@ -263,6 +263,12 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                 # the search's runs, or the grid's in a study without search (the loader decides: source)
                 runs = runner.store.frame()
                 pts = runs[runs["stage"] == stage.source]
+                if stage.source == "search" and result.search is not None and stage.by is not None \
+                        and stage.by == result.search.outer:
+                    # the levels on the search's path only: a search in rounds also asks for levels past
+                    # its stop (speculative points), which are no level of its answer
+                    path = [lv.outer for lv in result.search.levels]
+                    pts = pts[np.isin(pts[stage.by].to_numpy(dtype=float), np.asarray(path, dtype=float))]
                 if not len(pts):
                     raise StudyError(f"{study.path}: stages.regression fits the {stage.source} runs, but there "
                                      f"are none; run the {stage.source} stage before the regression")
