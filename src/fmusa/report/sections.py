@@ -289,6 +289,11 @@ def optimum_section(ctx: ReportContext, label: str | None = None, sig: Sig = _si
         out += f"\nStop rule of {stop_label}: {res.search.stop_reason}.\n"
         for w in res.search.warnings:
             out += f"\n- warning: {w}\n"
+    if opt is not None:
+        for note in res.summary.get("optimum_at_edge") or []:
+            out += f"\n- note: {note}\n"
+        for note in (res.summary.get("optimum_free") or {}).values():
+            out += f"\n- note: {note}\n"
     acc = res.summary.get("accuracy")
     if opt is not None and acc:
         out += (f"\n**This optimum is unreliable**: the accuracy checks (sections on sampling and on the FMU's "
