@@ -53,6 +53,8 @@ def one_line(text: str) -> str:
 def _complete_records(data: bytes) -> int:
     """The length of ``data`` (csv bytes) up to the end of its last complete record: a line break outside
     quotes (a quoted field may span lines, as messages stored by older versions do)."""
+    if b'"' not in data:                          # no quoted field: the last line break ends the last record
+        return data.rfind(b"\n") + 1
     last_ok = 0
     pos, inside = 0, False
     for line in data.split(b"\n")[:-1]:           # every line ended by a break
