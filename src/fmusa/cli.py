@@ -246,19 +246,30 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             print(f"note: this study started afresh; the earlier runs are kept in {path}{also} (use --resume "
                   f"to continue a study instead)", file=sys.stderr)
     s = result.summary
-    # runs.csv's runs and the sensitivity stage's (sensitivity_runs.csv)
-    sens = s.get("sensitivity") or {}
-    runs = s.get("runs", 0) + int(sens.get("runs", 0) or 0)
-    failed = s.get("failed", 0) + int(sens.get("failed", 0) or 0)
-    print(f"{study.name}: {runs} runs ({s.get('simulated_this_session', 0)} simulated now, "
-          f"{failed} failed) in {s.get('wall_s', 0.0):.2f} s")
+    counts = s.get("run_counts") or {}          # the one count of runs (docs: runs and how they are counted)
+    print(f"{study.name}: {counts.get('runs', 0)} runs ({counts.get('simulated_now', 0)} simulated now, "
+          f"{counts.get('failed', 0)} failed) in {s.get('wall_s', 0.0):.2f} s")
     if s.get("optimum"):
         opt = ", ".join(f"{k} = {v:.6g}" for k, v in s["optimum"].items())
-        print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}")
+        print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}"
+              + ("" if s.get("optimum_reliable", True) else " (unreliable: see the warnings)"))
+    for note in s.get("optimum_at_edge") or []:
+        print(f"note: {note}")
+    for note in (s.get("optimum_free") or {}).values():
+        print(f"note: {note}")
+    acc = s.get("accuracy")
+    if acc:      # a check after the stages moved a metric a constraint reads
+        print(f"warning: the accuracy checks moved the constrained metric{'s' if len(acc['metrics']) > 1 else ''} "
+              f"{', '.join(acc['metrics'])}: every run's feasibility"
+              f"{' and the optimum' if s.get('optimum') else ''} may be wrong", file=sys.stderr)
+        for w in acc["warnings"][:3]:
+            print(f"  {w}", file=sys.stderr)
+        if len(acc["warnings"]) > 3:
+            print(f"  ({len(acc['warnings']) - 3} more in summary.json, key accuracy)", file=sys.stderr)
     par = (s.get("search") or {}).get("parallel")
     if par:      # the search in rounds (search.parallel): its rounds against the sequential search's
-        print(f"search: {par['rounds']} rounds of up to {par['workers']} runs ({par['runs']} runs); the "
-              f"sequential search: {par['sequential_rounds']} rounds")
+        print(f"search: {par['runs']} points asked in {par['rounds']} rounds of up to {par['workers']}; the "
+              f"sequential search asks for {par['sequential_rounds']}, one per round")
     for name in ("runs.csv", "summary.json", "report.md"):
         if (args.out / name).exists():
             print(f"wrote {args.out / name}")

@@ -9,6 +9,7 @@ import contextlib
 import errno
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -16,7 +17,23 @@ from typing import Iterator
 from fmusa.errors import FmusaError
 
 __all__ = ["OutputError", "DiskFullError", "writable_folder", "atomic_path", "atomic_write", "write_error",
-           "free_space", "move_aside"]
+           "free_space", "move_aside", "cache_dir", "ENV_CACHE"]
+
+#: Environment variable naming the folder of fmusa's caches (default: the platform's user cache folder).
+ENV_CACHE = "FMUSA_CACHE_DIR"
+
+
+def cache_dir() -> Path:
+    """fmusa's cache folder: ``$FMUSA_CACHE_DIR``, else the platform's user cache folder."""
+    env = os.environ.get(ENV_CACHE)
+    if env:
+        return Path(env).expanduser()
+    if sys.platform == "win32":
+        base = Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local")
+        return base / "fmusa" / "cache"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Caches" / "fmusa"
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fmusa"
 
 
 class OutputError(FmusaError, OSError):
