@@ -18,6 +18,7 @@ from pathlib import Path
 
 from fmusa import __version__
 from fmusa.errors import FmusaError, UsageError
+from fmusa.fmi.info import SUPPORTED_FMI_VERSIONS
 
 #: Table 2 of the paper: thresholds of the parameter search.
 EPS_Y = 5e-4        # m, max |y|
@@ -361,6 +362,56 @@ def _fmt_num(x) -> str:
     return f"{x:g}" if isinstance(x, float) else str(x)
 
 
+def _sources_line(info, full: bool) -> str:
+    """The C sources in one line: how many, a few names (all with --full), and whether fmusa can build them."""
+    if info.can_compile:
+        files = list(info.source_files)
+        shown = files if full or len(files) <= 4 else files[:3] + ["…"]
+        text = f"{len(files)} file{'s' * (len(files) != 1)} listed under <SourceFiles> ({', '.join(shown)})"
+        if not full and len(files) > 4:
+            text += "; --full lists them"
+        return text
+    if info.has_sources:
+        if info.is_fmi3:
+            return "sources/ present (fmusa builds binaries from sources for FMI 2.0 only)"
+        return "sources/ present, but not listed under <SourceFiles> (fmusa cannot build them)"
+    return "none"
+
+
+def _runs_here(info, note: str | None) -> str:
+    """Whether fmusa can run the FMU on this machine, and why not: its FMI version, and whether the binary
+    for this machine is there and loads (asked of a child process), or can be built from its sources."""
+    from fmusa.fmi.loadable import binary_loads
+    from fmusa.runs.preflight import load_problem
+
+    if note:           # an FMI version fmusa does not run (FMI 1.0): the reader's message says which and why
+        return (f"no: FMI {info.fmi_version}; fmusa runs FMI {' and '.join(SUPPORTED_FMI_VERSIONS)} FMUs: export "
+                f"the model again as one")
+    plat = info.host_platform
+    with_binary = [i for i in info.interfaces if info.has_binary(i)]
+    if not info.interfaces:
+        return "no: the model description declares no co-simulation or model exchange interface"
+    if not with_binary:
+        if info.can_compile:
+            return (f"once built: no {plat} binary; fmusa builds one from the C sources before the first run "
+                    f"(this needs a C compiler)")
+        return (f"no: no {plat} binary (it has {', '.join(info.platforms) or 'none'}) and no C sources to build "
+                f"one from: export it again for this platform, or with its C sources")
+    answers = {}
+    for iface in with_binary:
+        name = info.binary_name(iface)
+        answers.setdefault(name, (iface, binary_loads(info, iface)))
+    bad = [(i, a) for i, a in answers.values() if a is not None and not a.loads]
+    label = {"co-simulation": "co-simulation", "model-exchange": "model exchange"}
+    modes = " and ".join(label.get(i, i) for i in with_binary)
+    if not bad:
+        return f"yes: FMI {info.fmi_version}, {modes}; the {plat} binary loads"
+    iface, answer = bad[0]
+    reason = load_problem(str(info.path), Exception(answer.reason)).split(": the FMU cannot be loaded on this "
+                                                                          "machine: ", 1)[-1]
+    return f"no: the {plat} binary does not load: {reason}"
+
+
 def cmd_inspect(args: argparse.Namespace) -> int:
     import shutil as _shutil
 
@@ -394,19 +445,8 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     plat = info.host_platform
     names = {"co-simulation": "co-simulation (CS)", "model-exchange": "model exchange (ME)"}
     ifaces = ", ".join(f"{names.get(k, k)}, model identifier {v}" for k, v in info.interfaces.items()) or "none"
-    if info.platforms:
-        here = ("yes" if any(info.has_binary(i) for i in info.interfaces) else "no")
-        binaries = f"{', '.join(info.platforms)}  (this machine, {plat}: {here})"
-    else:
-        binaries = "none"
-    if info.can_compile:
-        sources = f"yes: {', '.join(info.source_files)}"
-        if not any(info.has_binary(i) for i in info.interfaces):
-            sources += f"  (fmusa builds the {plat} binary from them before a study)"
-    elif info.has_sources:
-        sources = "sources/ present, but not listed under <SourceFiles> (cannot be built)"
-    else:
-        sources = "no"
+    binaries = ", ".join(info.platforms) if info.platforms else "none"
+    sources = _sources_line(info, args.full)
     de = info.default_experiment
     if de:
         parts = [f"{label} {_fmt_num(de[key])}{unit}" for key, label, unit in
@@ -420,9 +460,13 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         c = v.causality or "local"
         counts[c] = counts.get(c, 0) + 1
     summary = ", ".join(f"{counts[c]} {c}" for c in CAUSALITIES if c in counts)
+    if not counts.get("parameter"):
+        summary += ("; no parameters: a study can set none of its variables" + ("" if counts.get("input") else
+                    " (and it has no inputs)"))
     head = [
         ("file", str(args.fmu)),
         ("FMI version", info.fmi_version),
+        ("runs here", _runs_here(info, note)),
         ("model name", info.model_name),
         ("description", info.description or "-"),
         ("generated by", info.generation_tool or "-"),
@@ -471,8 +515,6 @@ def _print_inspect(head, info, note, rows, causality, args, width) -> None:
                                 subsequent_indent=" " * (key_w + 2)))
     for w in info.warnings:
         print(f"{'warning'.ljust(key_w)}  {' '.join(w.split())}")
-    if note:
-        print(f"{'note'.ljust(key_w)}  {note}")
     print()
     if not rows:
         filt = []
@@ -579,8 +621,9 @@ def _add_diagnose_shear(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-points", type=_int_at_least(10), default=300,
                    help="samples per test after block averaging")
     p.add_argument("--diagnosed", type=_int_at_least(1), default=3, metavar="N",
-                   help="diagnose the first N specimens through the FMU (default 3, about 10 minutes on two "
-                        "cores); the two-line comparison with the authors always covers every test")
+                   help="diagnose the first N specimens through the FMU (default 3; `make bench` times one "
+                        "unit, two per specimen); the two-line comparison with the authors always covers every "
+                        "test")
     p.add_argument("--all", action="store_true", help="diagnose every specimen through the FMU (slow)")
     p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
     p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
@@ -611,8 +654,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The ``fmusa`` parser. ``command``: the subcommand about to run, when known; a subcommand whose
     options need a heavy import (diagnose) defines them only when it is that one or ``command`` is None."""
     parser = argparse.ArgumentParser(
-        prog="fmusa", description="Run the ScrewVertebra FMU (or another FMI 2.0 FMU, co-simulation or "
-                                  "model exchange) for parameter studies.")
+        prog="fmusa", description="Run the ScrewVertebra FMU (or another FMI "
+                                  f"{' or '.join(SUPPORTED_FMI_VERSIONS)} FMU, co-simulation or model exchange) "
+                                  "for parameter studies.")
     parser.add_argument("--version", action="version", version=f"fmusa {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
