@@ -461,8 +461,8 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         counts[c] = counts.get(c, 0) + 1
     summary = ", ".join(f"{counts[c]} {c}" for c in CAUSALITIES if c in counts)
     if not counts.get("parameter"):
-        summary += ("; no parameters: a study can set none of its variables" + ("" if counts.get("input") else
-                    " (and it has no inputs)"))
+        summary += ("; no parameters: a study can set only its inputs" if counts.get("input") else
+                    "; no parameters and no inputs: a study can set nothing")
     head = [
         ("file", str(args.fmu)),
         ("FMI version", info.fmi_version),
