@@ -219,20 +219,16 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     study = load_study(args.study)
 
     def kept() -> set[Path]:
-        return set(args.out.glob("runs.previous-*.csv")) if args.out.is_dir() else set()
+        """The run files an earlier study left aside: runs.csv and the sensitivity stage's alike (a study with a
+        sensitivity stage only has no runs.csv)."""
+        return set(args.out.glob("*runs.previous-*.csv")) if args.out.is_dir() else set()
 
     before = kept()
     try:
         result = run_study(study, args.out, resume=args.resume, workers=args.workers, scheduler=args.scheduler,
                            figures=not args.no_figures, progress=not args.quiet, retry_failed=args.retry_failed)
-    finally:   # said once it has happened (a study that fails to start moves nothing)
-        for path in sorted(kept() - before):
-            tag = path.stem.rpartition(".")[2]
-            aside = sorted(p.name for p in args.out.glob(f"*.{tag}*") if not p.name.startswith("runs.")
-                           and p.name.partition(f".{tag}")[2][:1] in ("", "."))     # not previous-10 for -1
-            also = f" (and its {', '.join(aside)})" if aside else ""
-            print(f"note: this study started afresh; the earlier runs are kept in {path}{also} (use --resume "
-                  f"to continue a study instead)", file=sys.stderr)
+    finally:   # said once it has happened (a study that fails to start moves nothing), --quiet or not
+        _note_kept(args.out, sorted(kept() - before))
     s = result.summary
     # runs.csv's runs and the sensitivity stage's (sensitivity_runs.csv)
     sens = s.get("sensitivity") or {}
@@ -251,6 +247,20 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         if (args.out / name).exists():
             print(f"wrote {args.out / name}")
     return 0
+
+
+def _note_kept(out: Path, paths: list[Path]) -> None:
+    """One note per earlier study moved aside: its run files and the outputs that went with them."""
+    by_tag: dict[str, list[Path]] = {}
+    for path in paths:
+        by_tag.setdefault(path.stem.rpartition(".")[2], []).append(path)        # previous-<n>
+    for tag, runs in sorted(by_tag.items()):
+        names = {p.name for p in runs} | {p.name + ".study.json" for p in runs}
+        aside = sorted(p.name for p in out.glob(f"*.{tag}*") if p.name not in names
+                       and p.name.partition(f".{tag}")[2][:1] in ("", "."))     # not previous-10 for -1
+        also = f" (and its {', '.join(aside)})" if aside else ""
+        print(f"note: this study started afresh; the earlier runs are kept in {', '.join(map(str, runs))}{also} "
+              f"(use --resume to continue a study instead)", file=sys.stderr)
 
 
 # ---------------------------------------------------------------------------- inspect
@@ -749,6 +759,23 @@ def interrupted_message(args: argparse.Namespace) -> str:
     return "interrupted"
 
 
+def _one_line_warning(command: str):
+    """A warning a library raises while a command runs (numpy, SALib, pandas…) as one line a user can read:
+    what it says and which library said it, not the library's source path and line (the stages turn the
+    warnings they expect into the study's own messages; this is for any other)."""
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        parts = Path(str(filename)).parts
+        lib = next((p for p in reversed(parts[:-1]) if p in ("SALib", "numpy", "scipy", "pandas", "matplotlib",
+                                                              "fmpy", "dask", "distributed", "fmusa")),
+                   Path(str(filename)).stem)
+        text = " ".join(str(message).split())
+        try:
+            print(f"fmusa {command}: warning: {text} ({category.__name__} from {lib})", file=file or sys.stderr)
+        except (OSError, ValueError):
+            pass
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand. A :class:`~fmusa.errors.FmusaError` is the user's to fix: one line on stderr
     and its ``exit_code`` (2, or 1 when an FMU could not be found, built or run); any other exception
@@ -760,6 +787,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser(_command_word(argv))
     args = parser.parse_args(argv)
     previous = _stop_on_signals()
+    import warnings
+    shown = warnings.showwarning
+    warnings.showwarning = _one_line_warning(args.command)
     try:
         return int(args.func(args) or 0)
     except FmusaError as exc:
@@ -785,6 +815,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         import signal
 
+        warnings.showwarning = shown
         for s, old in previous.items():
             try:
                 signal.signal(s, old)
