@@ -137,7 +137,7 @@ def plot_pullout(df, params: dict, path: Path) -> None:
 
     t = df["time"].to_numpy()
     t_eq = float(df["t_eq"].iloc[-1])
-    fig, axes = plt.subplots(3, 1, figsize=(8, 9.5), sharex=True, constrained_layout=True)
+    fig, axes = plt.subplots(3, 1, figsize=(7.0, 8.0), sharex=True, constrained_layout=True)
     fig.suptitle(f"{_load_case(params)}\n"
                  f"c = c_y = {_fmt(params.get('c_y', float('nan')))} N/m,  "
                  f"d = d_y = {_fmt(params.get('d_y', float('nan')))} N·s/m", fontsize=12)
@@ -180,13 +180,9 @@ def plot_pullout(df, params: dict, path: Path) -> None:
                    title=f"max |y| = {df['y_max'].iloc[-1] * 1e3:.4g} mm")
     axes[2].legend(loc="best", fontsize=9, title_fontsize=9,
                    title=f"max |$\\dot y$| = {df['v_y_max'].iloc[-1] * 1e3:.4g} mm/s{rest}")
-    from fmusa.files import atomic_path
+    from fmusa.files import save_figure
 
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=120)
-    finally:
-        plt.close(fig)
+    save_figure(fig, path, tight=False, dpi=120)
 
 
 # ---------------------------------------------------------------------------- sweep

@@ -141,7 +141,8 @@ def search_path_figure(ctx: ReportContext) -> tuple[str, str] | None:
     name = "search_path.png"
     F.search_path([(f"{src} region", levels, res.search.optimum, F.AUTO_COLOR)], ctx.figdir / name, inner=inner,
                   outer=outer, inner_label=ctx.label(inner), outer_label=ctx.label(outer), inner_unit=ctx.u(inner),
-                  outer_unit=ctx.u(outer), annotations=path_annotations(ctx, levels))
+                  outer_unit=ctx.u(outer), annotations=path_annotations(ctx, levels),
+                  inner_range=res.region.inner_range if res.region is not None else None)
     return name, (f"Search path: each {outer} level visited by the nested binary search and the smallest "
                   f"feasible {inner} found there; star: where the search stopped; labelled levels: where "
                   f"another constraint than at the optimum decides.")
