@@ -386,3 +386,29 @@ def test_readme_states_the_optimum_the_paper_study_prints() -> None:
     assert printed, page.text
     assert f"c = {printed.group(1)} N/m, d = {printed.group(2)} N·s/m" in readme
     assert not re.search(r"reproduces the paper's search \(optimum c = 823224", readme)
+
+
+def test_the_benchmarks_page_lists_a_measurement_with_its_machine(tmp_path) -> None:
+    """The Benchmarks page gets out/bench/bench.json's numbers with the machine, the load and the time they
+    were measured at (docs/_gen/bench_page.py, run by the docs build); without the file it says how to get one."""
+    import json as _json
+    sys.path.insert(0, str(ROOT / "docs" / "_gen"))
+    try:
+        import bench_page
+    finally:
+        sys.path.pop(0)
+    assert "No measurement" in bench_page.render(tmp_path / "missing.json")
+    data = {"fmu_run_ms_median": 0.912, "paper_study_wall_s": 0.31, "diagnose_shear_unit_wall_s": 211.0,
+            "timestamp": "2026-12-02T17:00:00+00:00", "limits_note": "fmu 0.9 ms (limit 2 ms)",
+            "machine": {"cpu_count": 2, "platform": "Linux-6.1", "processor": "x86_64", "python": "3.11.7",
+                        "fmpy": "0.3.32", "loadavg_1min": 9.5}}
+    (tmp_path / "bench.json").write_text(_json.dumps(data), encoding="utf-8")
+    page = bench_page.render(tmp_path / "bench.json")
+    assert "2026-12-02T17:00:00+00:00 on Linux-6.1, x86_64, 2 logical CPUs" in page and "load average 9.50" in page
+    assert "| `diagnose_shear_unit_wall_s` | 211 |" in page and "| `fmu_run_ms_median` | 0.912 |" in page
+    for page_file in MANUAL:        # every bench key a page names is one `make bench` writes
+        for key in re.findall(r"`((?:fmu|paper|sobol|six_dof|diagnose|pipeline|bench)_[a-z0-9_]+)`",
+                              page_file.read_text(encoding="utf-8")):
+            if key.endswith(("_s", "_ms", "_per_s", "_median")) or key.startswith("bench_"):
+                src = (ROOT / "src" / "fmusa" / "bench.py").read_text(encoding="utf-8")
+                assert key in src or key.removeprefix("bench_") in src, f"{page_file.name}: `{key}` is no bench key"
