@@ -386,6 +386,11 @@ def test_readme_states_the_optimum_the_paper_study_prints() -> None:
     assert printed, page.text
     assert f"c = {printed.group(1)} N/m, d = {printed.group(2)} N·s/m" in readme
     assert not re.search(r"reproduces the paper's search \(optimum c = 823224", readme)
+    runs = re.search(r"^(\d+) FMU runs$", page.text, re.M).group(1)
+    paper = " ".join((ROOT / "docs" / "paper-study.md").read_text(encoding="utf-8").split())
+    clusters = " ".join((ROOT / "docs" / "clusters.md").read_text(encoding="utf-8").split())
+    assert f"finds c = {printed.group(1)} N/m, d = {printed.group(2)} N·s/m in {runs} FMU runs" in paper
+    assert f"c = {printed.group(1)}" in clusters and f"d = {printed.group(2)} N·s/m, {runs} runs" in clusters
 
 
 def test_the_benchmarks_page_lists_a_measurement_with_its_machine(tmp_path) -> None:

@@ -627,9 +627,9 @@ def _add_diagnose_shear(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-points", type=_int_at_least(10), default=300,
                    help="samples per test after block averaging")
     p.add_argument("--diagnosed", type=_int_at_least(1), default=3, metavar="N",
-                   help="diagnose the first N specimens through the FMU (default 3; `make bench` times one "
-                        "unit, two per specimen); the two-line comparison with the authors always covers every "
-                        "test")
+                   help="diagnose the first N specimens through the FMU (default 3; a specimen is two units, "
+                        "and `make bench` times one: diagnose_shear_unit_wall_s); the two-line comparison with "
+                        "the authors always covers every test")
     p.add_argument("--all", action="store_true", help="diagnose every specimen through the FMU (slow)")
     p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
     p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
