@@ -29,7 +29,7 @@ MINGW_CFLAGS := -std=c99 -O3 -shared -Wall -Wextra -static-libgcc -s -Wl,--no-in
 HAVE_MINGW := $(if $(MINGW_CC),$(shell command -v $(MINGW_CC) 2>/dev/null))
 FMU_BINARIES := $(FMU_SO) $(if $(HAVE_MINGW),$(FMU_DLL))
 
-.PHONY: all fmu modelica-venv sweep test identifiability slow bench diagnose docs clean
+.PHONY: all fmu modelica-venv sweep test identifiability slow bench diagnose docs reference clean
 .DELETE_ON_ERROR:
 
 all: fmu
@@ -142,6 +142,12 @@ DOCS_STAMP := $(VENV)/.installed-docs
 $(DOCS_STAMP): pyproject.toml | $(STAMP)
 	$(VENV)/bin/pip install -e '.[test,docs]'
 	touch $@
+
+# The generated pages that are committed (study keys, model, troubleshooting, the identifiability table in
+# docs/diagnosing.md), so that they read on the repository page: rewritten from the code (docs/_gen/reference.py);
+# tests/test_docs.py and the docs build fail when one is out of date.
+reference: $(STAMP)
+	$(VPY) docs/_gen/reference.py
 
 docs: $(DOCS_STAMP) $(FMU)
 	$(VENV)/bin/fmusa pullout --out build/docs/tour

@@ -140,6 +140,23 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             tmp.unlink()
 
 
+def save_figure(fig, path: str | os.PathLike, tight: bool = True, **savefig) -> Path:
+    """Write a matplotlib figure whole (see :func:`atomic_path`) and close it; every figure fmusa makes goes
+    through here, so that the tests can check each one (:mod:`fmusa.figure_check`, ``$FMUSA_CHECK_FIGURES``)."""
+    import matplotlib.pyplot as plt
+
+    from fmusa.figure_check import record
+
+    path = Path(path)
+    try:
+        record(fig, path, tight)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, **({"bbox_inches": "tight"} if tight else {}), **savefig)
+    finally:
+        plt.close(fig)
+    return path
+
+
 def atomic_write(path: str | os.PathLike, data: str | bytes, encoding: str = "utf-8",
                  errors: str = "strict") -> Path:
     """Write ``data`` to ``path`` whole or not at all (see :func:`atomic_path`). Returns ``path``.

@@ -464,12 +464,13 @@ def _parse_metrics(p: _Parser, top: _Map, parameters: Mapping) -> dict[str, Metr
         rnode = mm.opt("reduce")
         reduce = "final" if rnode is None else p.choice(rnode, "reduce", where, REDUCTIONS,
                                                         "reduction")
-        tol = mm.num("settle_tol", None, "settle_tol: 5.0e-8  (the band |output| <= settle_tol, in the "
-                                         "FMU's unit)", positive=True)
+        # no number is suggested: a band depends on the output's unit and size, which the loader cannot know
+        band = (f"settle_tol: BAND, the largest |{output}| that counts as settled, in the FMU's unit of {output} "
+                f"(`fmusa inspect` shows it; e.g. a hundredth of its peak)")
+        tol = mm.num("settle_tol", None, band, positive=True)
         if reduce == "settle" and tol is None:
             raise p.error(mm.items["reduce"][1], f"{_key('reduce', where)}: 'settle' (the time since which "
-                                                 f"|{output}| stays within a band) needs the band; add "
-                                                 f"settle_tol: 5.0e-8 (in the FMU's unit of {output})")
+                                                 f"|{output}| stays within a band) needs the band; add {band}")
         if tol is not None and reduce != "settle":
             raise p.error(mm.items["settle_tol"][1], f"{_key('settle_tol', where)} applies to reduce: settle "
                                                      f"only, but the reduction is '{reduce}'; remove it or "
