@@ -158,7 +158,7 @@ fmu: $(FMU) $(EL_FMU)
 sweep: $(STAMP) $(FMU)
 	$(VENV)/bin/fmusa sweep studies/paper.yaml --out out/paper
 
-test: $(STAMP) $(FMU) $(MODELICA_STAMP)
+test: $(STAMP) $(FMU) $(EL_FMU) $(MODELICA_STAMP)
 	$(VENV)/bin/pytest -q -p no:cacheprovider tests
 
 # The whole identifiability table through the FMU (`make test` runs a representative subset of its cells).
@@ -166,7 +166,7 @@ identifiability: $(STAMP) $(FMU)
 	$(VENV)/bin/pytest -q -p no:cacheprovider --run-slow tests/test_identifiability.py
 
 # Every test marked slow (kept out of `make test`): the identifiability cells and hidden-effect cells it skips.
-slow: $(STAMP) $(FMU)
+slow: $(STAMP) $(FMU) $(EL_FMU)
 	$(VENV)/bin/pytest -q -p no:cacheprovider --run-slow -m slow tests
 
 # The diagnosis of the real C6/C7 shear tests (data/shear-c67) against the authors' own analysis.
