@@ -154,7 +154,7 @@ EFFECTS = {"linear": {}, "gap": {"gap": 2e-3}, "nonlinear": {"nl_ratio": 3.0, "n
            "yield": {"yield_ratio": 0.2, "yield_F": 40.0}, "friction": {"fric_F": 20.0, "fric_x": 1e-3},
            "maxwell": {"ve_k": 5e3, "ve_tau": 0.05}, "damage": {"dmg_rate": 300.0, "dmg_y0": 4e-3, "dmg_F_res": 20.0},
            "offset": {"F_offset": 5.0, "y_offset": 1e-3}}
-FAST_EFFECTS = ("linear", "yield")
+FAST_EFFECTS = ("linear",)
 
 
 def om_coupling(element: Path, om: Path, scheme: str) -> Coupling:

@@ -151,10 +151,11 @@ def check_coupling(coupling: Coupling) -> None:
     """Before any run: both FMUs can be read, the model's force input is an input, its displacement and
     rate are readable (an output, or a state the tool exported), the element is the element, and a scheme
     applies. Raises :class:`CouplingError` naming what is missing and how to export it."""
-    _check(coupling)
+    checked_coupling(coupling)
 
 
-def _check(coupling: Coupling):
+def checked_coupling(coupling: Coupling):
+    """:func:`check_coupling`, returning what it read: (the model's FMUInfo, the element's, the scheme)."""
     try:
         minfo = read_fmu_info(coupling.model_fmu)
         einfo = read_fmu_info(coupling.element())
@@ -639,7 +640,7 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
     times = np.asarray(output_times, dtype=float)
     if times.ndim != 1 or len(times) == 0 or np.any(np.diff(times) <= 0) or times[0] < 0 or times[-1] > stop_time:
         raise CouplingError("output_times must increase strictly, within [0, stop_time]")
-    minfo, einfo, scheme = _check(coupling)
+    minfo, einfo, scheme = checked_coupling(coupling)
     import tempfile
     workdir = Path(tempfile.mkdtemp(prefix="fmusa-cosim-"))
     wall0, cpu0 = time.perf_counter(), time.process_time()

@@ -14,7 +14,7 @@ import zipfile
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
-from fmusa.cosim.master import ELEMENT_F, ELEMENT_S, ELEMENT_V, Coupling, CouplingError, _check
+from fmusa.cosim.master import ELEMENT_F, ELEMENT_S, ELEMENT_V, Coupling, CouplingError, checked_coupling
 
 NS_SSD = "http://ssp-standard.org/SSP1/SystemStructureDescription"
 NS_SSC = "http://ssp-standard.org/SSP1/SystemStructureCommon"
@@ -108,7 +108,7 @@ def write_ssp(path: str | Path, coupling: Coupling, model_params: dict[str, floa
               element_params: dict[str, float], stop_time: float, name: str = "CoupledSystem") -> Path:
     """Write the coupled system with these parameter values as an SSP 1.0 archive at ``path``. Raises
     :class:`CouplingError` when the coupling does not check or the SSD does not validate."""
-    minfo, einfo, _ = _check(coupling)
+    minfo, einfo, _ = checked_coupling(coupling)
     for name in (coupling.displacement_output, coupling.velocity_output):
         v = minfo.variable(name)
         if v is None or v.causality != "output":
