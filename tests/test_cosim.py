@@ -252,3 +252,18 @@ def test_check_coupling_names_what_is_missing(element, om, bodies):
     cs_only = Coupling(bodies["cs-plain"], element, "f", "x", "v", scheme="me-implicit")
     with pytest.raises(CouplingError, match="Model Exchange"):
         check_coupling(cs_only)
+
+
+@pytest.mark.slow
+def test_model_exchange_time_event(element, tmp_path):
+    """tests/fmus/me_spring (ME; its load F_max*min(t/t_ramp, 1) has a kink at t_ramp that it announces as a
+    time event) coupled at its input F_ext: the master stops at the event, runs the event iteration, and the
+    coupled response is the closed form across the kink."""
+    from fmus.me_spring.build import build_spring_fmu
+    fmu = build_spring_fmu(tmp_path, interfaces=("model-exchange",))
+    times = np.linspace(0.0, 1.0, 21)
+    r = simulate_coupled(Coupling(fmu, element, "F_ext", "y", "v"), {"t_ramp": 0.5}, {"c": 1e3, "d": 5.0}, 1.0,
+                         times, ["y"])
+    x, F = linear_reference(1.0, 400.0, 20.0, 1e3, 5.0, [(0.0, 0.0), (0.5, 10.0)], times)
+    assert r.scheme == "me-implicit"
+    assert _rel(r.frame["y"], x) < 1e-4 and _rel(r.frame["F"], F) < 1e-4
