@@ -22,7 +22,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from cosim_fmus import build_body
-from fmusa.cosim import Coupling, CouplingError, check_coupling, simulate_coupled
+from fmusa.cosim import Coupling, CouplingError, CouplingTimeLimitError, check_coupling, simulate_coupled
 
 ROOT = Path(__file__).resolve().parents[1]
 OM = ROOT.parent / "shared" / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
@@ -232,6 +232,8 @@ def test_explicit_exchange_at_paper_stiffness_refuses(element, bodies):
     with pytest.warns(UserWarning, match="did not converge"):
         r = simulate_coupled(cp, strict=False, **kw)
     assert r.scheme == "cs-halving" and not r.converged
+    with pytest.raises(CouplingTimeLimitError, match="time limit"):
+        simulate_coupled(cp, **{**kw, "max_halvings": 12}, max_wall_s=0.05)
 
 
 def test_check_coupling_names_what_is_missing(element, om, bodies):
