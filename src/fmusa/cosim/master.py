@@ -47,13 +47,22 @@ SCHEMES = ("auto", "me-implicit", "cs-iterate", "cs-halving")
 
 class CouplingError(FmusaError, RuntimeError):
     """A coupled run that cannot be made or did not converge: the message names the variable, the FMU or the
-    measured disagreement, and the fix."""
+    measured disagreement.
+
+    Fix: export the variable the message names with the causality it asks for (the interface force as an
+    input, the displacement and its rate as outputs); when the run did not converge, export the model with
+    Model Exchange or with canGetAndSetFMUstate, or give a smaller first step.
+    """
 
     exit_code = 1
 
 
 class CouplingTimeLimitError(CouplingError):
-    """A coupled run stopped at its time limit (``max_wall_s``)."""
+    """A coupled run stopped at its time limit (``max_wall_s``).
+
+    Fix: raise ``max_wall_s``, or make the run cheaper (a Model Exchange export, a smaller first step for the
+    co-simulation schemes).
+    """
 
 
 def default_element_fmu() -> Path:
