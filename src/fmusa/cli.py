@@ -51,6 +51,15 @@ def _int_at_least(low: int):
     return parse
 
 
+def _delimiter(text: str) -> str:
+    """--delimiter: one of the CSV delimiters, ``tab`` (or ``\\t``) for a tab."""
+    from fmusa.diagnose.measured import DELIMITERS
+    value = {"tab": "\t", "\\t": "\t"}.get(text.lower(), text)
+    if value not in DELIMITERS:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a delimiter fmusa reads; use one of , ; | tab")
+    return value
+
+
 def _positive_float(text: str) -> float:
     """An argparse ``type``: a positive finite number."""
     try:
@@ -215,7 +224,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed reruns the failed runs of a study in --out: give it with --resume")
+    from fmusa.study.loader import files_outside
+
     study = load_study(args.study)
+    for note in files_outside(study):    # the study file may come from someone else: say what it reads
+        print(f"note: {note}", file=sys.stderr)
 
     def kept() -> set[Path]:
         return set(args.out.glob("runs.previous-*.csv")) if args.out.is_dir() else set()
@@ -390,6 +403,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
             _quiet_stdout()
         if note:
             print(f"fmusa inspect: {note}", file=sys.stderr)
+        if info.unsafe:
+            print(f"fmusa inspect: UNSAFE: {'; '.join(info.unsafe)}: fmusa refuses to build or run this FMU",
+                  file=sys.stderr)
         return 0
     plat = info.host_platform
     names = {"co-simulation": "co-simulation (CS)", "model-exchange": "model exchange (ME)"}
@@ -445,6 +461,12 @@ def cmd_inspect(args: argparse.Namespace) -> int:
                 for v in arrays) + "  (elements 1-based, as a study names them)"))
     else:
         head.append(("variables", f"{len(info.variables)} ({summary})"))
+    if info.unsafe:      # names that lead outside the folder: said here, refused by sweep, diagnose, pullout
+        head.append(("UNSAFE", "; ".join(info.unsafe) + ": fmusa refuses to build or run this FMU"))
+    # an FMU's text may hold terminal control sequences: shown, not obeyed
+    from fmusa.format import printable
+    head = [(k, printable(v)) for k, v in head]
+    rows = [{k: printable(v) for k, v in r.items()} for r in rows]
     width = _shutil.get_terminal_size((120, 24)).columns
     try:
         _print_inspect(head, info, note, rows, causality, args, width)
@@ -516,6 +538,10 @@ def _add_diagnose(sub: argparse._SubParsersAction, full: bool = True) -> None:
     g.add_argument("--force-unit", default="N", metavar="UNIT", help="N, kN, mN, lbf")
     g.add_argument("--rate", default=None, metavar="RATE",
                    help="constant drive rate, e.g. '10 mm/s', to derive time for files without a time column")
+    g.add_argument("--delimiter", default=None, type=_delimiter, metavar="CHAR",
+                   help="field delimiter: ',' ';' '|' or tab (default: detected from each file)")
+    g.add_argument("--decimal", default=None, choices=(".", ","),
+                   help="decimal mark: '.' or ',' (default: detected from each file)")
     g.add_argument("--no-zero-drive", action="store_true",
                    help="keep the drive as measured (default: shift it to start at 0, where the model is at rest)")
     p.add_argument("--max-points", type=_int_at_least(10), default=300,
@@ -538,9 +564,13 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     cands = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
     spec = ColumnSpec(time=args.time_column, displacement=args.displacement_column, force=args.force_column,
                       time_unit=args.time_unit, displacement_unit=args.displacement_unit,
-                      force_unit=args.force_unit, rate=args.rate)
+                      force_unit=args.force_unit, rate=args.rate, delimiter=getattr(args, "delimiter", None),
+                      decimal=getattr(args, "decimal", None))
     exps = load_experiments(args.files, args.drive, spec, zero_drive=not args.no_zero_drive,
                             max_points=args.max_points)
+    for e in exps:        # what was detected, so that a wrong guess is seen
+        if e.meta.get("detected"):
+            print(f"read {e.path}: {', '.join(e.meta['detected'])} (detected; set with --delimiter, --decimal)")
     diag = run_diagnosis(exps, args.drive, args.out, fmu_path=args.fmu, candidates=cands,
                          workers=args.workers, max_starts=args.starts)
     g = diag["gain"]

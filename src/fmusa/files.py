@@ -166,3 +166,23 @@ def move_aside(folder: str | os.PathLike, names: tuple[str, ...], tag: str) -> l
             raise write_error(target, exc) from None
         moved.append(target)
     return moved
+
+
+def try_lock(fh) -> None:
+    """Lock the open file ``fh`` for this process alone, without waiting: ``fcntl.flock`` on POSIX,
+    ``msvcrt.locking`` (its first byte) on Windows. BlockingIOError when another process holds it; any
+    other OSError when the file system cannot lock files at all. The system releases it when the process
+    dies, however it dies."""
+    try:
+        import fcntl
+    except ImportError:
+        fcntl = None
+    if fcntl is not None:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return
+    import msvcrt
+    fh.seek(0)
+    try:
+        msvcrt.locking(fh.fileno(), msvcrt.LK_NBLCK, 1)
+    except PermissionError as exc:     # Windows: the region is locked by another process
+        raise BlockingIOError(exc.errno, str(exc)) from None

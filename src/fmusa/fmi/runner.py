@@ -42,7 +42,7 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 from fmusa.errors import UsageError
-from fmusa.fmi.archive import extract_fmu
+from fmusa.fmi.archive import extract_fmu, new_folder, remove_folder
 from fmusa.fmi.build import compile_sources
 from fmusa.fmi.lean import failure_head, failure_text, status_label
 from fmusa.fmi.info import (SOLVERS, FMUError, FMUNotFoundError, FMURunError, Value, binary_problem,
@@ -136,9 +136,8 @@ class FMURunner:
             self._owns_unzipdir = True
             self.unzipdir = extract_fmu(self.fmu_path, to_run=True)
         elif needs_build:   # never write into the user's directory: build in a copy
-            import tempfile
             self._owns_unzipdir = True
-            self.unzipdir = Path(tempfile.mkdtemp(prefix="fmusa-fmu-"))
+            self.unzipdir = new_folder()
             shutil.copytree(self.fmu_path, self.unzipdir, dirs_exist_ok=True)
         else:
             self.unzipdir = self.fmu_path
@@ -258,7 +257,7 @@ class FMURunner:
 
     def _cleanup_dir(self) -> None:
         if self._owns_unzipdir and self.unzipdir is not None:
-            shutil.rmtree(self.unzipdir, ignore_errors=True)
+            remove_folder(self.unzipdir)   # releases its lock first (Windows)
             self.unzipdir = None
 
     def __enter__(self) -> "FMURunner":

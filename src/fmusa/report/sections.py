@@ -14,7 +14,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from fmusa.format import fmt
+from fmusa.format import fmt, md_code, md_text
 from fmusa.files import OutputError
 from fmusa.report import figures as F
 from fmusa.report.context import ReportContext, figure_markdown, get, ok_mark, table, yes
@@ -69,14 +69,20 @@ def _constraint_rows(ctx: ReportContext) -> list[tuple[str, str]]:
 
 
 def _fmu_text(ctx: ReportContext) -> str:
+    """The FMU's path, model name and description; the FMU's own text escaped (it is someone else's)."""
+    from fmusa.errors import FmusaError
+    from fmusa.fmi.info import default_fmu_path, read_fmu_info
     st = ctx.study
-    if st.fmu:
-        return f"`{st.fmu}`"
-    from fmusa.fmi.info import default_fmu_path
     try:
-        return f"`{default_fmu_path()}`"
-    except FileNotFoundError:
+        path = st.fmu or default_fmu_path()
+    except (FileNotFoundError, FmusaError):
         return "`(not found)`"
+    try:
+        info = read_fmu_info(path)
+    except (OSError, FmusaError):
+        return md_code(path)
+    about = md_text(info.model_name) + (f": {md_text(info.description)}" if info.description else "")
+    return f"{md_code(path)} ({about})"
 
 
 def _runs_rows(ctx: ReportContext) -> list[tuple[str, str]]:
@@ -108,8 +114,9 @@ def what_was_run_rows(ctx: ReportContext, fixed_units: Mapping[str, str] | None 
     """The rows of "What was run" (item, value); ``fixed_units`` gives units to fixed FMU values that the
     study writes without one."""
     st = ctx.study
-    rows = [("study file", f"`{st.path}`"), ("FMU", _fmu_text(ctx)),
-            ("study parameters", ", ".join(f"{n} → FMU `{p.variable}` [{p.unit}]" for n, p in st.parameters.items()))]
+    rows = [("study file", md_code(st.path)), ("FMU", _fmu_text(ctx)),
+            ("study parameters", ", ".join(f"{n} → FMU {md_code(p.variable)} [{md_text(p.unit)}]"
+                                           for n, p in st.parameters.items()))]
     if st.fixed:
         rows.append(("fixed parameters", _fixed_text(ctx, fixed_units or {})))
     sc = st.scenario
@@ -493,9 +500,9 @@ def failed_section(ctx: ReportContext, limit: int = 30) -> str:
     names = [n for n in ctx.study.parameters if n in bad]
     rows = []
     for _, r in bad.head(limit).iterrows():
-        msg = str(r.get("message", "") or "").replace("\n", " ").strip()
-        rows.append((r.get("stage", "–"), *(fmt(r[n], 6) for n in names), r["status"],
-                     (msg[:300] + "…") if len(msg) > 300 else (msg or "–")))
+        msg = str(r.get("message", "") or "").replace("\n", " ").strip()     # the FMU's log: escaped
+        rows.append((r.get("stage", "–"), *(fmt(r[n], 6) for n in names), md_text(r["status"]),
+                     md_text((msg[:300] + "…") if len(msg) > 300 else (msg or "–"))))
     out = (f"### Failed runs\n\n{len(bad)} run{'s' if len(bad) > 1 else ''} failed; "
            f"{'the first ' + str(limit) + ' are' if len(bad) > limit else 'each is'} listed with the reason "
            f"recorded in runs.csv (column `message`). The stages went on without them.\n\n")

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Sequence
 
 from fmusa.errors import FmusaError
-from fmusa.fmi.archive import extract_fmu
+from fmusa.fmi.archive import extract_fmu, remove_folder
 from fmusa.fmi.build import compile_sources
 from fmusa.fmi.info import read_fmu_info, select_interface
 from fmusa.runs.pool import ENV_START_METHOD, PoolOptions, WorkerPool, resolve_start_method, run_chunk_supervised
@@ -67,7 +67,7 @@ class Evaluator:
                 if not info.has_binary(iface) and info.can_compile:
                     compile_sources(self._unzipdir, info, iface)
             except Exception:
-                shutil.rmtree(self._unzipdir, ignore_errors=True)
+                remove_folder(self._unzipdir)
                 self._unzipdir = None
                 raise
         self._local = self.spec if self._unzipdir is None else replace(self.spec, fmu_path=self._unzipdir)
@@ -134,7 +134,7 @@ class Evaluator:
             release_plan(self._local_spec())
             if here is not None and here[0] != self._local:
                 release_plan(here[0])
-            shutil.rmtree(self._unzipdir, ignore_errors=True)
+            remove_folder(self._unzipdir)
             self._unzipdir = None
             self._local = None
             self._here = None

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from fmusa.errors import UsageError
-from fmusa.files import atomic_write, write_error
+from fmusa.files import atomic_write, try_lock, write_error
 from fmusa.runs.metrics import constraint_holds, constraint_table
 
 FLOAT = "%.17g"   # round-trips a double exactly, so reloaded keys match new ones
@@ -49,23 +49,7 @@ class StoreBusyError(UsageError):
     """
 
 
-def _try_lock(fh) -> None:
-    """Lock the open file ``fh`` for this process alone, without waiting: ``fcntl.flock`` on POSIX,
-    ``msvcrt.locking`` (its first byte) on Windows. BlockingIOError when another process holds it; any
-    other OSError when the file system cannot lock files at all."""
-    try:
-        import fcntl
-    except ImportError:
-        fcntl = None
-    if fcntl is not None:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        return
-    import msvcrt
-    fh.seek(0)
-    try:
-        msvcrt.locking(fh.fileno(), msvcrt.LK_NBLCK, 1)
-    except PermissionError as exc:     # Windows: the region is locked by another process
-        raise BlockingIOError(exc.errno, str(exc)) from None
+_try_lock = try_lock    # fmusa.files: the extraction folders of fmusa.fmi.archive use it too
 
 
 #: errnos of a lock that another process holds (rather than one the file system refuses)

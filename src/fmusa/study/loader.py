@@ -31,6 +31,12 @@ _Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 _NULL = "tag:yaml.org,2002:null"
+#: Largest integer a study file may hold: beyond it no count, size or value of a study makes sense, and
+#: converting it to a float overflows.
+MAX_INT = 10 ** 18
+MAX_INT_DIGITS = 18
+#: Deepest nesting of lists and mappings: a study file nests four or five levels.
+MAX_DEPTH = 100
 #: Most values a free-form block may expand to (aliases included); the paper's block has about 40.
 MAX_PLAIN_VALUES = 100_000
 
@@ -77,10 +83,18 @@ class _Parser:
     # ---------------------------------------------------------------- plain values
     def scalar(self, node: ScalarNode):
         try:
-            return self._constructor.construct_object(node, deep=True)
+            v = self._constructor.construct_object(node, deep=True)
         except ConstructorError as exc:
             raise self.error(node, f"cannot read the value {node.value!r}: {exc.problem}; "
                                    f"write a plain number, string, true/false or null") from None
+        except (ValueError, OverflowError) as exc:     # e.g. more digits than Python converts
+            raise self.error(node, f"cannot read the value {node.value[:40]!r}…: {exc}; write a number of "
+                                   f"at most {MAX_INT_DIGITS} digits") from None
+        if isinstance(v, int) and not isinstance(v, bool) and abs(v) > MAX_INT:
+            raise self.error(node, f"the integer {node.value[:20]}… ({len(str(abs(v)))} digits) is larger than "
+                                   f"any value a study uses (at most {MAX_INT:.0e}); check the number, and write large "
+                                   f"physical values in floating point (e.g. 1.0e20)")
+        return v
 
     def describe(self, node: Node) -> str:
         """'a list', 'a mapping', 'the string 'x'', 'the number 3', 'null', 'true'..."""
@@ -937,7 +951,24 @@ def _parse_fmu(p: _Parser, top: _Map, base_dir: Path) -> Path | None:
         raise p.error(node, f"key 'fmu' at the top level: {path} does not exist; give the path to "
                             f"the .fmu file (relative paths start at the study file's directory) "
                             f"or 'default' for the built ScrewVertebra FMU")
+    if not path.is_file() and not (path.is_dir() and (path / "modelDescription.xml").is_file()):
+        raise p.error(node, f"key 'fmu' at the top level: {path} is not a regular file (a device, a FIFO, or a "
+                            f"folder without modelDescription.xml); give the path to the .fmu file")
     return path
+
+
+def files_outside(study: Study) -> list[str]:
+    """The files a study names outside its own folder (an absolute path, ``..``, a link that leads away), as
+    notes to print: fmusa reads them as asked, and says so, since a study file may come from someone else."""
+    if study.fmu is None or study.path is None:
+        return []
+    folder = Path(study.path).resolve().parent
+    try:
+        Path(study.fmu).resolve().relative_to(folder)
+        return []
+    except ValueError:
+        return [f"{study.path}:{study.lines.get('fmu', 1)}: the study reads the FMU {study.fmu}, outside the "
+                f"study file's folder {folder}"]
 
 
 def _check_conflicts(p: _Parser, top: _Map, parameters: Mapping[str, Parameter], fixed: Mapping,
@@ -1002,6 +1033,49 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None,
                  fixed_units=fixed_units, lines=dict(p.lines))
 
 
+def _check_depth(p: _Parser, text: str) -> None:
+    """Refuse nesting deeper than MAX_DEPTH from the parser's events (it does not recurse; composing the
+    tree does, and would die of a RecursionError)."""
+    depth = 0
+    for ev in yaml.parse(text, Loader=_Loader):
+        if isinstance(ev, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+            depth += 1
+            if depth > MAX_DEPTH:
+                raise StudyError(f"{p.label}:{ev.start_mark.line + 1}: lists or mappings nested more than "
+                                 f"{MAX_DEPTH} levels deep; a study file nests a few levels")
+        elif isinstance(ev, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+            depth -= 1
+
+
+def _check_graph(p: _Parser, root: Node | None) -> None:
+    """Refuse a node that contains itself (a recursive alias, ``x: &r {y: *r}``) and nesting deeper than
+    MAX_DEPTH, before anything walks the tree recursively; each node is visited once (aliases are shared)."""
+    if root is None:
+        return
+    done: set[int] = set()
+    path: set[int] = set()
+    stack: list[tuple[Node, int, bool]] = [(root, 0, False)]
+    while stack:
+        node, depth, leaving = stack.pop()
+        if leaving:
+            path.discard(id(node))
+            done.add(id(node))
+            continue
+        if id(node) in done or isinstance(node, ScalarNode):
+            continue
+        if depth > MAX_DEPTH:
+            raise p.error(node, f"lists or mappings nested more than {MAX_DEPTH} levels deep; a study file "
+                                f"nests a few levels")
+        path.add(id(node))
+        stack.append((node, depth, True))
+        children = ([c for kv in node.value for c in kv] if isinstance(node, MappingNode) else list(node.value))
+        for child in children:
+            if id(child) in path:
+                raise p.error(node, f"a YAML alias refers to the list or mapping it is in (anchor at line "
+                                    f"{_line(child)}), which would repeat it forever; write the values out")
+            stack.append((child, depth + 1, False))
+
+
 # ============================================================================ entry points
 #: Validates a free-form top-level block (``paper``) once it is read: called with the block as plain Python
 #: and ``line_of(key)`` -> ``"file:line"`` of a dotted key (``"paper.roi.c"``); raises StudyError.
@@ -1024,7 +1098,12 @@ def parse_study(text: str, path: str | os.PathLike = "<string>",
         study_path = Path(path).expanduser().resolve()
         base_dir = study_path.parent
     try:
+        _check_depth(p, text)
         root = yaml.compose(text, Loader=_Loader)
+        _check_graph(p, root)
+    except RecursionError:
+        raise StudyError(f"{label}:1: lists or mappings nested too deeply; a study file nests a few "
+                         f"levels") from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark is not None else 1
