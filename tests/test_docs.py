@@ -44,6 +44,8 @@ SKIPPED = {
     ("clusters.md", ".venv/bin/dask scheduler --port 8786                                     # on host1"),
     ("clusters.md", "# cluster.py: python cluster.py, then fmusa sweep ... --scheduler <the address it prints>"),
     ("other-tools.md", "unzip -o dist/ScrewVertebra.fmu -d out/sv"),
+    ("element-fmu.md", "from pathlib import Path"),
+    ("element-fmu.md", "from fmusa.cosim.ssp import write_ssp"),
 }
 
 DIRECTIVE = re.compile(r"<!--\s*docs-test:\s*(\S+)\s*(.*?)\s*-->")
