@@ -9,6 +9,7 @@ import contextlib
 import errno
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -16,7 +17,23 @@ from typing import Iterator
 from fmusa.errors import FmusaError
 
 __all__ = ["OutputError", "DiskFullError", "writable_folder", "atomic_path", "atomic_write", "write_error",
-           "free_space", "move_aside"]
+           "free_space", "move_aside", "cache_dir", "ENV_CACHE"]
+
+#: Environment variable naming the folder of fmusa's caches (default: the platform's user cache folder).
+ENV_CACHE = "FMUSA_CACHE_DIR"
+
+
+def cache_dir() -> Path:
+    """fmusa's cache folder: ``$FMUSA_CACHE_DIR``, else the platform's user cache folder."""
+    env = os.environ.get(ENV_CACHE)
+    if env:
+        return Path(env).expanduser()
+    if sys.platform == "win32":
+        base = Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local")
+        return base / "fmusa" / "cache"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Caches" / "fmusa"
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fmusa"
 
 
 class OutputError(FmusaError, OSError):
@@ -121,6 +138,23 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink()
+
+
+def save_figure(fig, path: str | os.PathLike, tight: bool = True, **savefig) -> Path:
+    """Write a matplotlib figure whole (see :func:`atomic_path`) and close it; every figure fmusa makes goes
+    through here, so that the tests can check each one (:mod:`fmusa.figure_check`, ``$FMUSA_CHECK_FIGURES``)."""
+    import matplotlib.pyplot as plt
+
+    from fmusa.figure_check import record
+
+    path = Path(path)
+    try:
+        record(fig, path, tight)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, **({"bbox_inches": "tight"} if tight else {}), **savefig)
+    finally:
+        plt.close(fig)
+    return path
 
 
 def atomic_write(path: str | os.PathLike, data: str | bytes, encoding: str = "utf-8",

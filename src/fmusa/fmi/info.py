@@ -12,6 +12,8 @@ from typing import Iterable
 
 from fmusa.errors import FmusaError
 
+#: The FMI versions fmusa runs (an FMI 1.0 FMU is refused with how to export it again).
+SUPPORTED_FMI_VERSIONS = ("2.0", "3.0")
 FMU_NAME = "ScrewVertebra.fmu"
 ENV_FMU = "FMUSA_FMU"
 Value = float | int | bool
@@ -753,6 +755,11 @@ def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
 
     def hint(prefix: str = "closest") -> str:
         others = [n for n in pool if n != name]
+        if not others:     # an FMU without any: said first, whether or not the name exists
+            kinds = f"{what}s or inputs" if role == "varied" else f"{what}s"
+            text = f"; {info.model_name} has no {prefix + ' ' if prefix == 'settable' else ''}{kinds} at all"
+            close = closest_names(name, [n for n in wider if n != name]) if v is None else []
+            return text + (f" (closest names among its other variables: {', '.join(close)})" if close else "")
         close = closest_names(name, others)
         if not close and v is None:
             close = closest_names(name, [n for n in wider if n != name])
@@ -762,10 +769,8 @@ def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
             return f"; {prefix} {what} names: {', '.join(close)}"
         if v is not None:
             return ""
-        if others:
-            more = f" … ({len(others)} in all)" if len(others) > 12 else ""
-            return f"; its {what}s are: {', '.join(others[:12])}{more}"
-        return f"; it has no {what}s"
+        more = f" … ({len(others)} in all)" if len(others) > 12 else ""
+        return f"; its {what}s are: {', '.join(others[:12])}{more}"
 
     if v is None:
         return f"{info.model_name} has no variable {name!r}{hint()}"

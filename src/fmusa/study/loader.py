@@ -466,12 +466,13 @@ def _parse_metrics(p: _Parser, top: _Map, parameters: Mapping) -> dict[str, Metr
         rnode = mm.opt("reduce")
         reduce = "final" if rnode is None else p.choice(rnode, "reduce", where, REDUCTIONS,
                                                         "reduction")
-        tol = mm.num("settle_tol", None, "settle_tol: 5.0e-8  (the band |output| <= settle_tol, in the "
-                                         "FMU's unit)", positive=True)
+        # no number is suggested: a band depends on the output's unit and size, which the loader cannot know
+        band = (f"settle_tol: BAND, the largest |{output}| that counts as settled, in the FMU's unit of {output} "
+                f"(`fmusa inspect` shows it; e.g. a hundredth of its peak)")
+        tol = mm.num("settle_tol", None, band, positive=True)
         if reduce == "settle" and tol is None:
             raise p.error(mm.items["reduce"][1], f"{_key('reduce', where)}: 'settle' (the time since which "
-                                                 f"|{output}| stays within a band) needs the band; add "
-                                                 f"settle_tol: 5.0e-8 (in the FMU's unit of {output})")
+                                                 f"|{output}| stays within a band) needs the band; add {band}")
         if tol is not None and reduce != "settle":
             raise p.error(mm.items["settle_tol"][1], f"{_key('settle_tol', where)} applies to reduce: settle "
                                                      f"only, but the reduction is '{reduce}'; remove it or "
@@ -595,10 +596,21 @@ def _check_grid_size(p: _Parser, m: _Map, where: str, base: float | None, expone
 
 
 def _parse_roi(p: _Parser, m: _Map, where: str, parameters: Mapping) -> RoiStage:
-    m.allow(("manual",))
+    m.allow(("manual", "at"))
+    at = None
+    anode = m.opt("at")
+    if anode is not None and not p.is_null(anode):
+        aw = f"{where}.at"
+        am = p.mapping(anode, aw, "at")
+        at = {}
+        for name, knode, vnode in am.entries():
+            p.name_in(knode, name, aw, parameters, "study parameter", "load: 10")
+            at[name] = p.number(vnode, name, aw, f"{name}: 10")
+        if not at:
+            at = None
     node = m.opt("manual")
     if node is None:
-        return RoiStage(manual=None)
+        return RoiStage(manual=None, at=at)
     mw = f"{where}.manual"
     mm = p.mapping(node, mw, "manual")
     manual: dict[str, tuple[float, float]] = {}
@@ -612,7 +624,7 @@ def _parse_roi(p: _Parser, m: _Map, where: str, parameters: Mapping) -> RoiStage
     if not manual:
         raise p.error(node, f"{_key('manual', where)} is empty; give [lo, hi] per parameter, "
                             f"e.g. manual: {{c: [3.91e5, 9.77e6]}}, or null for the automatic region")
-    return RoiStage(manual=manual)
+    return RoiStage(manual=manual, at=at)
 
 
 def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping, metrics: Mapping,
@@ -915,6 +927,10 @@ def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
                                      "interest, but no 'roi' stage comes before it; add 'roi:' "
                                      "above 'search'")
             stage = _parse_search(p, sm, where, parameters, metrics, constraints)
+            for q in (stage.inner, stage.outer):
+                if q is not None and q in (out["roi"].at or {}):
+                    raise p.error(knode, f"key 'search' in 'stages' varies '{q}', so 'stages.roi.at' cannot "
+                                         f"hold it; remove {q} from 'at'")
             manual = out["roi"].manual
             if manual is not None:
                 for q in (stage.inner, stage.outer):
@@ -929,6 +945,14 @@ def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
             out[name] = _parse_sensitivity(p, sm, where, metrics, fixed)
     if "grid" in out:
         grid = out["grid"]
+        roi = out.get("roi")
+        if roi is not None and roi.at and roi.manual is None:
+            axes = grid.points()
+            for q, v in roi.at.items():
+                if q in axes and not any(math.isclose(v, g, rel_tol=1e-12) for g in axes[q]):
+                    raise p.error(m.key_node("roi"), f"'stages.roi.at' holds {q} = {v:g}, which is not one of "
+                                                     f"its grid values ({', '.join(f'{g:g}' for g in axes[q])}): "
+                                                     f"the region is found from the grid runs there; pick one")
         missing = [q for q in parameters if q not in grid.exponents and q not in grid.values]
         if missing:
             raise p.error(m.key_node("grid"),
