@@ -413,8 +413,8 @@ class SensitivityParameter:
 
     :param variable: **required** The FMU variable. It is varied by only one parameter and is not in
         ``fixed``.
-    :param bounds: [lo, hi] with lo < hi: **required** for ``uniform``, ``loguniform`` (lo > 0) and
-        ``truncnormal`` (where the normal is cut); not allowed for ``normal`` and ``lognormal``.
+    :param bounds: The range, lo < hi, written [lo, hi]: needed for ``uniform``, ``loguniform`` (lo > 0)
+        and ``truncnormal`` (where the normal is cut); not allowed for ``normal`` and ``lognormal``.
     :param distribution: ``uniform`` (within ``bounds``), ``loguniform`` (uniform in log10 within
         ``bounds``), ``normal`` (``mean``, ``std``), ``truncnormal`` (a normal of ``mean``, ``std`` cut to
         ``bounds``) or ``lognormal`` (a positive value whose logarithm is normal; ``mean`` and ``std`` are
@@ -425,7 +425,7 @@ class SensitivityParameter:
     """
     name: str
     variable: str
-    bounds: tuple[float, float] | None
+    bounds: tuple[float, float] | None = None
     distribution: str = "uniform"
     unit: str = ""
     mean: float | None = None
