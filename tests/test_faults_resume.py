@@ -44,7 +44,7 @@ stages:
   grid: {values: {c: [4.0e5]}}
   sensitivity:
     methods: [morris]
-    morris_trajectories: 2
+    morris_trajectories: 4
     seed: 1
     outputs: [max_y]
     parameters:

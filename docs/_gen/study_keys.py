@@ -37,6 +37,8 @@ SECTIONS: list[tuple[str, type, frozenset[str], str]] = [
     ("stages.sensitivity", schema.SensitivityStage, frozenset(), "Global sensitivity analysis."),
     ("stages.sensitivity.parameters.<name>", schema.SensitivityParameter, frozenset({"name"}),
      "One input of the sensitivity analysis."),
+    ("stages.sensitivity.pce", schema.PCEOptions, frozenset(),
+     "How the polynomial chaos method (`methods: [pce]`) grows its design."),
     ("fmu_options", schema.FMUOptions, frozenset(), "How the FMU runs."),
     ("execution", schema.Execution, frozenset(), "Where the runs execute."),
 ]
@@ -55,7 +57,8 @@ PROBE_STUDY: dict = {
         "search": {"inner": "c"},
         "regression": {"x": "c", "y": ["max_y"], "degree": 1},
         "sensitivity": {"methods": ["morris"], "outputs": ["max_y"],
-                        "parameters": {"mass": {"variable": "m", "bounds": [1.0e-4, 1.0e-3]}}},
+                        "parameters": {"mass": {"variable": "m", "bounds": [1.0e-4, 1.0e-3]}},
+                        "pce": {"max_runs": 400}},
     },
     "fmu_options": {"interface": "auto"},
     "execution": {"workers": 1},

@@ -324,6 +324,81 @@ def cheap_six_dof(study):
                                scenario=dataclasses.replace(study.scenario, inputs={}))
 
 
+#: The recorded Saltelli reference of the 6-DOF study's total indices (N = 4096: 73,728 runs, written by
+#: :func:`six_dof_saltelli_reference`); the polynomial chaos is held to it.
+SALTELLI_REFERENCE = Path(__file__).resolve().parents[2] / "tests" / "data" / "six_dof_saltelli_4096.json"
+#: What the polynomial chaos must do on the 6-DOF study: max |ΔST| against the reference, in at most these runs.
+PCE_MAX_DST, PCE_MAX_RUNS = 0.02, 400
+
+
+def six_dof_saltelli_reference(n: int = 4096, workers: int | None = None, fmu: Path | None = None,
+                               out: Path = SALTELLI_REFERENCE) -> dict:
+    """Saltelli's indices of the 6-DOF study at base sample ``n`` (n·18 runs; N = 4096 takes minutes on two
+    cores), written to ``out``: the reference :func:`bench_pce_six_dof` compares with."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from fmusa.pipeline.sensitivity import run_sensitivity
+
+    study, stage = _six_dof()
+    if fmu:
+        study = dataclasses.replace(study, fmu=Path(fmu))
+    stage = dataclasses.replace(stage, methods=["sobol"], n=n)
+    runner = SimpleNamespace(evaluator=SimpleNamespace(workers=workers or os.cpu_count(), scheduler=None), simulated=0)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-saltelli-") as tmp:
+        res = run_sensitivity(study, stage, Path(tmp), runner, progress=False, resume=False, accuracy_samples=0)
+    s = res["summary"]
+    ref = {"n": n, "runs": int(s["runs"]), "failed": int(s["failed"]), "rtol": study.fixed.get("rtol"),
+           "sobol": s["sobol"], "wall_s": time.perf_counter() - t0}
+    Path(out).write_text(json.dumps(ref, indent=1) + "\n", encoding="utf-8")
+    return ref
+
+
+def bench_pce_six_dof(max_runs: int = PCE_MAX_RUNS, workers: int | None = None, fmu: Path | None = None,
+                      reference: Path = SALTELLI_REFERENCE) -> dict:
+    """The polynomial chaos method on the 6-DOF study (all 16 inputs, all 7 outputs, budget ``max_runs``,
+    target 1e-3, rounds of 100 runs) against the recorded Saltelli reference: the runs it used, max |ΔST|
+    over every output and input (target ≤ PCE_MAX_DST), where it is, and the reference's own 95 %
+    half-width there."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from fmusa.pipeline.sensitivity import run_sensitivity
+    from fmusa.study.schema import PCEOptions
+
+    ref = json.loads(Path(reference).read_text(encoding="utf-8"))
+    study, stage = _six_dof()
+    if fmu:
+        study = dataclasses.replace(study, fmu=Path(fmu))
+    stage = dataclasses.replace(stage, methods=["pce"], pce=PCEOptions(max_runs=max_runs, target_error=1e-3, batch=100))
+    runner = SimpleNamespace(evaluator=SimpleNamespace(workers=workers or os.cpu_count(), scheduler=None), simulated=0)
+    load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    cpu0, t0 = time.process_time(), time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-pce-") as tmp:
+        res = run_sensitivity(study, stage, Path(tmp), runner, progress=False, resume=False, accuracy_samples=0)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    s = res["summary"]
+    val = s["pce_validation"]
+    worst, where, per_metric = 0.0, "", {}
+    for metric, table in s["pce"].items():
+        d, p = max((abs(table[p]["ST"] - ref["sobol"][metric][p]["ST"]), p) for p in table)
+        per_metric[metric] = {"max_abs_dST": d, "at": p, "validation_error": val["metrics"][metric]["loo_error"],
+                              "trusted": val["metrics"][metric]["trusted"], "degree": val["metrics"][metric]["degree"],
+                              "reference_ST_conf": ref["sobol"][metric][p]["ST_conf"]}
+        if d > worst:
+            worst, where = d, f"{metric} / {p}"
+    return {"pce_six_dof_runs": val["runs"], "pce_six_dof_max_abs_dST": worst, "pce_six_dof_worst": where,
+            "pce_six_dof_target": {"max_abs_dST": PCE_MAX_DST, "runs": PCE_MAX_RUNS},
+            "pce_six_dof_target_met": bool(worst <= PCE_MAX_DST and val["runs"] <= PCE_MAX_RUNS),
+            "pce_six_dof_per_metric": per_metric, "pce_six_dof_reached": val["reached"],
+            "pce_six_dof_rounds": [(r["runs"], r["worst"]) for r in val["rounds"]],
+            "pce_six_dof_wall_s": wall, "pce_six_dof_parent_cpu_s": cpu,
+            "pce_six_dof_reference": {"n": ref["n"], "runs": ref["runs"],
+                                      "max_ST_conf": max(d["ST_conf"] for t in ref["sobol"].values() for d in t.values())},
+            "pce_six_dof_loadavg_1min": [load_before, os.getloadavg()[0] if hasattr(os, "getloadavg") else None]}
+
+
 def sobol_child(runs: int, workers: int, study_path: str | None = None, fmu: str | None = None,
                 cheap: bool = False) -> dict:
     """One Sobol study of about ``runs`` runs, in THIS process (call it in a fresh one): wall time,
@@ -913,6 +988,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pipeline-runs", type=int, default=40000,
                     help="runs of the cheap Sobol study that measures the pipeline's own cost (0 skips it)")
     ap.add_argument("--workers", type=int, default=None, help="pool workers (default: all cores)")
+    ap.add_argument("--no-pce", dest="pce", action="store_false",
+                    help="skip the polynomial chaos on the 6-DOF study against the Saltelli reference")
+    ap.add_argument("--saltelli-reference", action="store_true",
+                    help="first recompute the 6-DOF Saltelli reference (N = 4096, 73,728 runs) it is compared with")
     ap.add_argument("--no-diagnose", dest="diagnose", action="store_false",
                     help="skip the timings of `fmusa diagnose`")
     ap.add_argument("--slow-fmu-workers", default="16",
@@ -979,6 +1058,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"diagnose: one driven run {result['diagnose_run_ms_displacement_baseline']:.2f} ms (baseline, "
               f"300 samples), {result['diagnose_run_ms_force_friction']:.2f} ms (force drive, friction); a "
               f"real unit, 6 candidates: {result['diagnose_shear_unit_wall_s']:.1f} s")
+
+    if args.saltelli_reference:
+        ref = six_dof_saltelli_reference(workers=args.workers, fmu=args.fmu)
+        print(f"Saltelli reference: {ref['runs']} runs in {ref['wall_s']:.0f} s -> {SALTELLI_REFERENCE}")
+    if args.pce:
+        pce = bench_pce_six_dof(workers=args.workers, fmu=args.fmu)
+        result.update(pce)
+        print(f"pce 6-DOF: {pce['pce_six_dof_runs']} runs, max |dST| {pce['pce_six_dof_max_abs_dST']:.4f} at "
+              f"{pce['pce_six_dof_worst']} against Saltelli at N = {pce['pce_six_dof_reference']['n']} (target "
+              f"<= {PCE_MAX_DST} in <= {PCE_MAX_RUNS} runs); {pce['pce_six_dof_wall_s']:.0f} s wall")
 
     pipe = None
     if args.pipeline_runs > 0:

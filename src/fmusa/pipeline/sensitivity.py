@@ -49,7 +49,10 @@ from fmusa.fmi.info import default_fmu_path
 from fmusa.runs.inflight import track_in_flight
 from fmusa.runs.store import RunStore
 from fmusa.runs.progress import progress_bar
-from fmusa.analysis.sensitivity import MORRIS_LEVELS, analyse_morris, analyse_sobol, draw_samples, salib_problem, to_physical
+from fmusa.analysis.sensitivity import (MORRIS_LEVELS, analyse_morris, analyse_sobol, check_sample_size, draw_samples,
+                                       physical_from_sampled, ranking_disagreements, salib_problem,
+                                       sampled_marginals, to_physical, unresolved_orders)
+from fmusa.analysis.pce import analyse_output, sampled_from_unit, unit_design, validation_error
 
 __all__ = ["run_sensitivity",
            "sensitivity_spec", "REFERENCE_RTOL"]
@@ -57,6 +60,9 @@ __all__ = ["run_sensitivity",
 #: Solver tolerance of the accuracy check's reference runs.
 REFERENCE_RTOL = 1e-9
 RUNS_FILE = "sensitivity_runs.csv"
+#: A validation error above this (and above the study's target) says the expansion does not follow the output:
+#: its indices may be off by more than 0.01 (measured on Sobol's G function with a kink), and are not trusted.
+TRUST_ERROR = 0.01
 ACCURACY_FILE = "sensitivity_accuracy.csv"
 #: Parameter sets named per failing metric in its error message; ``failed_runs`` lists up to
 #: ``_MAX_FAILED_LISTED`` (every failed run stays in sensitivity_runs.csv).
@@ -310,6 +316,93 @@ def accuracy_check(study, stage, spec: PlanSpec, store: RunStore, keys: Sequence
     return report, simulated
 
 
+# ---------------------------------------------------------------------------- polynomial chaos
+def pce_rounds(stage, store: RunStore, evaluator, metrics: Sequence[str], outputs: Sequence[str],
+               progress=None) -> tuple[np.ndarray, np.ndarray, list[dict], int]:
+    """Grow the design of the ``pce`` method a batch (one round on the workers) at a time until the
+    leave-one-out error of every output has been at most ``stage.pce.target_error`` after two rounds in
+    a row, or ``stage.pce.max_runs`` have run: (keys, sampled-space design, rounds, runs simulated)."""
+    opt = stage.pce
+    k = len(stage.parameters)
+    batch = opt.batch_size(k)
+    marg = sampled_marginals(stage)
+    out_idx = [list(metrics).index(m) for m in outputs]
+    rounds: list[dict] = []
+    degrees = {m: 1 for m in outputs}        # each round starts two degrees below the last one's best
+    simulated, total, met = 0, 0, 0
+    while True:
+        total = min(total + batch, opt.max_runs)
+        Z = sampled_from_unit(unit_design(total, k, opt.design, stage.seed, batch), marg)
+        keys = _keys(physical_from_sampled(stage, Z))
+        sim = evaluate_keys(store, evaluator, keys, "pce", progress)
+        simulated += sim
+        Y, _failed = _collect(store, keys, metrics)
+        errors = {}
+        for j, m in zip(out_idx, outputs):
+            good = np.isfinite(Y[:, j])
+            errors[m] = float("inf")
+            if good.sum() > k + 1:
+                errors[m], deg = validation_error(Z[good], Y[good, j], marg, opt.max_degree, opt.target_error / 10,
+                                                  max(1, degrees[m] - 2))
+                degrees[m] = max(deg, 1)
+        worst = max(errors.values())
+        rounds.append({"runs": total, "simulated": sim, "failed": int((~np.isfinite(Y[:, out_idx])).any(axis=1).sum()),
+                       "loo_error": errors, "degree": dict(degrees), "worst": worst})
+        met = met + 1 if worst <= opt.target_error else 0
+        if met >= 2 or total >= opt.max_runs:
+            return keys, Z, rounds, simulated
+
+
+def analyse_pce(stage, Z: np.ndarray, Y: np.ndarray, outputs: Sequence[str], rounds: list[dict],
+                messages: list[str]) -> tuple[dict, list[dict], dict, pd.DataFrame]:
+    """The indices of every output from its expansion: (summary table, rows, validation, leave-one-out
+    points). An output whose validation error is above the target is said not to be trusted."""
+    opt = stage.pce
+    names = list(stage.parameters)
+    marg = sampled_marginals(stage)
+    table, rows, val, points = {}, [], {}, []
+    n = len(Z)
+    for j, m in enumerate(outputs):
+        good = np.isfinite(Y[:, j])
+        if good.sum() <= len(names) + 1:
+            messages.append(f"pce: {m}: only {int(good.sum())} of {n} runs have a value; no expansion")
+            continue
+        start = max(1, ((rounds[-1].get("degree") or {}).get(m, 1) if rounds else 1) - 2)
+        tab, v, pred = analyse_output(Z[good], Y[good, j], marg, names, opt.max_degree, opt.bootstrap, stage.seed,
+                                      opt.target_error / 10, start)
+        failed = int((~good).sum())
+        err = v["loo_error"]
+        status = ("not trusted" if err > max(TRUST_ERROR, opt.target_error) or failed else
+                  "above target" if err > opt.target_error else "reached")
+        v.update(runs=n, failed=failed, target_error=opt.target_error, status=status, trusted=status != "not trusted")
+        if status == "not trusted" and err > max(TRUST_ERROR, opt.target_error):
+            messages.append(
+                f"pce: {m}: the validation (leave-one-out) error {err:.2g} is above {max(TRUST_ERROR, opt.target_error):g} "
+                f"after {n} runs (target {opt.target_error:g}): the expansion does not follow this output (a kink, a "
+                f"discontinuity or a region of failed runs does this), so its indices cannot be trusted; use method "
+                f"sobol (Saltelli's scheme) for it")
+        elif status == "above target":
+            messages.append(
+                f"pce: {m}: the validation (leave-one-out) error {err:.2g} is above the target {opt.target_error:g} "
+                f"after {n} runs (the budget): its indices may be off by about that share of the variance; raise "
+                f"pce.max_runs for a closer answer")
+        if failed:
+            messages.append(f"pce: {m}: {failed} of {n} runs failed; the expansion is fitted on the others and "
+                            f"knows nothing of where they failed: its indices cannot be trusted there; use method "
+                            f"sobol after the failures are fixed")
+        table[m], val[m] = tab, v
+        for p_, d in tab.items():
+            rows.append({"metric": m, "parameter": p_, **d})
+        points.append(pd.DataFrame({"metric": m, "run": np.flatnonzero(good), "value": Y[good, j],
+                                    "loo_prediction": pred}))
+    validation = {"metrics": val, "rounds": rounds, "runs": n, "target_error": opt.target_error,
+                  "max_runs": opt.max_runs, "batch": opt.batch_size(len(names)), "design": opt.design,
+                  "reached": bool(rounds and rounds[-1]["worst"] <= opt.target_error)}
+    pts = pd.concat(points, ignore_index=True) if points else pd.DataFrame(
+        columns=["metric", "run", "value", "loo_prediction"])
+    return table, rows, validation, pts
+
+
 # ---------------------------------------------------------------------------- the stage
 def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True, resume: bool | None = None,
                     accuracy_samples: int = 20) -> dict:
@@ -335,10 +428,15 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
     spec = sensitivity_spec(study, stage, base=getattr(runner, "spec", None))
 
     X: dict[str, np.ndarray] = {}
-    keys: dict[str, list[tuple]] = {}
+    keys: dict[str, np.ndarray] = {}
+    messages: list[str] = []
+    if "pce" in stage.methods:
+        check_sample_size(stage, "pce")
     for method in stage.methods:
-        sample = draw_samples(stage, method, problem)
-        keys[method] = _keys(to_physical(stage, sample))
+        if method == "pce":
+            continue
+        sample = draw_samples(stage, method, problem, messages=messages)
+        keys[method] = _keys(to_physical(stage, sample, method))
         if method == "morris":      # the Sobol analysis needs the outputs only: no second copy of its sample
             X[method] = sample
         del sample
@@ -353,9 +451,14 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
             recovered = track_in_flight(store, evaluator, resume)    # runs a crashed session left under way
             try:
                 for method in stage.methods:
-                    made = evaluate_keys(store, evaluator, keys[method], method, progress)
+                    if method == "pce":      # one round of new runs per batch of the design
+                        keys["pce"], Z_pce, pce_round_log, made = pce_rounds(stage, store, evaluator, metrics,
+                                                                             outputs, progress)
+                        batches += sum(r["simulated"] > 0 for r in pce_round_log)
+                    else:
+                        made = evaluate_keys(store, evaluator, keys[method], method, progress)
+                        batches += made > 0
                     simulated += made
-                    batches += made > 0
             finally:
                 evaluator.marker.close()
         eval_wall = time.perf_counter() - t_eval
@@ -370,7 +473,7 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
             for row in failed:
                 failed_all.setdefault(RunStore.key([row[n] for n in names]), row)
             Y = Y[:, out_idx]
-            bad = ~np.isfinite(Y)
+            bad = ~np.isfinite(Y) if method != "pce" else np.zeros(Y.shape, dtype=bool)
             good_cols = [j for j in range(len(outputs)) if not bad[:, j].any()]
             for j in range(len(outputs)):
                 if bad[:, j].any():
@@ -392,11 +495,18 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
             ok_names = [outputs[j] for j in good_cols]
             Yg = Y[:, good_cols]
             if method == "morris":
-                summary[method], rows = analyse_morris(problem, X[method], Yg, ok_names, stage.seed)
+                summary[method], rows = analyse_morris(problem, X[method], Yg, ok_names, stage.seed, messages)
                 cols = ["metric", "parameter", "mu_star", "sigma", "mu_star_conf", "mu"]
-            else:
-                summary[method], rows = analyse_sobol(problem, Yg, ok_names, stage.seed)
+            elif method == "sobol":
+                summary[method], rows = analyse_sobol(problem, Yg, ok_names, stage.seed, messages)
                 cols = ["metric", "parameter", "S1", "S1_conf", "ST", "ST_conf"]
+            else:
+                summary[method], rows, pce_validation, pce_points = analyse_pce(stage, Z_pce, Y, outputs,
+                                                                                pce_round_log, messages)
+                summary["pce_validation"] = pce_validation
+                cols = ["metric", "parameter", "S1", "S1_lo", "S1_hi", "ST", "ST_lo", "ST_hi"]
+                with atomic_path(out / "sensitivity_pce_validation.csv") as tmp:
+                    pce_points.to_csv(tmp, index=False, encoding="utf-8")
             frames[method] = pd.DataFrame(rows, columns=cols)
             with atomic_path(out / f"sensitivity_{method}.csv") as tmp:
                 frames[method].to_csv(tmp, index=False, encoding="utf-8")
@@ -419,7 +529,10 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
 
     failed_list = [{"parameters": {n: float(r[n]) for n in names}, "message": _reason(r["message"], 1000)}
                    for r in list(failed_all.values())[:_MAX_FAILED_LISTED]]
+    statements = sensitivity_statements(stage, summary)
     summary.update(
+        statements=statements,
+        messages=messages,
         runs=len(all_keys),
         samples={m: int(len(keys[m])) for m in stage.methods},
         failed=len(failed_all),
@@ -443,14 +556,40 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
                             "output": study.metrics[m].output, "reduce": study.metrics[m].reduce}
                         for m in outputs},
             "parameters": {p.name: {"variable": p.variable, "unit": p.unit, "distribution": p.distribution,
-                                    "bounds": [float(b) for b in p.bounds]}
+                                    "bounds": None if p.bounds is None else [float(b) for b in p.bounds],
+                                    **({"mean": p.mean, "std": p.std} if p.mean is not None else {})}
                            for p in stage.parameters.values()},
+            **({"pce": dataclasses.asdict(stage.pce)} if "pce" in stage.methods else {}),
         },
     )
     result = {"summary": summary}
-    for m in ("morris", "sobol"):
+    for m in ("morris", "sobol", "pce"):
         result[m] = frames.get(m, pd.DataFrame())
+    if "pce" in stage.methods:
+        result["pce_points"] = pce_points
     return result
+
+
+def sensitivity_statements(stage, summary: Mapping) -> dict[str, dict[str, list[str]]]:
+    """What the indices do not resolve, per method and output: neighbours in the ranking whose intervals
+    overlap, and (under ``morris-vs-sobol`` / ``morris-vs-pce``) where Morris and a variance-based method
+    rank two inputs in opposite order."""
+    size = {"morris": f"r = {stage.morris_trajectories} trajectories", "sobol": f"n = {stage.n}",
+            "pce": f"{(summary.get('pce_validation') or {}).get('runs', '?')} runs"}
+    out: dict[str, dict[str, list[str]]] = {}
+    for method in ("morris", "sobol", "pce"):
+        for metric, table in (summary.get(method) or {}).items():
+            lines = unresolved_orders(method, table, size[method])
+            if lines:
+                out.setdefault(method, {})[metric] = lines
+    for other in ("sobol", "pce"):
+        for metric, table in (summary.get(other) or {}).items():
+            mor = (summary.get("morris") or {}).get(metric)
+            if mor:
+                lines = ranking_disagreements(mor, table, other)
+                if lines:
+                    out.setdefault(f"morris-vs-{other}", {})[metric] = lines
+    return out
 
 
 # ---------------------------------------------------------------------------- figures

@@ -590,6 +590,8 @@ def _sensitivity_rows(summ: Mapping) -> list[Row]:
         if summ.get(key) is not None:
             v = summ[key]
             rows.append((label, fmt(v, 4) if isinstance(v, float) else v))
+    for method, n in (summ.get("samples") or {}).items():
+        rows.append((f"runs of {method}", n))
     acc = summ.get("accuracy_check")
     if isinstance(acc, Mapping) and acc.get("max_rel_diff") is not None:
         rows.append(("accuracy check: largest relative difference to reference runs", fmt(acc["max_rel_diff"], 3)))
@@ -611,22 +613,83 @@ def _sensitivity_figures(ctx: ReportContext, sens, summ) -> tuple[list[Path], st
             return [], f"The sensitivity figures could not be drawn ({type(exc).__name__}: {exc}).\n\n"
 
 
+#: The index each method ranks by, and how its interval is written.
+_RANK_INDEX = {"morris": ("mu_star", "μ*"), "sobol": ("ST", "ST"), "pce": ("ST", "ST")}
+
+
+def _with_interval(method: str, d: Mapping, key: str) -> str:
+    """"value [lo, hi]" of one index, its 95 % interval (Saltelli's and Morris' ± half-width, the polynomial
+    chaos' bootstrap percentiles)."""
+    v = d.get(key)
+    if v is None:
+        return "–"
+    if method == "pce":
+        lo, hi = d.get(f"{key}_lo"), d.get(f"{key}_hi")
+    else:
+        h = d.get(f"{key}_conf")
+        lo, hi = (None, None) if h is None else (v - h, v + h)
+    return f"{fmt(v, 3)} [{fmt(lo, 3)}, {fmt(hi, 3)}]" if lo is not None else fmt(v, 3)
+
+
 def _top_inputs(ctx: ReportContext, summ: Mapping) -> list[Row]:
     rows = []
-    for trail, df in F.index_tables({k: v for k, v in summ.items() if k in ("morris", "sobol")}):
-        col = next((c for c in ("ST", "mu_star", "S1", "sigma") if c in df.columns), None)
-        if col is None or df.empty:
-            continue
-        metric = trail[-1] if len(trail) > 1 else ""
-        top = df[col].astype(float).sort_values(ascending=False).head(4)
-        unit = ctx.u(metric) if col.startswith(("mu", "sigma")) else "–"
-        rows.append((trail[0] if trail else "", metric, f"{col} [{unit}]",
-                     ", ".join(f"{i} ({fmt(v, 3)})" for i, v in top.items())))
+    for method in ("morris", "sobol", "pce"):
+        for metric, tab in (summ.get(method) or {}).items():
+            if not isinstance(tab, Mapping) or not tab:
+                continue
+            key, label = _RANK_INDEX[method]
+            order = sorted((n for n in tab if tab[n].get(key) is not None), key=lambda n: -tab[n][key])[:4]
+            unit = (ctx.u(metric) or "–") if method == "morris" else "–"
+            rows.append((method, metric, f"{label} [{unit}]",
+                         "; ".join(f"{n} {_with_interval(method, tab[n], key)}" for n in order)))
     return rows
 
 
+def _pce_rows(summ: Mapping) -> list[Row]:
+    val = summ.get("pce_validation") or {}
+    rows = []
+    for metric, v in (val.get("metrics") or {}).items():
+        rows.append((metric, fmt(v.get("loo_error"), 2), fmt(v.get("target_error"), 2), v.get("degree"),
+                     v.get("terms"), v.get("runs"), v.get("failed"),
+                     v.get("status", "") if v.get("trusted") else "**not trusted**"))
+    return rows
+
+
+def _pce_text(summ: Mapping) -> str:
+    val = summ.get("pce_validation") or {}
+    if not val:
+        return ""
+    out = (f"Polynomial chaos: a sparse expansion fitted on {val.get('runs')} runs ({val.get('design')} design, "
+           f"{len(val.get('rounds') or [])} rounds of up to {val.get('batch')} runs, budget {val.get('max_runs')}), "
+           f"{'stopped at its target' if val.get('reached') else 'stopped by its budget, target not reached'}. "
+           f"The validation error is the leave-one-out error (corrected for the basis size) as a share of the "
+           f"output's variance; above the target the indices may be off by about that share, above 0.01 the "
+           f"expansion does not follow the output and its indices are not trusted. Intervals: 95 % bootstrap over the "
+           f"design (they do not hold the expansion's own error, which the validation error measures).\n\n")
+    rows = _pce_rows(summ)
+    if rows:
+        out += table(["output", "validation error", "target", "degree", "terms", "runs", "failed", "verdict"],
+                     rows) + "\n\n"
+    return out
+
+
+def _statements_text(summ: Mapping) -> str:
+    """What the indices do not resolve, and the stage's notes (SALib's warnings among them)."""
+    lines = []
+    for group, per in (summ.get("statements") or {}).items():
+        for metric, items in per.items():
+            for it in items:
+                lines.append(f"- {group} / {metric}: {it}")
+    for m in summ.get("messages") or []:     # SALib's words among them: escaped
+        lines.append(f"- {md_text(m)}")
+    if not lines:
+        return ""
+    return "What these indices do not tell:\n\n" + "\n".join(lines) + "\n\n"
+
+
 def sensitivity_section(ctx: ReportContext) -> str:
-    """The global sensitivity analysis: its runs, its figures and the most influential inputs."""
+    """The global sensitivity analysis: its runs, its figures, the most influential inputs with their
+    intervals, the polynomial chaos' validation, and what the indices do not resolve."""
     sens = ctx.result.sensitivity
     if sens is None:
         return ""
@@ -639,18 +702,24 @@ def sensitivity_section(ctx: ReportContext) -> str:
     rows = _sensitivity_rows(summ) if isinstance(summ, Mapping) else []
     if rows:
         out += table(["item", "value"], rows) + "\n\n"
+    if isinstance(summ, Mapping):
+        out += _pce_text(summ)
     paths, err = _sensitivity_figures(ctx, sens, summ)
     out += err
+    captions = {"sensitivity_morris.png": "Morris screening: μ* (mean absolute elementary effect) against σ per output.",
+                "sensitivity_sobol.png": "Sobol first-order (S1) and total (ST) indices per output (Saltelli's scheme).",
+                "sensitivity_pce.png": "Sobol indices from the polynomial chaos expansion, with bootstrap intervals.",
+                "sensitivity_pce_validation.png": "Polynomial chaos validation: runs against leave-one-out predictions."}
     for p in map(Path, paths):
-        cap = ("Morris screening: μ* (mean absolute elementary effect) against σ per output."
-               if "morris" in p.name else "Sobol first-order (S1) and total (ST) indices per output."
-               if "sobol" in p.name else "Sensitivity indices.")
+        cap = captions.get(p.name, "Sensitivity indices.")
         ctx.add_figure(p.name, cap)
         out += figure_markdown(p.name, cap)
     trows = _top_inputs(ctx, summ) if isinstance(summ, Mapping) else []
     if trows:
-        out += "The four most influential inputs per output:\n\n"
-        out += table(["method", "output", "index", "largest (value)"], trows) + "\n\n"
+        out += "The four most influential inputs per output, with 95 % intervals:\n\n"
+        out += table(["method", "output", "index", "largest: value [95 % interval]"], trows) + "\n\n"
+    if isinstance(summ, Mapping):
+        out += _statements_text(summ)
     for method, per in ((summ.get("errors") if isinstance(summ, Mapping) else None) or {}).items():
         for metric, msg in (per or {}).items():
             out += f"- {method} / {metric}: {msg[:400]}\n"

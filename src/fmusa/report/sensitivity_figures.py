@@ -1,4 +1,6 @@
-"""Figures of a global sensitivity analysis: Morris μ*–σ and Sobol S1/ST bars, from the results it is given."""
+"""Figures of a global sensitivity analysis, from the results they are given: Morris μ*–σ, Sobol S1/ST bars
+(Saltelli's scheme or the polynomial chaos) with their 95 % intervals, and the polynomial chaos' validation
+(each run against its leave-one-out prediction)."""
 from __future__ import annotations
 
 import math
@@ -10,6 +12,9 @@ import numpy as np
 
 from fmusa.analysis.sensitivity import MORRIS_LEVELS
 from fmusa.files import atomic_path
+
+#: Width and height of one panel [in], and the resolution: a page holds two panels side by side.
+PANEL_W, PANEL_H, DPI = 6.2, 3.3, 130
 
 
 def _tables(result: Mapping) -> tuple[dict, dict]:
@@ -23,118 +28,207 @@ def _unit(meta: Mapping, metric: str) -> str:
     return u or "–"
 
 
+def _grid(n: int) -> tuple[int, int]:
+    """Rows and columns of ``n`` panels: one column up to three panels, two beyond."""
+    ncols = 1 if n <= 3 else 2
+    return math.ceil(n / ncols), ncols
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=DPI)
+    finally:
+        plt.close(fig)
+    return path
+
+
+def _suptitle(fig, text: str, fontsize: float = 9.5) -> None:
+    """A figure title wrapped to the figure's width."""
+    chars = int(fig.get_figwidth() * 72 / (0.55 * fontsize))
+    fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize)
+
+
+def _title(meta: Mapping, metric: str, with_unit: bool = True) -> str:
+    desc = meta.get("metrics", {}).get(metric, {}).get("description", "")
+    head = f"{metric} [{_unit(meta, metric)}]" if with_unit else metric
+    return textwrap.shorten(head + (f": {desc}" if desc else ""), 80, placeholder="…")
+
+
+def _morris_figure(morris: Mapping, meta: Mapping, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+    metrics = list(morris)
+    nr, nc = _grid(len(metrics))
+    fig, axes = plt.subplots(nr, nc, figsize=(PANEL_W * nc, (PANEL_H + 0.9) * nr + 0.4),
+                             squeeze=False, layout="constrained")
+    for ax, metric in zip(axes.flat, metrics):
+        tab = morris[metric]
+        names = list(tab)
+        mu = np.array([tab[n]["mu_star"] or 0.0 for n in names])
+        sg = np.array([tab[n]["sigma"] or 0.0 for n in names])
+        ci = np.array([tab[n]["mu_star_conf"] or 0.0 for n in names])
+        u = _unit(meta, metric)
+        top = max(float(np.max(mu + ci)), float(sg.max()))
+        if not top > 0:      # no input moves this output: say so, no axis of nothing
+            ax.text(0.5, 0.5, "no input changes this output\n(every elementary effect is 0)", ha="center",
+                    va="center", transform=ax.transAxes, fontsize=9)
+            ax.set_xlim(0, 1)
+            ax.set_ylim(0, 1)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        else:
+            ax.errorbar(mu, sg, xerr=ci, fmt="o", ms=5, color="C0", ecolor="0.55", elinewidth=1, capsize=2,
+                        label="μ* with its 95 % interval")
+            ax.plot([0, top * 1.15], [0, top * 1.15], ls="--", lw=0.8, color="0.5", label="σ = μ*")
+            minor = []
+            for n, x, y in zip(names, mu, sg):
+                if x >= 0.03 * top or y >= 0.03 * top:
+                    ax.annotate(n, (x, y), xytext=(4, 4), textcoords="offset points", fontsize=8, color="C3")
+                else:
+                    minor.append(n)
+            if minor:
+                ax.text(0.98, 0.02, textwrap.fill("< 3 % of the largest: " + ", ".join(minor), 50),
+                        transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.35")
+            ax.set_xlim(0, 1.15 * top)          # every error bar inside; same scale on both axes
+            ax.set_ylim(0, 1.15 * top)
+            ax.ticklabel_format(style="sci", scilimits=(-3, 3), axis="both")
+            ax.legend(fontsize=7, loc="upper left")
+        ax.set_title(_title(meta, metric, False), fontsize=9)
+        ax.set_xlabel(f"μ* (mean |elementary effect|) [{u}]", fontsize=8.5)
+        ax.set_ylabel(f"σ of elementary effects [{u}]", fontsize=8.5)
+        ax.grid(alpha=0.3)
+    for ax in axes.flat[len(metrics):]:
+        ax.set_visible(False)
+    levels = meta.get("morris_levels", MORRIS_LEVELS)
+    step = f"{levels / (2 * (levels - 1)):.3g}" if isinstance(levels, int) and levels > 1 else "Δ"
+    _suptitle(fig, f"Morris screening ({meta.get('morris_trajectories', '?')} trajectories, {levels} levels): change "
+                   f"of the output per step of {step} × the input's range (log10 range for log-uniform inputs, "
+                   f"quantile range for normal ones)")
+    return _save(fig, path)
+
+
+def _index_columns(tab: Mapping, names, method: str):
+    """Values and (lower, upper) error-bar lengths of S1 and ST: Saltelli's ± half-widths, the polynomial
+    chaos' bootstrap percentiles."""
+    def col(k):
+        return np.array([tab[n].get(k) if tab[n].get(k) is not None else np.nan for n in names], dtype=float)
+    out = {}
+    for k in ("S1", "ST"):
+        v = col(k)
+        if method == "pce":
+            lo, hi = col(f"{k}_lo"), col(f"{k}_hi")
+            err = np.vstack([np.clip(v - lo, 0, None), np.clip(hi - v, 0, None)])
+        else:
+            h = np.nan_to_num(col(f"{k}_conf"))
+            err = np.vstack([h, h])
+        out[k] = (v, err)
+    return out
+
+
+def _indices_figure(table: Mapping, meta: Mapping, path: Path, title: str, method: str,
+                    notes: Mapping | None = None) -> Path:
+    import matplotlib.pyplot as plt
+    metrics = list(table)
+    nr, nc = _grid(len(metrics))
+    fig, axes = plt.subplots(nr, nc, figsize=(PANEL_W * nc, PANEL_H * nr + 0.5), squeeze=False,
+                             layout="constrained")
+    for ax, metric in zip(axes.flat, metrics):
+        tab = table[metric]
+        names = list(tab)
+        xs = np.arange(len(names))
+        cols = _index_columns(tab, names, method)
+        w = 0.38
+        for (k, (v, err)), dx, color, label in zip(cols.items(), (-w / 2, w / 2), ("C0", "C1"),
+                                                    ("S1 (first order)", "ST (total)")):
+            ax.bar(xs + dx, v, w, yerr=err, capsize=1.5, color=color, label=label,
+                   error_kw={"elinewidth": 0.8, "ecolor": "0.2"})
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_xticks(xs)
+        ax.set_xticklabels(names, rotation=60 if len(names) > 6 else 0, ha="right" if len(names) > 6 else "center",
+                           fontsize=7.5)
+        ax.set_ylabel("share of variance [–]", fontsize=8.5)
+        t = _title(meta, metric)
+        note = (notes or {}).get(metric)
+        if note:
+            t += f"\n{note}"
+        ax.set_title(t, fontsize=8.5, color="C3" if note and "not trusted" in note else "k")
+        tops = [np.nanmax(v + e[1]) if np.isfinite(v).any() else 1.0 for v, e in cols.values()]
+        lows = [np.nanmin(v - e[0]) if np.isfinite(v).any() else 0.0 for v, e in cols.values()]
+        ax.set_ylim(min(min(lows) - 0.05, -0.05), max(max(tops) + 0.05, 1.05))
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(fontsize=7, loc="upper right")
+    for ax in axes.flat[len(metrics):]:
+        ax.set_visible(False)
+    _suptitle(fig, title)
+    return _save(fig, path)
+
+
+def _pce_validation_figure(points, validation: Mapping, meta: Mapping, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+    metrics = [m for m in validation.get("metrics", {}) if (points["metric"] == m).any()]
+    n = len(metrics)
+    ncols = min(n, 3) if n > 1 else 1
+    nrows = math.ceil(n / ncols)
+    side = 3.3
+    fig, axes = plt.subplots(nrows, ncols, figsize=(max(side * ncols + 0.4, 4.6), side * nrows + 0.8),
+                             squeeze=False, layout="constrained")
+    for ax, metric in zip(axes.flat, metrics):
+        d = points[points["metric"] == metric]
+        v = validation["metrics"][metric]
+        y, p = d["value"].to_numpy(float), d["loo_prediction"].to_numpy(float)
+        ok = v.get("trusted", True)
+        ax.plot(y, p, "o", ms=3, color="C0" if ok else "C3", alpha=0.7)
+        lo, hi = float(np.nanmin([y.min(), p.min()])), float(np.nanmax([y.max(), p.max()]))
+        pad = 0.05 * (hi - lo or 1.0)
+        ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], color="0.4", lw=0.8, ls="--")
+        ax.set_xlim(lo - pad, hi + pad)
+        ax.set_ylim(lo - pad, hi + pad)
+        ax.set_aspect("equal")
+        u = _unit(meta, metric)
+        ax.set_xlabel(f"run [{u}]", fontsize=8)
+        ax.set_ylabel(f"leave-one-out prediction [{u}]", fontsize=8)
+        ax.ticklabel_format(style="sci", scilimits=(-3, 3), axis="both")
+        ax.tick_params(labelsize=7)
+        ax.set_title(f"{metric}: error {v['loo_error']:.2g} (target {v.get('target_error', '?'):g})"
+                     + ("" if ok else "\nnot trusted: use method sobol"), fontsize=8.5,
+                     color="k" if ok else "C3")
+        ax.grid(alpha=0.3)
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
+    _suptitle(fig, f"Polynomial chaos validation: each of the {validation.get('runs', '?')} runs against the "
+                   f"expansion fitted without it (on the dashed line: predicted exactly)", 9)
+    return _save(fig, path)
+
+
 def plot_sensitivity(result: Mapping, figdir: str | Path) -> list[Path]:
-    """``sensitivity_morris.png`` (μ* against σ per metric, points labelled with the parameter) and
-    ``sensitivity_sobol.png`` (S1 and ST per parameter per metric with their 95 % confidence
-    intervals) in ``figdir``. ``result`` is run_sensitivity's result or its summary."""
+    """``sensitivity_morris.png`` (μ* against σ per metric), ``sensitivity_sobol.png`` (S1 and ST per
+    parameter per metric with their 95 % intervals), and for the polynomial chaos ``sensitivity_pce.png``
+    (its indices with their bootstrap intervals) and ``sensitivity_pce_validation.png`` (runs against
+    leave-one-out predictions; needs ``result["pce_points"]``) in ``figdir``. ``result`` is
+    run_sensitivity's result or its summary."""
     import matplotlib
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     summary, meta = _tables(result)
     figdir = Path(figdir)
     figdir.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
-
-    def grid(n):
-        ncols = 2 if n > 1 else 1
-        return math.ceil(n / ncols), ncols
-
-    morris = summary.get("morris") or {}
-    if morris:
-        metrics = list(morris)
-        nr, nc = grid(len(metrics))
-        fig, axes = plt.subplots(nr, nc, figsize=(6.4 * nc, 4.6 * nr), squeeze=False)
-        for ax, metric in zip(axes.flat, metrics):
-            tab = morris[metric]
-            names = list(tab)
-            mu = np.array([tab[n]["mu_star"] or 0.0 for n in names])
-            sg = np.array([tab[n]["sigma"] or 0.0 for n in names])
-            ci = np.array([tab[n]["mu_star_conf"] or 0.0 for n in names])
-            ax.errorbar(mu, sg, xerr=ci, fmt="o", ms=5, color="C0", ecolor="0.6", elinewidth=1, capsize=2)
-            top = max(float(mu.max()), float(sg.max()), 1e-300)
-            ax.plot([0, top * 1.2], [0, top * 1.2], ls="--", lw=0.8, color="0.5", label="σ = μ*")
-            thresh = 0.03 * top
-            minor = []
-            for n, x, y in zip(names, mu, sg):
-                if x >= thresh or y >= thresh:
-                    ax.annotate(n, (x, y), xytext=(4, 4), textcoords="offset points", fontsize=8.5,
-                                color="C3")
-                else:
-                    minor.append(n)
-            u = _unit(meta, metric)
-            desc = meta.get("metrics", {}).get(metric, {}).get("description", "")
-            title = f"{metric}" + (f": {desc}" if desc else "")
-            if minor:
-                title += "\n" + textwrap.fill("< 3 % of the largest: " + ", ".join(minor), 95)
-            ax.set_title(title, fontsize=9)
-            ax.set_xlabel(f"μ* (mean |elementary effect|) [{u}]")
-            ax.set_ylabel(f"σ (std. of elementary effects) [{u}]")
-            ax.set_xlim(left=0, right=1.25 * top)      # same scale on both axes: σ/μ* is the slope
-            ax.set_ylim(bottom=0, top=1.25 * top)
-            ax.ticklabel_format(style="sci", scilimits=(-3, 3), axis="both")
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=7, loc="upper left")
-        for ax in axes.flat[len(metrics):]:
-            ax.set_visible(False)
-        levels = meta.get("morris_levels", MORRIS_LEVELS)
-        step = f"{levels / (2 * (levels - 1)):.3g}" if isinstance(levels, int) and levels > 1 else "Δ"
-        fig.suptitle(f"Morris screening ({meta.get('morris_trajectories', '?')} trajectories, {levels} levels): "
-                     f"change of the metric per step of {step} × the input's range (log10 range for "
-                     f"log-uniform inputs); bars: 95 % CI of μ*", fontsize=10)
-        fig.tight_layout(rect=(0, 0, 1, 0.97))
-        p = figdir / "sensitivity_morris.png"
-        try:
-            with atomic_path(p) as tmp:
-                fig.savefig(tmp, dpi=130)
-        finally:
-            plt.close(fig)
-        paths.append(p)
-
-    sobol = summary.get("sobol") or {}
-    if sobol:
-        metrics = list(sobol)
-        nr, nc = grid(len(metrics))
-        fig, axes = plt.subplots(nr, nc, figsize=(7.2 * nc, 3.6 * nr), squeeze=False)
-        for ax, metric in zip(axes.flat, metrics):
-            tab = sobol[metric]
-            names = list(tab)
-            xs = np.arange(len(names))
-
-            def col(k):
-                return np.array([tab[n][k] if tab[n][k] is not None else np.nan for n in names])
-            w = 0.38
-            ax.bar(xs - w / 2, col("S1"), w, yerr=col("S1_conf"), capsize=2, color="C0", label="S1 (first order)",
-                   error_kw={"elinewidth": 0.8})
-            ax.bar(xs + w / 2, col("ST"), w, yerr=col("ST_conf"), capsize=2, color="C1", label="ST (total)",
-                   error_kw={"elinewidth": 0.8})
-            ax.axhline(0, color="k", lw=0.6)
-            ax.set_xticks(xs)
-            ax.set_xticklabels(names, rotation=60, ha="right", fontsize=8)
-            n_force = sum(1 for n in names if n[:2] in ("c_", "d_"))
-            if 0 < n_force < len(names):   # force-element parameters | mass properties
-                ax.axvline(n_force - 0.5, color="0.6", lw=0.8, ls=":")
-            ax.set_ylabel("Sobol index [–] (share of variance)")
-            u = _unit(meta, metric)
-            desc = meta.get("metrics", {}).get(metric, {}).get("description", "")
-            ax.set_title(f"{metric} [{u}]" + (f": {desc}" if desc else ""), fontsize=9.5)
-            hi = np.nanmax(np.concatenate([col("ST") + np.nan_to_num(col("ST_conf")), [1.0]]))
-            lo = np.nanmin(np.concatenate([col("S1") - np.nan_to_num(col("S1_conf")), [0.0]]))
-            ax.set_ylim(max(lo - 0.05, -0.3), min(hi + 0.05, 1.5))
-            ax.grid(axis="y", alpha=0.3)
-            ax.legend(fontsize=7, loc="upper right")
-        for ax in axes.flat[len(metrics):]:
-            ax.set_visible(False)
+    if summary.get("morris"):
+        paths.append(_morris_figure(summary["morris"], meta, figdir / "sensitivity_morris.png"))
+    if summary.get("sobol"):
         samples = (summary.get("samples") or {}).get("sobol", "?")
-        fig.suptitle(f"Sobol indices (N = {meta.get('n', '?')}, {samples} runs, no second order; "
-                     f"bars: 95 % confidence intervals)", fontsize=10)
-        fig.tight_layout(rect=(0, 0, 1, 0.97))
-        p = figdir / "sensitivity_sobol.png"
-        try:
-            with atomic_path(p) as tmp:
-                fig.savefig(tmp, dpi=130)
-        finally:
-            plt.close(fig)
-        paths.append(p)
+        paths.append(_indices_figure(summary["sobol"], meta, figdir / "sensitivity_sobol.png",
+                                     f"Sobol indices by Saltelli's scheme (n = {meta.get('n', '?')}, {samples} runs, "
+                                     f"no second order); bars: 95 % confidence intervals", "sobol"))
+    if summary.get("pce"):
+        val = summary.get("pce_validation") or {}
+        notes = {m: (f"validation error {v['loo_error']:.2g}" + ("" if v.get("trusted", True) else ": not trusted"))
+                 for m, v in (val.get("metrics") or {}).items()}
+        paths.append(_indices_figure(summary["pce"], meta, figdir / "sensitivity_pce.png",
+                                     f"Sobol indices from a sparse polynomial chaos ({val.get('runs', '?')} runs); "
+                                     f"bars: 95 % bootstrap intervals over the design", "pce", notes))
+        points = result.get("pce_points") if isinstance(result, Mapping) else None
+        if points is not None and len(points):
+            paths.append(_pce_validation_figure(points, val, meta, figdir / "sensitivity_pce_validation.png"))
     return paths
-

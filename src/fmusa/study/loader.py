@@ -16,6 +16,8 @@ from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 from fmusa.runs.worker import START_METHODS
 from fmusa.study.schema import (
     Constraint, DISTRIBUTIONS, Execution, FMUOptions, FixedValue, GridStage, INTERFACES, METHODS, Metric, Parameter, REDUCTIONS, RegressionStage, RoiStage, SAMPLED_REDUCTIONS, SOLVERS, STAGE_NAMES, Scenario, SearchStage, SensitivityParameter, SensitivityStage, Study, StudyError, IDENTIFIER,
+    PCEOptions, DESIGNS, ENV_MAX_SENSITIVITY_RUNS, MIN_MORRIS_TRAJECTORIES, max_sensitivity_runs, smallest_sobol_n,
+    nearest_powers_of_two,
 )
 
 # ============================================================================ YAML plumbing
@@ -735,10 +737,113 @@ def _parse_regression(p: _Parser, m: _Map, where: str, parameters: Mapping,
     return RegressionStage(x=x, y=y, by=by, degree=degree, source=source)
 
 
+def _parse_sensitivity_parameter(p: _Parser, sm: _Map, name: str, w: str, var: str) -> SensitivityParameter:
+    """One input: its distribution and the keys that distribution needs (bounds, or mean and std)."""
+    dnode = sm.opt("distribution")
+    dist = "uniform" if dnode is None else p.choice(dnode, "distribution", w, DISTRIBUTIONS, "distribution")
+    bounds = None
+    bnode = sm.opt("bounds")
+    if dist in ("normal", "lognormal"):
+        if bnode is not None:
+            raise p.error(bnode, f"{_key('bounds', w)}: a {dist} distribution has no bounds (it is given by "
+                                 f"mean and std); remove 'bounds', or use distribution: truncnormal to cut a "
+                                 f"normal to [lo, hi]")
+    else:
+        bnode = sm.need("bounds", "bounds: [1.0e5, 1.0e7]")
+        lo, hi = p.pair(bnode, "bounds", w, "bounds: [1.0e5, 1.0e7]", p.number)
+        if not lo < hi:
+            raise p.error(bnode, f"{_key('bounds', w)} must be [lo, hi] with lo < hi, got "
+                                 f"[{lo:g}, {hi:g}]; "
+                                 + ("swap them" if lo > hi else "widen the range"))
+        if dist == "loguniform" and lo <= 0:
+            raise p.error(bnode, f"{_key('bounds', w)}: a loguniform distribution needs lo > 0, got "
+                                 f"[{lo:g}, {hi:g}]; use a positive lower bound or distribution: "
+                                 f"uniform")
+        bounds = (lo, hi)
+    mean = std = None
+    if dist in ("normal", "truncnormal", "lognormal"):
+        mean = p.number(sm.need("mean", "mean: 1.0e6"), "mean", w, "mean: 1.0e6",
+                        positive=dist == "lognormal")
+        std = p.number(sm.need("std", "std: 2.0e5"), "std", w, "std: 2.0e5", positive=True)
+        if dist == "truncnormal":
+            from scipy.stats import norm
+            mass = norm.cdf((bounds[1] - mean) / std) - norm.cdf((bounds[0] - mean) / std)
+            if not mass > 1e-9:
+                raise p.error(bnode, f"{_key('bounds', w)}: [{bounds[0]:g}, {bounds[1]:g}] holds "
+                                     f"almost none of the normal of mean {mean:g} and std {std:g} (a share "
+                                     f"{mass:.1e}); move the bounds to where the normal is, or the mean")
+    else:
+        for key in ("mean", "std"):
+            if sm.opt(key) is not None:
+                raise p.error(sm.items[key][1], f"{_key(key, w)} is for a normal, truncnormal or lognormal "
+                                                f"distribution, not {dist}; remove it or set distribution")
+    return SensitivityParameter(name=name, variable=var, bounds=bounds, distribution=dist,
+                                unit=sm.text("unit"), mean=mean, std=std)
+
+
+def _parse_pce(p: _Parser, m: _Map, where: str, k: int) -> PCEOptions:
+    node = m.opt("pce")
+    if node is None:
+        return PCEOptions()
+    w = f"{where}.pce"
+    pm = p.mapping(node, w, "pce", m.key_node("pce"))
+    pm.allow(("target_error", "max_runs", "batch", "design", "max_degree", "bootstrap"))
+    target = pm.num("target_error", 1e-3, "target_error: 0.001", positive=True)
+    if not target < 1:
+        raise p.error(pm.items["target_error"][1], f"{_key('target_error', w)} must be below 1 (it is a "
+                                                   f"share of the output's variance), got {target:g}; "
+                                                   f"e.g. target_error: 0.001")
+    batch = pm.int_("batch", None, "batch: 50", minimum=2)
+    size = batch or max(16, 4 * k)
+    max_runs = pm.int_("max_runs", 400, "max_runs: 400", minimum=2)
+    if max_runs < size:
+        raise p.error(pm.items["max_runs"][1] if "max_runs" in pm else pm.owner,
+                      f"{_key('max_runs', w)} = {max_runs} is less than one batch ({size} runs); "
+                      f"raise max_runs to at least {size} or lower batch")
+    design = "sobol" if pm.opt("design") is None else p.choice(pm.items["design"][1], "design", w, DESIGNS,
+                                                                 "design")
+    return PCEOptions(target_error=target, max_runs=max_runs, batch=batch, design=design,
+                      max_degree=pm.int_("max_degree", 20, "max_degree: 20", minimum=1),
+                      bootstrap=pm.int_("bootstrap", 200, "bootstrap: 200", minimum=20))
+
+
+def _check_sensitivity_size(p: _Parser, m: _Map, where: str, methods, n: int, r: int, k: int,
+                            pce: PCEOptions) -> None:
+    """Saltelli's n a power of 2 and at least the smallest useful one; every method's runs under the cap."""
+    cap = max_sensitivity_runs()
+    raise_it = (f"a larger study needs {ENV_MAX_SENSITIVITY_RUNS} set above it (the samples are held in "
+                f"memory: about {8 * (k + 1)} bytes per run)")
+    if "sobol" in methods:
+        node = m.items["n"][1] if "n" in m else m.owner
+        runs = n * (k + 2)
+        if runs > cap:
+            raise p.error(node, f"{_key('n', where)} = {n} asks for n·(k + 2) = {runs:,} Sobol runs with "
+                                f"{k} inputs, more than the cap of {cap:,}; lower n (method pce needs far "
+                                f"fewer runs), or {raise_it}")
+        least = smallest_sobol_n(k)
+        if n < least:
+            raise p.error(node, f"{_key('n', where)} = {n} is too small for {k} inputs: the indices would "
+                                f"be noise with intervals wider than [0, 1]; the smallest useful n is {least} "
+                                f"({least * (k + 2)} runs), or use method pce for expensive runs")
+        lo, hi = nearest_powers_of_two(n)
+        if lo != n:
+            raise p.error(node, f"{_key('n', where)} = {n} is not a power of 2, and Saltelli's sample "
+                                f"(a Sobol sequence) loses its balance and convergence properties "
+                                f"elsewhere; use n: {lo} or n: {hi}")
+    if "morris" in methods:
+        node = m.items["morris_trajectories"][1] if "morris_trajectories" in m else m.owner
+        if r * (k + 1) > cap:
+            raise p.error(node, f"{_key('morris_trajectories', where)} = {r} asks for r·(k + 1) = "
+                                f"{r * (k + 1):,} runs, more than the cap of {cap:,}; lower it, or {raise_it}")
+    if pce.max_runs > cap:
+        raise p.error(m.items["pce"][1], f"{_key('max_runs', where + '.pce')} = {pce.max_runs:,} is more "
+                                         f"than the cap of {cap:,}; lower it, or {raise_it}")
+
+
 def _parse_sensitivity(p: _Parser, m: _Map, where: str, metrics: Mapping,
                        fixed: Mapping) -> SensitivityStage:
-    m.allow(("methods", "n", "morris_trajectories", "seed", "outputs", "parameters"))
-    methods = list(METHODS)
+    m.allow(("methods", "n", "morris_trajectories", "seed", "outputs", "parameters", "pce"))
+    methods = ["morris", "sobol"]
     mnode = m.opt("methods")
     if mnode is not None:
         items = p.sequence(mnode, "methods", where, "methods: [morris, sobol]")
@@ -767,7 +872,7 @@ def _parse_sensitivity(p: _Parser, m: _Map, where: str, metrics: Mapping,
                                  f"parameter (parameters and metrics share result tables)")
         w = f"{pw}.{name}"
         sm = p.mapping(vnode, w, name, knode)
-        sm.allow(("variable", "bounds", "distribution", "unit"))
+        sm.allow(("variable", "bounds", "distribution", "mean", "std", "unit"))
         varnode = sm.need("variable", f"variable: {name}")
         var = p.string(varnode, "variable", w, f"variable: {name}")
         p.mark(f"{w}.variable", varnode)
@@ -778,27 +883,16 @@ def _parse_sensitivity(p: _Parser, m: _Map, where: str, metrics: Mapping,
             raise p.error(varnode, f"{_key('variable', w)}: FMU variable {var!r} is also in 'fixed', "
                                    f"which would override the sample; remove it from 'fixed'")
         seen[var] = name
-        dnode = sm.opt("distribution")
-        dist = "uniform" if dnode is None else p.choice(dnode, "distribution", w, DISTRIBUTIONS,
-                                                        "distribution")
-        bnode = sm.need("bounds", "bounds: [1.0e5, 1.0e7]")
-        lo, hi = p.pair(bnode, "bounds", w, "bounds: [1.0e5, 1.0e7]", p.number)
-        if not lo < hi:
-            raise p.error(bnode, f"{_key('bounds', w)} must be [lo, hi] with lo < hi, got "
-                                 f"[{lo:g}, {hi:g}]; "
-                                 + ("swap them" if lo > hi else "widen the range"))
-        if dist == "loguniform" and lo <= 0:
-            raise p.error(bnode, f"{_key('bounds', w)}: a loguniform distribution needs lo > 0, got "
-                                 f"[{lo:g}, {hi:g}]; use a positive lower bound or distribution: "
-                                 f"uniform")
-        params[name] = SensitivityParameter(name=name, variable=var, bounds=(lo, hi),
-                                            distribution=dist, unit=sm.text("unit"))
+        params[name] = _parse_sensitivity_parameter(p, sm, name, w, var)
+    k = len(params)
+    n = m.int_("n", 1024, "n: 1024", minimum=1)
+    r = m.int_("morris_trajectories", 20, "morris_trajectories: 20", minimum=MIN_MORRIS_TRAJECTORIES)
+    pce = _parse_pce(p, m, where, k)
+    _check_sensitivity_size(p, m, where, methods, n, r, k, pce)
     return SensitivityStage(
-        methods=methods,
-        n=m.int_("n", 1024, "n: 1024", minimum=1),
-        morris_trajectories=m.int_("morris_trajectories", 20, "morris_trajectories: 20", minimum=2),
+        methods=methods, n=n, morris_trajectories=r,
         seed=m.int_("seed", 1, "seed: 1", minimum=0),
-        outputs=outputs, parameters=params)
+        outputs=outputs, parameters=params, pce=pce)
 
 
 def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,

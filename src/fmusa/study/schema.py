@@ -39,7 +39,8 @@ __all__ = [
     "StudyError", "Study", "Parameter", "Scenario", "Metric", "Constraint", "GridStage", "RoiStage",
     "SearchStage", "RegressionStage", "SensitivityStage", "SensitivityParameter", "Execution", "FixedValue",
     "FMUOptions", "INTERFACES", "SOLVERS", "STAGE_NAMES", "REDUCTIONS", "SAMPLED_REDUCTIONS", "METHODS",
-    "DISTRIBUTIONS",
+    "DISTRIBUTIONS", "PCEOptions", "DESIGNS", "MAX_SENSITIVITY_RUNS", "ENV_MAX_SENSITIVITY_RUNS",
+    "max_sensitivity_runs", "smallest_sobol_n", "nearest_powers_of_two", "MIN_SOBOL_N", "MIN_MORRIS_TRAJECTORIES",
 ]
 
 #: Stage names, in the order they are normally run.
@@ -48,9 +49,45 @@ STAGE_NAMES = ("grid", "roi", "search", "regression", "sensitivity")
 # value sits at one sample: what ``scenario.refine_peaks`` refines) come from fmusa.runs.metrics, which
 # applies them.
 #: Global sensitivity methods.
-METHODS = ("morris", "sobol")
+METHODS = ("morris", "sobol", "pce")
 #: Distributions of sensitivity parameters.
-DISTRIBUTIONS = ("uniform", "loguniform")
+DISTRIBUTIONS = ("uniform", "loguniform", "normal", "truncnormal", "lognormal")
+#: Experimental designs of the polynomial chaos method.
+DESIGNS = ("sobol", "lhs")
+#: Most runs one sensitivity method may ask for (Saltelli's n·(k + 2), Morris' r·(k + 1), the pce budget):
+#: like the grid's cap, far beyond a study on a few cores, and small enough that the samples themselves are
+#: never what exhausts memory. ``FMUSA_MAX_SENSITIVITY_RUNS`` raises it.
+MAX_SENSITIVITY_RUNS = 1_000_000
+ENV_MAX_SENSITIVITY_RUNS = "FMUSA_MAX_SENSITIVITY_RUNS"
+#: The smallest Saltelli base sample size and Morris trajectory count whose indices are worth reporting.
+MIN_SOBOL_N = 64
+MIN_MORRIS_TRAJECTORIES = 4
+
+
+def max_sensitivity_runs() -> int:
+    """The cap on one sensitivity method's runs: ``$FMUSA_MAX_SENSITIVITY_RUNS`` or
+    :data:`MAX_SENSITIVITY_RUNS`."""
+    import os
+    raw = os.environ.get(ENV_MAX_SENSITIVITY_RUNS, "").strip()
+    try:
+        return max(1, int(raw)) if raw else MAX_SENSITIVITY_RUNS
+    except ValueError:
+        return MAX_SENSITIVITY_RUNS
+
+
+def smallest_sobol_n(k: int) -> int:
+    """The smallest useful Saltelli base sample for ``k`` inputs: a power of 2, at least MIN_SOBOL_N and
+    4·k (below it the bootstrap intervals of the indices are wider than the indices' range)."""
+    need = max(MIN_SOBOL_N, 4 * k)
+    return 1 << (need - 1).bit_length()
+
+
+def nearest_powers_of_two(n: int) -> tuple[int, int]:
+    """The powers of 2 just below and above ``n`` (n ≥ 1)."""
+    lo = 1 << (int(n).bit_length() - 1)
+    return lo, (lo if lo == n else lo * 2)
+
+
 #: FMI 2.0 interfaces a study may ask for (``fmu_options.interface``).
 INTERFACES = ("auto", "co-simulation", "model-exchange")
 #: fmpy's solvers for model exchange FMUs (``fmu_options.solver``).
@@ -372,40 +409,81 @@ class RegressionStage:
 
 @dataclass(frozen=True)
 class SensitivityParameter:
-    """An input of the global sensitivity analysis, sampled within ``bounds``.
+    """An input of the global sensitivity analysis and its distribution.
 
     :param variable: **required** The FMU variable. It is varied by only one parameter and is not in
         ``fixed``.
-    :param bounds: **required** [lo, hi] with lo < hi (and lo > 0 for ``loguniform``).
-    :param distribution: ``uniform`` or ``loguniform``.
+    :param bounds: The range, lo < hi, written [lo, hi]: needed for ``uniform``, ``loguniform`` (lo > 0)
+        and ``truncnormal`` (where the normal is cut); not allowed for ``normal`` and ``lognormal``.
+    :param distribution: ``uniform`` (within ``bounds``), ``loguniform`` (uniform in log10 within
+        ``bounds``), ``normal`` (``mean``, ``std``), ``truncnormal`` (a normal of ``mean``, ``std`` cut to
+        ``bounds``) or ``lognormal`` (a positive value whose logarithm is normal; ``mean`` and ``std`` are
+        those of the value itself).
+    :param mean: The mean of a ``normal``, ``truncnormal`` (before the cut) or ``lognormal`` input.
+    :param std: Its standard deviation, > 0.
     :param unit: The parameter's unit, for reports.
     """
     name: str
     variable: str
-    bounds: tuple[float, float]
+    bounds: tuple[float, float] | None = None
     distribution: str = "uniform"
     unit: str = ""
+    mean: float | None = None
+    std: float | None = None
+
+
+@dataclass(frozen=True)
+class PCEOptions:
+    """How the ``pce`` method grows its experimental design: a batch of ``batch`` runs per round on the
+    workers, a sparse polynomial chaos expansion fitted after each, until the leave-one-out error of every
+    output is at most ``target_error`` or ``max_runs`` have run.
+
+    :param target_error: The relative leave-one-out error to reach (a share of the output's variance the
+        expansion fails to predict), in (0, 1).
+    :param max_runs: The run budget, an integer ≥ ``batch``.
+    :param batch: Runs per round; null takes max(16, 4 × the number of inputs).
+    :param design: ``sobol`` (a scrambled Sobol sequence, each batch continues it) or ``lhs`` (one Latin
+        hypercube per batch).
+    :param max_degree: The highest total degree of the expansion, an integer ≥ 1.
+    :param bootstrap: Resamples of the design for the intervals of the indices, an integer ≥ 20.
+    """
+    target_error: float = 1e-3
+    max_runs: int = 400
+    batch: int | None = None
+    design: str = "sobol"
+    max_degree: int = 20
+    bootstrap: int = 200
+
+    def batch_size(self, k: int) -> int:
+        """Runs per round for ``k`` inputs."""
+        return int(self.batch) if self.batch else max(16, 4 * k)
 
 
 @dataclass(frozen=True)
 class SensitivityStage:
-    """Global sensitivity analysis (Morris screening, Sobol indices) of ``outputs`` (metric
-    names) to ``parameters``. ``n`` is the Sobol base sample size.
+    """Global sensitivity analysis (Morris screening, Sobol indices by Saltelli's scheme or from a
+    polynomial chaos expansion) of ``outputs`` (metric names) to ``parameters``.
 
-    :param methods: A subset of ``morris``, ``sobol``.
-    :param n: The Sobol base sample size, an integer ≥ 1 (a power of 2 is recommended).
-    :param morris_trajectories: Integer ≥ 2.
+    :param methods: A subset of ``morris``, ``sobol`` (Saltelli's scheme: n·(k + 2) runs for k inputs),
+        ``pce`` (a sparse polynomial chaos expansion, for expensive runs: see ``pce``).
+    :param n: The Sobol base sample size: a power of 2, at least the smallest useful one (64, and 4 × the
+        number of inputs rounded up to a power of 2); n·(k + 2) at most 1,000,000 runs
+        (``FMUSA_MAX_SENSITIVITY_RUNS`` raises the cap).
+    :param morris_trajectories: Integer ≥ 4 (the smallest for which μ* has an interval worth the name).
     :param seed: Integer ≥ 0, the seed of the samples.
     :param outputs: **required** A list of metric names.
-    :param parameters: **required** Name → ``{variable, bounds, distribution, unit}``. Each name is an
-        identifier and must not also be a metric name.
+    :param parameters: **required** Name → ``{variable, distribution, bounds or mean and std, unit}``. Each
+        name is an identifier and must not also be a metric name.
+    :param pce: The ``pce`` method's options: ``{target_error, max_runs, batch, design, max_degree,
+        bootstrap}``.
     """
-    methods: list[str] = field(default_factory=lambda: list(METHODS))
+    methods: list[str] = field(default_factory=lambda: ["morris", "sobol"])
     n: int = 1024
     morris_trajectories: int = 20
     seed: int = 1
     outputs: list[str] = field(default_factory=list)
     parameters: dict[str, SensitivityParameter] = field(default_factory=dict)
+    pce: PCEOptions = field(default_factory=PCEOptions)
 
 
 @dataclass(frozen=True)
