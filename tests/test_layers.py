@@ -19,7 +19,8 @@ ROOT = "fmusa"
 #: (layer, its modules, the layers it may import besides itself). A module entry covers the module and,
 #: for a package, everything under it; the root package ``fmusa`` (its __init__) covers itself only.
 #: The stack base → fmi → runs → study → analysis → pipeline → report → applications → top, and
-#: diagnose: a vertical on base, fmi and runs that only applications and the top use.
+#: diagnose: a vertical on base, fmi, runs and study (the YAML reading of its study file) that only
+#: applications and the top use.
 _STACK = ("base", "fmi", "runs", "study", "analysis", "pipeline", "report")
 LAYERS: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
     ("base", ("fmusa.errors", "fmusa.format", "fmusa.files"), ()),
@@ -29,7 +30,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
     ("analysis", ("fmusa.analysis",), _STACK[:4]),
     ("pipeline", ("fmusa.pipeline",), _STACK[:5]),
     ("report", ("fmusa.report",), _STACK[:6]),
-    ("diagnose", ("fmusa.diagnose",), ("base", "fmi", "runs")),
+    ("diagnose", ("fmusa.diagnose",), ("base", "fmi", "runs", "study")),
     ("applications", ("fmusa.applications",), _STACK + ("diagnose",)),
     ("top", ("fmusa", "fmusa.api", "fmusa.cli", "fmusa.bench"), _STACK + ("diagnose", "applications")),
 )
