@@ -129,3 +129,16 @@ def test_units_of_the_fmu_are_converted(tmp_path):
                             "baseline: {stiffness: spring.c, damping: damper.d}\n")
     st = load_diagnosis_study(f)
     assert st.interface.input_scale == {"force": 1e3} and st.interface.output_scale == {"force": 1e-3}
+
+
+def test_key_reference_agrees_with_the_loader():
+    """docs/_gen/diagnosis_keys.py: every key documented, every entry a key, the loader's keys the documented ones."""
+    sys.path.insert(0, str(ROOT / "docs" / "_gen"))
+    try:
+        import diagnosis_keys
+    finally:
+        sys.path.pop(0)
+    page = diagnosis_keys.render()
+    for section, cls, excluded, _ in diagnosis_keys.SECTIONS:
+        for f in diagnosis_keys.keys_of(cls, excluded):
+            assert f"| `{f.name}` |" in page

@@ -27,6 +27,7 @@ import api_page  # noqa: E402
 import errors_page  # noqa: E402
 import model_page  # noqa: E402
 import study_keys  # noqa: E402
+import diagnosis_keys  # noqa: E402
 
 #: The paper study's figures the pages show (a missing one fails the build: the link checker sees it).
 PAPER_FIGURES = ("grid_max_y.png", "grid_t_eq.png", "search_path.png", "search_max_y.png", "ramp_time.png",
@@ -69,6 +70,7 @@ def paper_report(report: str) -> str:
 
 
 write("reference/study-keys.md", study_keys.render())
+write("reference/diagnosis-keys.md", diagnosis_keys.render())
 write("reference/model.md", model_page.render())
 write("reference/troubleshooting.md", errors_page.render())
 write("reference/api.md", api_page.render())

@@ -42,8 +42,12 @@ EXPORT_HINTS = {
 
 
 def _problem(info, name: str, role: str) -> str | None:
+    """Why ``name`` cannot play ``role``: as :func:`fmusa.fmi.info.variable_problem`, an output must be declared
+    one (causality output); ``state`` is a Real output or a state the tool exported (a local variable)."""
     from fmusa.fmi.info import variable_problem
 
+    if role == "state":
+        return variable_problem(info, name, "output")
     if role == "output":
         v = info.variable(name)
         if v is not None and (v.causality or "local") != "output":
@@ -84,7 +88,7 @@ def description_problems(fmu_path: str | os.PathLike, interface: ModelInterface,
         return out
     need(info, att.force_input, "input", "the interface force of the attached element")
     need(info, att.displacement_output, "output", "the interface's relative displacement")
-    need(info, att.velocity_output, "output", "the interface's relative velocity")
+    need(info, att.velocity_output, "state", "the interface's relative velocity")
     if not Path(att.element_fmu).exists():
         out.append(("the interface element", f"{att.element_fmu} does not exist (build it with `make fmu`, or give "
                                              f"effects.element)", "file"))
@@ -104,7 +108,8 @@ def check_description(fmu_path: str | os.PathLike, interface: ModelInterface, dr
     if not problems:
         return
     lines = [f"- for {what}: {p}" for what, p, _ in problems]
-    kinds = dict.fromkeys(k for _, _, k in problems if k in EXPORT_HINTS)
+    kinds = dict.fromkeys(("output" if k == "state" else k) for _, _, k in problems)
+    kinds = [k for k in kinds if k in EXPORT_HINTS]
     how = [f"How to export it: {EXPORT_HINTS[k]}." for k in kinds]
     raise DiagnoseError(
         f"{fmu_path}: the FMU does not have what the description of {interface.name} names; nothing was run:\n"

@@ -59,11 +59,11 @@ def builtin_path(name: str) -> Path | None:
 class DriveSection:
     """How one drive reaches the FMU (``model.drives.displacement`` or ``model.drives.force``).
 
-    :param input: the FMU input (causality input) that receives the measured drive channel, e.g. ``y_in``.
+    :param input: the FMU input (causality input) that receives the measured drive channel, e.g. ``x_machine``.
     :param input_unit: the unit the FMU input expects (a length unit for a displacement drive, a force unit for a force drive); default SI (m, N).
     :param response: the FMU output (causality output) compared with the measured response channel.
     :param response_unit: the unit of that output (a force unit under a displacement drive, a length unit under a force drive); default SI.
-    :param set: FMU variables set in every run of this drive, e.g. a switch that selects it: ``{mode: 2}``.
+    :param set: FMU variables set in every run of this drive, e.g. a switch that selects it: ``{drive_mode: 2}``.
     """
     input: str
     response: str
@@ -77,7 +77,7 @@ class ModelSection:
     """How the measured tests drive the FMU (``model``), or the name of a built-in description (``model: ScrewVertebra``).
 
     :param drives: per drive (``displacement``, ``force``) a DriveSection; a test can use only the drives listed.
-    :param fixed: FMU parameters set in every run, e.g. ``{monitors: false}``.
+    :param fixed: FMU parameters set in every run, e.g. ``{mass.m: 0.5}``.
     :param tolerance_parameter: an FMU parameter that receives the solver's relative tolerance (the FMU's own solver), or null.
     :param scale: FMU parameters whose start values give the model's scale for the units check: ``stiffness`` [N/m], ``length`` [m], ``resolution`` [m], ``force`` [N].
     """
@@ -138,8 +138,9 @@ class TestsSection:
     """
     drive: str
     files: tuple[Path, ...]
-    columns: ColumnSpec = ColumnSpec()
-    #: how each file is read (the columns with the file's own rate)
+    columns: Mapping[str, str] = field(default_factory=dict)
+    units: Mapping[str, str] = field(default_factory=dict)
+    #: how each file is read (the columns and units, with the file's own rate)
     specs: tuple[ColumnSpec, ...] = ()
     rate: str | None = None
     flip: tuple[str, ...] = ()
@@ -162,7 +163,8 @@ class DiagnosisOptions:
 
 @dataclass(frozen=True)
 class DiagnosisStudy:
-    """A diagnosis study file.
+    """A diagnosis study file. ``interface`` is the model description its ``model``, ``baseline`` and
+    ``effects`` make (what the fits use).
 
     :param name: the study's name (an identifier).
     :param description: free text.
@@ -178,6 +180,8 @@ class DiagnosisStudy:
     interface: ModelInterface
     description: str = ""
     fmu: Path | None = None
+    model: ModelSection | str | None = None
+    baseline: Mapping[str, BaselineParameter] = field(default_factory=dict)
     effects: EffectsSection = EffectsSection()
     diagnosis: DiagnosisOptions = DiagnosisOptions()
     path: Path | None = None
@@ -187,7 +191,7 @@ class DiagnosisStudy:
         """The measured tests, read, checked and converted to SI (errors name file, line and column)."""
         from fmusa.diagnose.measured import load_experiments
 
-        return load_experiments(self.tests.files, self.tests.drive, list(self.tests.specs) or self.tests.columns,
+        return load_experiments(self.tests.files, self.tests.drive, list(self.tests.specs),
                                 zero_drive=self.tests.zero_drive, max_points=self.tests.max_points)
 
 
@@ -242,13 +246,13 @@ def _unit(p: YamlParser, m: YamlMap, key: str, table: Mapping[str, float]) -> st
 
 def _parse_drive(p: YamlParser, node: Node, drive: str, where: str) -> DriveSection:
     w = f"{where}.{drive}"
-    hint = "{input: y_in, response: F_meas}"
+    hint = "{input: x_machine, response: F_sensor}"
     m = p.mapping(node, w, drive)
     m.allow(("input", "input_unit", "response", "response_unit", "set"))
     response_channel = "force" if drive == "displacement" else "displacement"
     return DriveSection(
         input=_variable(p, m.need("input", f"input: NAME  (the FMU input that takes the measured {drive})"),
-                        "input", w, "input: y_in"),
+                        "input", w, "input: x_machine"),
         response=_variable(p, m.need("response", f"response: NAME  (the FMU output compared with the "
                                                  f"measured {response_channel})"), "response", w, hint),
         input_unit=_unit(p, m, "input_unit", _UNITS[drive]),
@@ -259,7 +263,7 @@ def _parse_drive(p: YamlParser, node: Node, drive: str, where: str) -> DriveSect
 def _parse_model(p: YamlParser, node: Node) -> ModelSection:
     m = p.mapping(node, "model", "model")
     m.allow(("drives", "fixed", "tolerance_parameter", "scale"))
-    dn = m.need("drives", "drives: {displacement: {input: y_in, response: F_meas}}")
+    dn = m.need("drives", "drives: {displacement: {input: x_machine, response: F_sensor}}")
     dm = p.mapping(dn, "model.drives", "drives")
     dm.allow(DRIVES)
     if not dm.items:
@@ -274,7 +278,7 @@ def _parse_model(p: YamlParser, node: Node) -> ModelSection:
         scale = {k: _variable(p, vn, k, "model.scale", f"{k}: NAME") for k, _, vn in sm.entries()}
     return ModelSection(drives=drives, fixed=_values(p, m.opt("fixed"), "fixed", "model"),
                         tolerance_parameter=None if tol is None else _variable(p, tol, "tolerance_parameter",
-                                                                                 "model", "tolerance_parameter: rtol"),
+                                                                                 "model", "tolerance_parameter: tol"),
                         scale=scale)
 
 
@@ -290,7 +294,7 @@ def _parse_baseline(p: YamlParser, node: Node | None, where_effects: str) -> dic
         if where_effects == "attached":
             return {r: BaselineParameter(v) for r, v in ELEMENT_BASELINE.items()}
         raise StudyError(f"{p.label}:1: key 'baseline' is missing at the top level; name the FMU parameters of "
-                         f"the baseline spring-damper, e.g. baseline: {{stiffness: c_y, damping: d_y}}")
+                         f"the baseline spring-damper, e.g. baseline: {{stiffness: spring.c, damping: damper.d}}")
     m = p.mapping(node, "baseline", "baseline")
     m.allow(tuple(BASELINE_ROLES))
     out = {}
@@ -305,11 +309,11 @@ def _parse_baseline(p: YamlParser, node: Node | None, where_effects: str) -> dic
         if isinstance(vn, MappingNode):
             bm = p.mapping(vn, f"baseline.{role}", role)
             bm.allow(("variable", "bounds"))
-            var = _variable(p, bm.need("variable", "variable: NAME"), "variable", f"baseline.{role}", "variable: c_y")
+            var = _variable(p, bm.need("variable", "variable: NAME"), "variable", f"baseline.{role}", "variable: spring.c")
             b = bm.opt("bounds")
             out[role] = BaselineParameter(var, None if b is None else _bounds(p, b, "bounds", f"baseline.{role}"))
         else:
-            out[role] = BaselineParameter(_variable(p, vn, role, "baseline", f"{role}: c_y"))
+            out[role] = BaselineParameter(_variable(p, vn, role, "baseline", f"{role}: spring.c"))
     return out
 
 
@@ -397,16 +401,18 @@ def _parse_tests(p: YamlParser, node: Node | None, base_dir: Path) -> TestsSecti
             files.append(_path(p, n, "files", "tests", base_dir, "files: [test1.csv]"))
             rates.append(None)
     kw: dict = {}
+    columns, units = {}, {}
     if m.opt("columns") is not None:
         cm = p.mapping(m.opt("columns"), "tests.columns", "columns")
         cm.allow(("time", "displacement", "force"))
-        kw.update({k: p.string(vn, k, "tests.columns", f"{k}: NAME") for k, _, vn in cm.entries()})
+        columns = {k: p.string(vn, k, "tests.columns", f"{k}: NAME") for k, _, vn in cm.entries()}
+        kw.update(columns)
     if m.opt("units") is not None:
         um = p.mapping(m.opt("units"), "tests.units", "units")
         um.allow(("time", "displacement", "force"))
         tables = {"time": TIME_UNITS, "displacement": LENGTH_UNITS, "force": FORCE_UNITS}
-        for k in um.keys():
-            kw[f"{k}_unit"] = _unit(p, um, k, tables[k])
+        units = {k: _unit(p, um, k, tables[k]) for k in um.keys()}
+        kw.update({f"{k}_unit": u for k, u in units.items()})
     rate = m.opt("rate")
     if rate is not None:
         kw["rate"] = str(p.scalar(rate)) if isinstance(rate, ScalarNode) else p.string(rate, "rate", "tests", "10 mm/s")
@@ -421,7 +427,7 @@ def _parse_tests(p: YamlParser, node: Node | None, base_dir: Path) -> TestsSecti
     except MeasuredDataError as exc:
         raise p.error(m.node, f"in 'tests': {exc}") from None
     zero = m.opt("zero_drive")
-    return TestsSection(drive=drive, files=tuple(files), columns=spec, specs=specs, rate=kw.get("rate"), flip=flip,
+    return TestsSection(drive=drive, files=tuple(files), columns=columns, units=units, specs=specs, rate=kw.get("rate"), flip=flip,
                         zero_drive=True if zero is None else p.boolean(zero, "zero_drive", "tests", "zero_drive: true"),
                         max_points=m.int_("max_points", 300, "max_points: 300", minimum=10))
 
@@ -468,9 +474,10 @@ def _interface(name: str, model: ModelSection, baseline: Mapping[str, BaselinePa
         bounds=bounds, candidates=tuple(effects.candidates), attached=attached, name=name)
 
 
-def _description(p: YamlParser, top: YamlMap, base_dir: Path, name: str) -> tuple[ModelInterface, EffectsSection]:
+def _description(p: YamlParser, top: YamlMap, base_dir: Path, name: str) -> tuple[ModelInterface, EffectsSection,
+                                                                                 ModelSection | str, dict]:
     """The model description of the study: its own model/baseline/effects sections, or a built-in one."""
-    mnode = top.need("model", "model: {drives: {displacement: {input: y_in, response: F_meas}}}")
+    mnode = top.need("model", "model: {drives: {displacement: {input: x_machine, response: F_sensor}}}")
     if isinstance(mnode, ScalarNode):
         ref = p.string(mnode, "model", "", "model: ScrewVertebra")
         path = builtin_path(ref)
@@ -487,13 +494,14 @@ def _description(p: YamlParser, top: YamlMap, base_dir: Path, name: str) -> tupl
             em = p.mapping(eff_node, "effects", "effects")
             em.allow(("candidates", "bounds"))
             sub = _parse_effects(p, eff_node, base_dir)
-            return replace(base, candidates=sub.candidates, bounds={**base.bounds, **sub.bounds}, name=name), sub
-        return replace(base, name=name), EffectsSection(where="attached" if base.attached else "inside",
-                                                   candidates=base.candidates or CANDIDATES)
+            return (replace(base, candidates=sub.candidates, bounds={**base.bounds, **sub.bounds}, name=name), sub,
+                    ref, {})
+        return (replace(base, name=name), EffectsSection(where="attached" if base.attached else "inside",
+                                                         candidates=base.candidates or CANDIDATES), ref, {})
     model = _parse_model(p, mnode)
     effects = _parse_effects(p, top.opt("effects"), base_dir)
     baseline = _parse_baseline(p, top.opt("baseline"), effects.where)
-    return _interface(name, model, baseline, effects, None), effects
+    return _interface(name, model, baseline, effects, None), effects, model, baseline
 
 
 def parse_description(text: str, label: str, name: str | None = None) -> ModelInterface:
@@ -532,7 +540,7 @@ def parse_diagnosis_study(text: str, path: str | os.PathLike = "<string>") -> Di
         p.mark("fmu", top.opt("fmu"))
         if text_fmu != "default":
             fmu = _path(p, top.opt("fmu"), "fmu", "", base_dir, "fmu: model.fmu")
-    interface, effects = _description(p, top, base_dir, name)
+    interface, effects, model, baseline = _description(p, top, base_dir, name)
     tests = _parse_tests(p, top.opt("tests"), base_dir)
     if tests is None:
         raise p.error(root, "key 'tests' is missing at the top level; add the measured tests, e.g. "
@@ -543,7 +551,7 @@ def parse_diagnosis_study(text: str, path: str | os.PathLike = "<string>") -> Di
                          f"{tests.drive!r}, but the model description gives no FMU input and response for a "
                          f"{tests.drive} drive (it has: {can}); add model.drives.{tests.drive}")
     return DiagnosisStudy(name=name, description=top.text("description"), fmu=fmu, interface=interface,
-                          effects=effects, tests=tests, diagnosis=_parse_options(p, top.opt("diagnosis")),
+                          model=model, baseline=baseline, effects=effects, tests=tests, diagnosis=_parse_options(p, top.opt("diagnosis")),
                           path=study_path, lines=dict(p.lines))
 
 
