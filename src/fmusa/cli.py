@@ -74,7 +74,9 @@ def _add_pullout(sub: argparse._SubParsersAction) -> None:
                    help="override an FMU parameter (repeatable), e.g. --set c_y=1e6 --set d_y=500")
     p.add_argument("--stop-time", type=_positive_float, default=12.0, help="simulation end in s (default 12)")
     p.add_argument("--step", type=_positive_float, default=0.01, help="communication step in s (default 0.01)")
-    p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
+    p.add_argument("--fmu", type=Path, default=None,
+                   help="with CSV files: an FMU of a model fmusa has a description of (ScrewVertebra; default "
+                        "dist/ScrewVertebra.fmu); for any other FMU write a diagnosis study file")
     p.set_defaults(func=cmd_pullout)
 
 
@@ -527,7 +529,9 @@ def _add_diagnose(sub: argparse._SubParsersAction, full: bool = True) -> None:
                    help=f"comma-separated subset of: {', '.join(CANDIDATES)}")
     p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
     p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
-    p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
+    p.add_argument("--fmu", type=Path, default=None,
+                   help="with CSV files: an FMU of a model fmusa has a description of (ScrewVertebra; default "
+                        "dist/ScrewVertebra.fmu); for any other FMU write a diagnosis study file")
 
 
 #: The options of ``diagnose`` that a study file sets itself (its tests and diagnosis sections).
@@ -630,7 +634,9 @@ def _add_diagnose_shear(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--all", action="store_true", help="diagnose every specimen through the FMU (slow)")
     p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
     p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
-    p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
+    p.add_argument("--fmu", type=Path, default=None,
+                   help="with CSV files: an FMU of a model fmusa has a description of (ScrewVertebra; default "
+                        "dist/ScrewVertebra.fmu); for any other FMU write a diagnosis study file")
     p.set_defaults(func=cmd_diagnose_shear)
 
 
