@@ -4,7 +4,8 @@
 The exported model (its ``resources/Mass_Damper_info.json``, and checked against the FMU itself by
 tests/test_diagnose_attached.py): a mass m = 1 kg on a spring c = 1e4 N/m (unstretched length 1 m, fixed end at
 1 m) and a damper d = 10 N·s/m, the force input ``f`` on the mass, the output ``y`` = the mass's position, which
-starts at 0 and rests at -0.5 m (so every test starts with the release of the mass):
+starts at 0 and rests at 0.5 - spring.s_rel0 (-0.5 m in the export; the tests set s_rel0 = 0.5 m, so that
+the mass starts at rest):
 
     m y'' = f(t) - c (y + 0.5) - d y'
 
@@ -25,8 +26,11 @@ from scipy.integrate import solve_ivp
 
 import effects_reference as er
 
-#: Mass_Damper's own parameters (start values of the export)
-MASS, SPRING, DAMPER, REST = 1.0, 1.0e4, 10.0, -0.5
+#: Mass_Damper's own parameters (start values of the export), but for the spring's unstretched length, set to
+#: 0.5 m (``spring.s_rel0``, a parameter of the export) so that the mass rests at y = 0, where it starts
+MASS, SPRING, DAMPER = 1.0, 1.0e4, 10.0
+S_REL0 = 0.5
+REST = 0.5 - S_REL0          # the spring is unstretched at s_rel = 1 - (y + 0.5) = s_rel0
 
 #: The element's baseline in each case (in parallel with the model's spring-damper), and the effects' sizes
 #: at this model's scale (displacements ~0.05 m, forces ~100 N).
@@ -42,9 +46,9 @@ CASES = {
 }
 
 
-def protocol(peak: float = 900.0, ramp: float = 1.0, hold: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """A force drive: load to ``peak`` over ``ramp``, hold, unload to -peak/2 (so the interface is also
-    loaded the other way), hold, back to 0 (knots: time [s], force [N])."""
+def protocol(peak: float = 900.0, ramp: float = 0.5, hold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """A force drive: load to ``peak`` over ``ramp``, hold, unload to -peak/2 (so the
+    interface is also loaded the other way), hold, back to 0 (knots: time [s], force [N])."""
     t = np.cumsum([0.0, ramp, hold, 1.5 * ramp, hold, 0.5 * ramp, hold])
     u = np.array([0.0, peak, peak, -0.5 * peak, -0.5 * peak, 0.0, 0.0])
     return t, u
@@ -83,10 +87,11 @@ def simulate(element: dict, knots_t, knots_u, t_out, rtol: float = 1e-10) -> np.
     return out
 
 
-def synthesize(effect: str, rate_hz: float = 50.0, noise: float = 2.0e-4, seed: int = 0,
+def synthesize(effect: str, rate_hz: float = 40.0, noise: float = 2.0e-4, seed: int = 0,
                **protocol_kw) -> tuple[pd.DataFrame, dict]:
     """A measured test (time, displacement = y, force = the drive) of the case ``effect``, with white noise
-    of ``noise`` m on the displacement; and the element's true parameters."""
+    of ``noise`` m on the displacement; and the element's true parameters. Every knot of the drive is a
+    sample (at 40 Hz), so that the drive the samples give is the drive the reference ran."""
     truth = {**BASE, **CASES[effect]}
     kt, ku = protocol(**protocol_kw)
     t = np.arange(0.0, kt[-1] + 1e-9, 1.0 / rate_hz)

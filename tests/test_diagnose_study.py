@@ -42,6 +42,12 @@ def test_screw_vertebra_study_is_the_builtin_description(fmu_path):
     exps = st.experiments()
     assert [e.name for e in exps] == ["H1_C67_Ant_1_mm_s", "H1_C67_Ant_10_mm_s", "H1_C67_Ant_100_mm_s"]
     assert max(len(e.t) for e in exps) <= 300
+    # the same fits as `fmusa diagnose FILES --drive displacement ...` (their cache keys are the same: a rerun
+    # of either reuses the other's fits)
+    from fmusa.diagnose.fitcache import data_key
+
+    assert data_key(exps, "displacement", 6, str(fmu_path), st.interface) == \
+        data_key(exps, "displacement", 6, str(fmu_path))
 
 
 def _om_study(tmp_path: Path, body: str) -> Path:

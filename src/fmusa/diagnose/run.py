@@ -268,6 +268,10 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
                              for n, v in final.params.items()},
                   "rmse": final.rmse, "heldout_rmse": final.heldout_rmse} if steps else None,
         "data": _data_summary(experiments, drive),
+        # the FMU variable of each fitted parameter (the catalogue's names are the keys above); where the effects
+        # went and the model description's name
+        "model": {"description": interface.name, "effects": "attached" if interface.attached else "inside",
+                  "variables": {n: interface.variable(n) for f in [base, *fits.values()] for n in f.params}},
         "thresholds": _thresholds(thresholds),
         "units": units,
         "warnings": [dict(w) for w in units["warnings"]],
@@ -321,6 +325,23 @@ def run_study_diagnosis(study, out_dir: str | os.PathLike, workers: int | None =
     check_description(fmu, study.interface, study.tests.drive, study.interface.candidates or CANDIDATES)
     experiments = study.experiments()
     opts = study.diagnosis
-    return run_diagnosis(experiments, study.tests.drive, out_dir, fmu_path=fmu, interface=study.interface,
+    diag = run_diagnosis(experiments, study.tests.drive, out_dir, fmu_path=fmu, interface=study.interface,
                          workers=workers or opts.workers, max_starts=opts.starts, chain=opts.chain,
                          progress=progress)
+    if study.interface.attached is not None:
+        diag["coupling"] = coupled_cost(fmu, study.interface, study.tests.drive, diag, experiments[0])
+        write_json(diag, Path(out_dir) / "diagnosis.json")
+    return diag
+
+
+def coupled_cost(fmu: str, interface: ModelInterface, drive: str, diag: dict, experiment) -> dict:
+    """One coupled run of the extended model on the first experiment, for what the diagnosis states about the
+    coupling: the scheme the master chose, its FMU calls and its wall and CPU time."""
+    from fmusa.diagnose.calibrate import make_runner
+
+    params = dict(diag["extended"]["params"])
+    runner = make_runner(fmu, drive, list(params), {}, interface)
+    runner.predict(list(params.values()), [experiment])
+    r = runner.last
+    return {"scheme": r.scheme, "calls": int(r.calls), "wall_s": float(r.wall_s), "cpu_s": float(r.cpu_s),
+            "notes": list(r.notes), "experiment": experiment.name, "points": len(experiment.t)}

@@ -103,7 +103,7 @@ class EffectsSection:
     """Where the candidate effects go (``effects``).
 
     :param where: ``inside``: the effects are parameters of the FMU itself; ``attached``: they are parameters of an interface element FMU coupled to the model.
-    :param candidates: the effects to try (default: every one of the catalogue).
+    :param candidates: the effects to try (default: every one of the catalogue; attached: all but sensor_offset, which an element cannot add to the model's outputs).
     :param parameters: catalogue parameter -> FMU variable, where the FMU names it differently (``inside``).
     :param bounds: catalogue parameter -> [lower, upper] in SI, in place of the bounds scaled to the data.
     :param element: ``attached``: the interface element FMU (default ``dist/InterfaceElement.fmu``).
@@ -355,6 +355,12 @@ def _parse_effects(p: YamlParser, node: Node | None, base_dir: Path) -> EffectsS
                 raise p.error(m.key_node(k), f"key '{k}' in 'effects' applies to where: attached only; remove it "
                                              f"or set where: attached")
         return EffectsSection(where=where, candidates=cands, parameters=params, bounds=bounds)
+    if "sensor_offset" in cands:
+        if m.opt("candidates") is not None:
+            raise p.error(m.opt("candidates"), "key 'candidates' in 'effects': sensor_offset cannot be attached: the "
+                                               "measured channels are your model's outputs, which the element does "
+                                               "not offset; remove it")
+        cands = tuple(c for c in cands if c != "sensor_offset")
     if params:
         raise p.error(m.key_node("parameters"), "key 'parameters' in 'effects' maps effect parameters to the "
                                                 "model FMU's variables (where: inside); attached effects are the "
