@@ -67,3 +67,8 @@ def diagnose(experiments_or_study: object, drive: str | None = None, **kwargs: o
     """The diagnosis: ``fmusa.diagnose(experiments, "displacement")`` or ``fmusa.diagnose("study.yaml")``
     (:func:`fmusa.api.diagnose`)."""
     return _importlib.import_module("fmusa.api").diagnose(experiments_or_study, drive, **kwargs)
+
+
+# `import fmusa.diagnose.run as m` looks `run` up on fmusa.diagnose (this function) and, not finding it there,
+# takes the module sys.modules[f"{fmusa.diagnose.__name__}.run"]: the name keeps every such import working.
+diagnose.__name__ = "fmusa.diagnose"

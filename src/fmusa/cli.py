@@ -606,6 +606,10 @@ def _print_diagnosis(args: argparse.Namespace, diag: dict) -> int:
         print(f"  cannot be told from {t['effect']}: {t['separating_test']}")
     if diag["leftover"]:
         print(f"  left in the residuals: {diag['leftover']}")
+    cp = diag.get("coupling")
+    if cp:
+        print(f"  coupled runs: {cp['scheme']}, {cp['calls']} FMU calls and {cp['cpu_s']:.2f} s CPU for one run of "
+              f"{cp['experiment']}")
     for name in ("diagnosis.json", "report.md"):
         if (args.out / name).exists():
             print(f"wrote {args.out / name}")
