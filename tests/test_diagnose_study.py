@@ -11,7 +11,7 @@ import pytest
 
 from fmusa.diagnose.effects import DiagnoseError
 from fmusa.diagnose.models import builtin_description, resolve
-from fmusa.diagnose.study import load_diagnosis_study, parse_diagnosis_study
+from fmusa.diagnose.study import load_diagnosis_study
 from fmusa.study.schema import StudyError
 
 ROOT = Path(__file__).resolve().parents[1]
