@@ -107,7 +107,52 @@ $(FMU): $(FMU_BINARIES) $(FMU_BUILD)/modelDescription.xml
 	  cd $(FMU_BUILD) && $(PYTHON) -m zipfile -c $(abspath $@) modelDescription.xml binaries sources; \
 	fi
 
-fmu: $(FMU)
+# ---------------------------------------------------------------- interface element FMU
+# The same generators (fmu/generate.py, fmu/codegen.py) on modelica/InterfaceElement.mo, the shared FMI layer
+# fmu/fmi2.c (with model exchange and FMU state, switched on by fmu/element/model.h) and the element's glue.
+EL_FMU := dist/InterfaceElement.fmu
+EL_BUILD := build/element
+EL_MO := modelica/InterfaceElement.mo
+EL_SO := $(EL_BUILD)/binaries/linux64/InterfaceElement.so
+EL_DLL := $(EL_BUILD)/binaries/win64/InterfaceElement.dll
+EL_STAMP := build/.element-sources
+EL_C := fmi2.c element.c el_generated.c
+EL_GEN := $(EL_BUILD)/sources/el_generated.c $(EL_BUILD)/sources/el_generated.h $(EL_BUILD)/sources/el_model.h
+EL_SRC := fmu/fmi2.c $(wildcard fmu/element/*.c) $(wildcard fmu/element/*.h)
+EL_BINARIES := $(EL_SO) $(if $(HAVE_MINGW),$(EL_DLL))
+
+$(EL_BUILD)/modelDescription.xml $(EL_BUILD)/sources/variables.h &: fmu/generate.py $(EL_MO) | $(STAMP)
+	$(VPY) fmu/generate.py $(EL_BUILD) $(EL_MO)
+
+$(EL_GEN) &: fmu/codegen.py $(EL_MO) | $(STAMP)
+	$(VPY) fmu/codegen.py $(EL_BUILD)/sources $(EL_MO)
+
+$(EL_STAMP): $(EL_SRC) $(EL_GEN) $(EL_BUILD)/sources/variables.h | $(STAMP)
+	mkdir -p $(EL_BUILD)/sources
+	cp $(EL_SRC) $(EL_BUILD)/sources/
+	cc_dir=$$($(VPY) -c 'import fmpy, os; print(os.path.join(os.path.dirname(fmpy.__file__), "c-code"))') && \
+	  for h in $(FMI_HEADERS); do cp "$$cc_dir/$$h" $(EL_BUILD)/sources/; done
+	touch $@
+
+$(EL_SO): $(EL_STAMP)
+	mkdir -p $(dir $@)
+	$(CC) $(CFLAGS) -I$(EL_BUILD)/sources -o $@ $(addprefix $(EL_BUILD)/sources/,$(EL_C)) -lm
+
+$(EL_DLL): $(EL_STAMP)
+	mkdir -p $(dir $@)
+	$(MINGW_CC) $(MINGW_CFLAGS) -I$(EL_BUILD)/sources -o $@ $(addprefix $(EL_BUILD)/sources/,$(EL_C))
+
+$(EL_FMU): $(EL_BINARIES) $(EL_BUILD)/modelDescription.xml
+	$(if $(HAVE_MINGW),,rm -rf $(EL_BUILD)/binaries/win64)
+	mkdir -p $(dir $@)
+	rm -f $@
+	if command -v zip >/dev/null 2>&1; then \
+	  cd $(EL_BUILD) && zip -q -r -X $(abspath $@) modelDescription.xml binaries sources; \
+	else \
+	  cd $(EL_BUILD) && $(PYTHON) -m zipfile -c $(abspath $@) modelDescription.xml binaries sources; \
+	fi
+
+fmu: $(FMU) $(EL_FMU)
 
 # ---------------------------------------------------------------- study, tests, benchmark
 sweep: $(STAMP) $(FMU)

@@ -526,20 +526,27 @@ def _run_cs(coupling, minfo, einfo, model_params, element_params, stop_time, out
             u1, fd1 = drive_next
             if u:
                 m.set_values(u)
-            f_start = fd + coupling.force_sign * F_n
-            f_end = fd1 + coupling.force_sign * F_k
+            # the interface force over the step: explicit, held at F_n; iterated, affine from F_n to the iterate
+            # F_k where the model interpolates its inputs (second order), else held at F_k (first order); the
+            # drive, where the model interpolates, affine from its value at t to that at t + h
+            if iterate and interp_m:
+                f_start = fd + coupling.force_sign * F_n
+                f_rate = (fd1 + coupling.force_sign * F_k - f_start) / h
+            else:
+                f_start = fd + coupling.force_sign * F_k
+                f_rate = (fd1 - fd) / h
+            m.call("setReal", [itf.f], [f_start])
             if interp_m:
-                m.call("setReal", [itf.f], [f_start])
-                m.call("setRealInputDerivatives", [itf.f], [1], [(f_end - f_start) / h])
+                m.call("setRealInputDerivatives", [itf.f], [1], [f_rate])
                 if u:
                     vrs = m.vr(list(u))
                     m.call("setRealInputDerivatives", vrs, [1] * len(vrs),
                            [(u1[n] - u[n]) / h for n in u])
-            else:
-                m.call("setReal", [itf.f], [f_end if iterate else f_start])
             m.call("doStep", t, h, 0 if iterate else 1)
             s1, v1 = m.real([itf.s, itf.v])
             v1 *= sv
+            if not (math.isfinite(s1) and math.isfinite(v1)):
+                raise CouplingError(f"the coupled run diverged at t = {t + h:.9g} (step {h:.3g} s)")
             if interp_e:
                 e.call("setReal", [itf.es, itf.ev], [s_n, v_n])
                 e.call("setRealInputDerivatives", [itf.es, itf.ev], [1, 1], [(s1 - s_n) / h, (v1 - v_n) / h])
@@ -560,8 +567,12 @@ def _run_cs(coupling, minfo, einfo, model_params, element_params, stop_time, out
             dn, dn1 = _drive(model_inputs, t, coupling.force_input), _drive(model_inputs, t1, coupling.force_input)
             if iterate:
                 sm, se = m.call("getFMUState"), e.call("getFMUState")
-                F_k = F_n + (F_n - F_prev)           # linear extrapolation of the force
+                # secant iteration on the residual r(F) = element force(model motion under F) - F: the first
+                # guess extrapolates the force, the second perturbs it (a fixed-point step would overshoot by
+                # the interface's stiffness), then secant steps
+                F_k = F_n + (F_n - F_prev)
                 hist: list[tuple[float, float]] = []
+                r = math.inf
                 for it in range(max_iter):
                     F1, s1, v1 = macro(t, h, F_k, dn, dn1)
                     iterations += 1
@@ -570,11 +581,11 @@ def _run_cs(coupling, minfo, einfo, model_params, element_params, stop_time, out
                     if abs(r) <= 10 * rtol * F_scale:
                         break
                     hist.append((F_k, r))
-                    if len(hist) >= 2:
+                    if len(hist) >= 2 and hist[-1][1] != hist[-2][1]:
                         (Fa, ra), (Fb, rb) = hist[-2], hist[-1]
-                        F_k = Fb - rb * (Fb - Fa) / (rb - ra) if rb != ra else F1
+                        F_k = Fb - rb * (Fb - Fa) / (rb - ra)
                     else:
-                        F_k = F1
+                        F_k = F_k + 1e-3 * max(abs(r), 1e-9 * F_scale)
                     m.call("setFMUState", sm)
                     e.call("setFMUState", se)
                 else:
