@@ -21,7 +21,7 @@ from typing import Mapping
 
 from yaml.nodes import MappingNode, Node, ScalarNode
 
-from fmusa.diagnose.effects import BASELINE, CANDIDATES, DAMPING, STIFFNESS, model_parameters, Scales
+from fmusa.diagnose.effects import CANDIDATES, DAMPING, STIFFNESS, Scales, model_parameters
 from fmusa.diagnose.interface import DRIVES, WHERE, AttachedElement, ModelInterface
 from fmusa.diagnose.measured import FORCE_UNITS, LENGTH_UNITS, ColumnSpec, MeasuredDataError, TIME_UNITS
 from fmusa.study.loader import YamlMap, YamlParser, compose_yaml, read_study_text
