@@ -143,3 +143,16 @@ def heldout_gain(st, d: dict, effect: str) -> float:
         pred = runner.predict(list(params.values()), [e])[0]
         rmse[key] = float(np.sqrt(np.mean((pred - e.displacement) ** 2)))
     return rmse["extended"] / rmse["baseline"]
+
+
+def test_extended_model_as_ssp_or_why_not(tmp_path):
+    """The diagnosis writes the extended model as SSP next to diagnosis.json; Mass_Damper's velocity is a state,
+    not an output, and an SSP connection starts at an output: the diagnosis says so instead of a file."""
+    from fmusa.diagnose.run import write_extended_ssp
+    from fmusa.diagnose.study import load_diagnosis_study
+
+    st = load_diagnosis_study(write_study(tmp_path, "backlash_gap"))
+    params = {**ar.BASE, **ar.CASES["backlash_gap"]}
+    out = write_extended_ssp(tmp_path / "extended.ssp", str(OM), st.interface, "force", params, 3.0, "mass_damper")
+    assert out["written"] is False and "'mass.v' is not an output" in out["why"], out
+    assert not (tmp_path / "extended.ssp").exists()

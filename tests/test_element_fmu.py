@@ -168,6 +168,7 @@ def test_model_exchange_against_co_simulation(unzipped):
         assert err < 1e-4, f"{k}: ME and CS differ by {err:.3g} (relative)"
 
 
+@pytest.mark.slow
 def test_hysteresis_against_an_independent_integration(unzipped):
     """Friction through reversals (a sinusoidal drive): the CS interface against classical RK4 at a fine fixed
     step on the Bouc-Wen equation written out here, the rate affine between the samples as the CS inputs are."""

@@ -24,7 +24,7 @@ ROOT = "fmusa"
 #: applications and the top use.
 _STACK = ("base", "fmi", "runs", "study", "analysis", "pipeline", "report")
 LAYERS: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
-    ("base", ("fmusa.errors", "fmusa.format", "fmusa.files"), ()),
+    ("base", ("fmusa.errors", "fmusa.format", "fmusa.files", "fmusa.figure_check"), ()),
     ("fmi", ("fmusa.fmi",), _STACK[:1]),
     ("runs", ("fmusa.runs",), _STACK[:2]),
     ("study", ("fmusa.study",), _STACK[:3]),

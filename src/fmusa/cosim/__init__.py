@@ -5,8 +5,8 @@ scheme that holds at a stiff interface and says which ran and what it cost, :fun
 variables before any run); ``ssp`` writes the coupled system as an SSP 1.0 archive that other tools run.
 It sits beside ``runs`` (it imports the base and ``fmi``), below ``diagnose``.
 """
-from fmusa.cosim.master import (CoupledResult, Coupling, CouplingError, check_coupling, default_element_fmu,
-                                simulate_coupled)
+from fmusa.cosim.master import (CoupledResult, Coupling, CouplingError, CouplingTimeLimitError, check_coupling,
+                                default_element_fmu, simulate_coupled)
 
-__all__ = ["Coupling", "CoupledResult", "CouplingError", "check_coupling", "default_element_fmu",
-           "simulate_coupled"]
+__all__ = ["Coupling", "CoupledResult", "CouplingError", "CouplingTimeLimitError", "check_coupling",
+           "default_element_fmu", "simulate_coupled"]

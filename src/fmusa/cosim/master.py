@@ -47,9 +47,22 @@ SCHEMES = ("auto", "me-implicit", "cs-iterate", "cs-halving")
 
 class CouplingError(FmusaError, RuntimeError):
     """A coupled run that cannot be made or did not converge: the message names the variable, the FMU or the
-    measured disagreement, and the fix."""
+    measured disagreement.
+
+    Fix: export the variable the message names with the causality it asks for (the interface force as an
+    input, the displacement and its rate as outputs); when the run did not converge, export the model with
+    Model Exchange or with canGetAndSetFMUstate, or give a smaller first step.
+    """
 
     exit_code = 1
+
+
+class CouplingTimeLimitError(CouplingError):
+    """A coupled run stopped at its time limit (``max_wall_s``).
+
+    Fix: raise ``max_wall_s``, or make the run cheaper (a Model Exchange export, a smaller first step for the
+    co-simulation schemes).
+    """
 
 
 def default_element_fmu() -> Path:
@@ -151,10 +164,11 @@ def check_coupling(coupling: Coupling) -> None:
     """Before any run: both FMUs can be read, the model's force input is an input, its displacement and
     rate are readable (an output, or a state the tool exported), the element is the element, and a scheme
     applies. Raises :class:`CouplingError` naming what is missing and how to export it."""
-    _check(coupling)
+    checked_coupling(coupling)
 
 
-def _check(coupling: Coupling):
+def checked_coupling(coupling: Coupling):
+    """:func:`check_coupling`, returning what it read: (the model's FMUInfo, the element's, the scheme)."""
     try:
         minfo = read_fmu_info(coupling.model_fmu)
         einfo = read_fmu_info(coupling.element())
@@ -325,8 +339,15 @@ def _event_iteration(fmu: _Fmu) -> float:
     raise CouplingError(f"{fmu.info.model_name}: the event iteration did not end after 1000 iterations")
 
 
+def _over_time(deadline: float | None, t: float) -> None:
+    """Raise when a coupled run has used its time limit (max_wall_s of simulate_coupled)."""
+    if deadline is not None and time.perf_counter() > deadline:
+        raise CouplingTimeLimitError(f"the coupled run passed its time limit (max_wall_s) at t = {t:.9g}; "
+                                     f"raise max_wall_s, or give the CS schemes a smaller first step")
+
+
 def _run_me(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs, model_inputs,
-            rtol, workdir: Path) -> tuple[pd.DataFrame, int, dict]:
+            rtol, workdir: Path, deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
     from ctypes import c_double
     from scipy.integrate import Radau
 
@@ -434,6 +455,7 @@ def _run_me(coupling, minfo, einfo, model_params, element_params, stop_time, out
             while solver.status == "running":
                 msg = solver.step()
                 steps += 1
+                _over_time(deadline, solver.t)
                 if solver.status == "failed":
                     raise CouplingError(f"the implicit integration of the coupled system failed at t = "
                                         f"{solver.t:.9g}: {msg}")
@@ -491,7 +513,8 @@ def _cs_grid(stop_time: float, step: float, output_times: np.ndarray) -> np.ndar
 
 
 def _run_cs(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs, model_inputs,
-            rtol, step: float, iterate: bool, workdir: Path, max_iter: int = 30) -> tuple[pd.DataFrame, int, dict]:
+            rtol, step: float, iterate: bool, workdir: Path, max_iter: int = 30,
+            deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
     m = _Fmu(minfo, "co-simulation", "model", workdir)
     e = _Fmu(einfo, "co-simulation", "element", workdir)
     try:
@@ -563,6 +586,7 @@ def _run_cs(coupling, minfo, einfo, model_params, element_params, stop_time, out
 
         F_prev = F_n
         for t, t1 in zip(grid[:-1], grid[1:]):
+            _over_time(deadline, t)
             h = t1 - t
             dn, dn1 = _drive(model_inputs, t, coupling.force_input), _drive(model_inputs, t1, coupling.force_input)
             if iterate:
@@ -626,28 +650,31 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
                      stop_time: float, output_times: np.ndarray, outputs: Sequence[str],
                      model_inputs: Callable[[float], dict[str, float]] | None = None,
                      rtol: float = 1e-6, step: float | None = None, coupling_tol: float = 1e-3,
-                     max_halvings: int = 10, strict: bool = True) -> CoupledResult:
+                     max_halvings: int = 10, strict: bool = True, max_wall_s: float | None = None) -> CoupledResult:
     """Run the model and the element together from 0 to ``stop_time``; the outputs (model variables, or
     ``element.NAME``) and the element's force ``F`` at ``output_times``.
 
     ``model_inputs(t)`` gives the model's other inputs (a drive); a value for the force input itself is added to
     the interface force. ``step`` is the first macro step of the CS schemes (default: the output spacing); they
     halve it until two runs agree within ``coupling_tol`` (relative to each column's largest value).
+    ``max_wall_s`` bounds the wall time of the whole (every run of the verification): past it
+    :class:`CouplingTimeLimitError`.
     """
     if not (stop_time > 0 and math.isfinite(stop_time)):
         raise CouplingError(f"stop_time = {stop_time}: use a positive, finite time")
     times = np.asarray(output_times, dtype=float)
     if times.ndim != 1 or len(times) == 0 or np.any(np.diff(times) <= 0) or times[0] < 0 or times[-1] > stop_time:
         raise CouplingError("output_times must increase strictly, within [0, stop_time]")
-    minfo, einfo, scheme = _check(coupling)
+    minfo, einfo, scheme = checked_coupling(coupling)
     import tempfile
     workdir = Path(tempfile.mkdtemp(prefix="fmusa-cosim-"))
     wall0, cpu0 = time.perf_counter(), time.process_time()
+    deadline = wall0 + float(max_wall_s) if max_wall_s else None
     args = (coupling, minfo, einfo, dict(model_params), dict(element_params), float(stop_time), times,
             list(outputs), model_inputs, float(rtol))
     try:
         if scheme == "me-implicit":
-            frame, calls, info = _run_me(*args, workdir)
+            frame, calls, info = _run_me(*args, workdir, deadline)
             return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
                                  notes=[f"{info['steps']} implicit steps (Radau, rtol {rtol:g})"])
         iterate = scheme == "cs-iterate"
@@ -657,7 +684,7 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
         notes = []
         for k in range(max_halvings + 1):
             try:
-                frame, c, info = _run_cs(*args, h, iterate, workdir)
+                frame, c, info = _run_cs(*args, h, iterate, workdir, deadline=deadline)
             except CouplingError as exc:
                 if "diverged" not in str(exc) and "did not converge" not in str(exc):
                     raise

@@ -59,6 +59,10 @@ class CoupledRunner:
         #: the last coupled run's scheme, FMU calls and wall time, for what a coupled run costs
         self.last = None
 
+    def parameter_values(self, values: Sequence[float]) -> tuple[dict, dict]:
+        """(model FMU's, element FMU's) variable values of one run: the drive's settings and the parameters."""
+        return self._params(values)
+
     def _params(self, values: Sequence[float]) -> tuple[dict, dict]:
         model, element = dict(self.settings), {}
         for n, v in [*zip(self.names, values), *self.fixed.items()]:

@@ -330,8 +330,28 @@ def run_study_diagnosis(study, out_dir: str | os.PathLike, workers: int | None =
                          progress=progress)
     if study.interface.attached is not None:
         diag["coupling"] = coupled_cost(fmu, study.interface, study.tests.drive, diag, experiments[0])
+        diag["ssp"] = write_extended_ssp(Path(out_dir) / "extended.ssp", fmu, study.interface, study.tests.drive,
+                                         diag["extended"]["params"], float(experiments[0].t[-1]), study.name)
         write_json(diag, Path(out_dir) / "diagnosis.json")
     return diag
+
+
+def write_extended_ssp(path: Path, fmu: str, interface: ModelInterface, drive: str, params: dict,
+                       stop_time: float, name: str) -> dict:
+    """The extended model (the model FMU, the element FMU with the fitted parameters, their connections) as an
+    SSP 1.0 archive next to diagnosis.json; when the coupling cannot be written as SSP (e.g. the interface's
+    velocity is a state, not an output), why, in place of the file."""
+    from fmusa.cosim.master import CouplingError
+    from fmusa.cosim.ssp import write_ssp
+    from fmusa.diagnose.attached import CoupledRunner, coupling_of
+
+    runner = CoupledRunner(fmu, drive, list(params), {}, interface=interface)
+    model, element = runner.parameter_values(list(params.values()))
+    try:
+        write_ssp(path, coupling_of(fmu, interface), model, element, stop_time, name=name)
+    except CouplingError as exc:
+        return {"written": False, "why": str(exc)}
+    return {"written": True, "path": path.name, "model_parameters": model, "element_parameters": element}
 
 
 def coupled_cost(fmu: str, interface: ModelInterface, drive: str, diag: dict, experiment) -> dict:
