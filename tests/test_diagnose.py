@@ -163,9 +163,13 @@ def test_leftover_rig_oscillation_is_described(fmu_path):
     assert "Hz" in d["leftover"]
 
 
-def test_screw_vertebra_interface_is_the_one_place_of_its_variables():
-    """The drive reaches the FMU through the interface: mode, input switch, input, output, solver settings."""
-    from fmusa.diagnose.interface import SCREW_VERTEBRA as sv
+def test_screw_vertebra_interface_is_the_one_place_of_its_variables(fmu_path):
+    """The drive reaches the FMU through its description (a data file chosen by the FMU's model name): mode,
+    input switch, input, output, solver settings."""
+    from fmusa.diagnose.models import builtin_description, resolve
+
+    sv = builtin_description("ScrewVertebra")
+    assert resolve(None, fmu_path) == sv
 
     assert sv.settings("displacement", 1e-5) == {"mode": 2, "use_y_in": True, "rtol": 1e-5, "monitors": False}
     assert sv.settings("force", 1e-6) == {"mode": 1, "F_max": 0.0, "rtol": 1e-6, "monitors": False}
@@ -181,7 +185,9 @@ def test_interface_is_passed_through_to_the_fmu(fmu_path):
     from dataclasses import replace
 
     from fmusa.diagnose.calibrate import ModelRunner
-    from fmusa.diagnose.interface import SCREW_VERTEBRA
+    from fmusa.diagnose.models import builtin_description
+
+    SCREW_VERTEBRA = builtin_description("ScrewVertebra")
 
     e, _ = experiment("coulomb_friction", "displacement", seed=3, points=60)
     renamed = replace(SCREW_VERTEBRA, parameter_names={"stiffness": "c_y"})

@@ -19,7 +19,8 @@ ROOT = "fmusa"
 #: (layer, its modules, the layers it may import besides itself). A module entry covers the module and,
 #: for a package, everything under it; the root package ``fmusa`` (its __init__) covers itself only.
 #: The stack base → fmi → runs → study → analysis → pipeline → report → applications → top, and
-#: diagnose: a vertical on base, fmi, runs and cosim (the coupling master, on base and fmi) that only
+#: diagnose: a vertical on base, fmi, runs, study (the YAML reading of its study file) and cosim (the coupling
+#: master, on base and fmi) that only
 #: applications and the top use.
 _STACK = ("base", "fmi", "runs", "study", "analysis", "pipeline", "report")
 LAYERS: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
@@ -31,7 +32,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
     ("pipeline", ("fmusa.pipeline",), _STACK[:5]),
     ("report", ("fmusa.report",), _STACK[:6]),
     ("cosim", ("fmusa.cosim",), ("base", "fmi")),
-    ("diagnose", ("fmusa.diagnose",), ("base", "fmi", "runs", "cosim")),
+    ("diagnose", ("fmusa.diagnose",), ("base", "fmi", "runs", "study", "cosim")),
     ("applications", ("fmusa.applications",), _STACK + ("cosim", "diagnose")),
     ("top", ("fmusa", "fmusa.api", "fmusa.cli", "fmusa.bench"), _STACK + ("cosim", "diagnose", "applications")),
 )

@@ -5,6 +5,7 @@ repository page. ``tests/test_docs.py`` and the docs build fail when one differs
 now, with the command that rewrites it:
 
 - docs/reference/study-keys.md: the study file's keys, from ``fmusa.study.schema`` (checked against the loader);
+- docs/reference/diagnosis-keys.md: the diagnosis study file's keys, from ``fmusa.diagnose.study`` (likewise);
 - docs/reference/model.md: the ScrewVertebra model, from fmu/MODEL.md and the Modelica source;
 - docs/reference/troubleshooting.md: every FmusaError subclass, found by introspection, with its fix;
 - the identifiability table in docs/diagnosing.md (between ``<!-- generated: identifiability … -->`` and
@@ -28,6 +29,7 @@ for _p in (HERE, ROOT / "tests"):
 import errors_page  # noqa: E402
 import model_page  # noqa: E402
 import study_keys  # noqa: E402
+import diagnosis_keys  # noqa: E402
 
 REWRITE = "make reference"
 BLOCK = re.compile(r"(<!-- generated: (?P<name>[\w-]+) \(make reference\) -->\n)(?P<body>.*?)(<!-- end generated -->)",
@@ -44,6 +46,7 @@ def identifiability_block() -> str:
 #: whole pages: path relative to the repository -> the function that renders it
 PAGES: dict[str, Callable[[], str]] = {
     "docs/reference/study-keys.md": study_keys.render,
+    "docs/reference/diagnosis-keys.md": diagnosis_keys.render,
     "docs/reference/model.md": model_page.render,
     "docs/reference/troubleshooting.md": errors_page.render,
 }

@@ -21,8 +21,6 @@ are :class:`FmusaError` subclasses.
 from __future__ import annotations
 
 import importlib as _importlib
-import sys as _sys
-import types as _types
 
 from fmusa.errors import FmusaError
 
@@ -36,9 +34,6 @@ _EXPORTS: dict[str, str] = {
     "FMURunner": "fmusa.fmi.runner",
     "read_fmu_info": "fmusa.fmi.info",
 }
-#: Where :func:`diagnose` is defined (``fmusa.diagnose`` itself is the subpackage, made callable).
-_DIAGNOSE = "fmusa.diagnose.run"
-
 __all__ = ["__version__", "FmusaError", "load_study", "run_study", "write_report", "FMURunner", "read_fmu_info",
            "diagnose"]
 
@@ -63,22 +58,17 @@ def __dir__() -> list[str]:
     return sorted(set(__all__) | {k for k in globals() if not k.startswith("_") and k not in hidden})
 
 
-class _CallablePackage(_types.ModuleType):
-    """The class of the ``fmusa.diagnose`` subpackage: a module that is also the function
-    ``diagnose(experiments, drive, ...)`` of :mod:`fmusa.diagnose.run`, so that ``fmusa.diagnose(...)``
-    works and ``fmusa.diagnose.measured`` (and every other import of the subpackage) still does."""
-
-    def __call__(self, *args: object, **kwargs: object) -> object:
-        return getattr(_importlib.import_module(_DIAGNOSE), "diagnose")(*args, **kwargs)
+# The subpackage fmusa.diagnose is imported first (it holds only a docstring): importing a subpackage binds it
+# as an attribute of its parent, and the function below must be the one that stays bound.
+_importlib.import_module("fmusa.diagnose")
 
 
-def _callable_diagnose() -> None:
-    """Make the subpackage callable as soon as fmusa is imported (it holds only a docstring, so this costs
-    nothing), whatever is imported later and in which order."""
-    pkg = _importlib.import_module("fmusa.diagnose")
-    if not isinstance(pkg, _CallablePackage):
-        pkg.__class__ = _CallablePackage
+def diagnose(experiments_or_study: object, drive: str | None = None, **kwargs: object) -> dict:
+    """The diagnosis: ``fmusa.diagnose(experiments, "displacement")`` or ``fmusa.diagnose("study.yaml")``
+    (:func:`fmusa.api.diagnose`)."""
+    return _importlib.import_module("fmusa.api").diagnose(experiments_or_study, drive, **kwargs)
 
 
-_callable_diagnose()
-diagnose = _sys.modules["fmusa.diagnose"]
+# `import fmusa.diagnose.run as m` looks `run` up on fmusa.diagnose (this function) and, not finding it there,
+# takes the module sys.modules[f"{fmusa.diagnose.__name__}.run"]: the name keeps every such import working.
+diagnose.__name__ = "fmusa.diagnose"

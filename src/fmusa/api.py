@@ -16,7 +16,7 @@ from fmusa.report import markdown
 from fmusa.study import loader
 from fmusa.study.schema import Study
 
-__all__ = ["load_study", "parse_study", "run_study", "write_report"]
+__all__ = ["load_study", "parse_study", "run_study", "write_report", "diagnose"]
 
 
 def load_study(path: str | os.PathLike) -> Study:
@@ -57,3 +57,22 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     finally:
         result.release()
     return result
+
+
+def diagnose(experiments_or_study, drive: str | None = None, **kwargs) -> dict:
+    """The diagnosis (``fmusa.diagnose``): of measured experiments under ``drive``, through the FMU's built-in
+    model description or the ``interface`` given (:func:`fmusa.diagnose.run.diagnose`, whose keyword
+    arguments it takes); or of a diagnosis study file (a path or a loaded
+    :class:`~fmusa.diagnose.study.DiagnosisStudy`), whose FMU, tests and description it uses."""
+    from fmusa.diagnose import run
+    from fmusa.diagnose.study import DiagnosisStudy, load_diagnosis_study
+
+    study = experiments_or_study
+    if isinstance(study, (str, os.PathLike)):
+        study = load_diagnosis_study(study)
+    if isinstance(study, DiagnosisStudy):
+        opts = study.diagnosis
+        kw = {"fmu_path": study.fmu, "interface": study.interface, "workers": opts.workers,
+              "max_starts": opts.starts, "chain": opts.chain, **kwargs}
+        return run.diagnose(study.experiments(), drive or study.tests.drive, **kw)
+    return run.diagnose(experiments_or_study, drive, **kwargs)

@@ -84,7 +84,9 @@ def _add_pullout(sub: argparse._SubParsersAction) -> None:
                    help="override an FMU parameter (repeatable), e.g. --set c_y=1e6 --set d_y=500")
     p.add_argument("--stop-time", type=_positive_float, default=12.0, help="simulation end in s (default 12)")
     p.add_argument("--step", type=_positive_float, default=0.01, help="communication step in s (default 0.01)")
-    p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
+    p.add_argument("--fmu", type=Path, default=None,
+                   help="with CSV files: an FMU of a model fmusa has a description of (ScrewVertebra; default "
+                        "dist/ScrewVertebra.fmu); for any other FMU write a diagnosis study file")
     p.set_defaults(func=cmd_pullout)
 
 
@@ -586,9 +588,12 @@ def _add_diagnose(sub: argparse._SubParsersAction, full: bool = True) -> None:
         return
     from fmusa.diagnose.effects import CANDIDATES
 
-    p.add_argument("files", nargs="+", type=Path, metavar="FILE.csv", help="measured tests, one per file")
-    p.add_argument("--drive", required=True, choices=("force", "displacement"),
-                   help="the channel the test imposed; the model is driven by it and predicts the other")
+    p.add_argument("files", nargs="+", type=Path, metavar="STUDY.yaml | FILE.csv",
+                   help="a diagnosis study file (the FMU, the tests, how they drive it, where the effects go), "
+                        "or the measured tests of a model with a built-in description (ScrewVertebra), one per file")
+    p.add_argument("--drive", default=None, choices=("force", "displacement"),
+                   help="with CSV files: the channel the test imposed; the model is driven by it and predicts the "
+                        "other")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
     g = p.add_argument_group("columns and units (default: time,displacement,force in s, m, N)")
     g.add_argument("--time-column", default="time", metavar="NAME")
@@ -611,13 +616,53 @@ def _add_diagnose(sub: argparse._SubParsersAction, full: bool = True) -> None:
                    help=f"comma-separated subset of: {', '.join(CANDIDATES)}")
     p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
     p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
-    p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
+    p.add_argument("--fmu", type=Path, default=None,
+                   help="with CSV files: an FMU of a model fmusa has a description of (ScrewVertebra; default "
+                        "dist/ScrewVertebra.fmu); for any other FMU write a diagnosis study file")
+
+
+#: The options of ``diagnose`` that a study file sets itself (its tests and diagnosis sections).
+_STUDY_SETS = {"drive": None, "time_column": "time", "displacement_column": "displacement", "force_column": "force",
+               "time_unit": "s", "displacement_unit": "m", "force_unit": "N", "rate": None, "no_zero_drive": False,
+               "max_points": 300, "candidates": None, "starts": 6, "fmu": None}
+
+
+def _diagnose_study(args: argparse.Namespace) -> dict:
+    """``fmusa diagnose STUDY.yaml``: the study file sets the tests and the model; only --workers and --out."""
+    from fmusa.diagnose.effects import DiagnoseError
+    from fmusa.diagnose.run import run_study_diagnosis
+    from fmusa.diagnose.study import load_diagnosis_study
+
+    if len(args.files) != 1:
+        raise DiagnoseError(f"give one diagnosis study file, or CSV files; got {len(args.files)} files with "
+                         f"{args.files[0]}")
+    given = [k for k, default in _STUDY_SETS.items() if getattr(args, k, default) != default
+             and not (k == "candidates" and getattr(args, k) == _all_candidates())]
+    if given:
+        flags = ", ".join("--" + k.replace("_", "-") for k in given)
+        raise DiagnoseError(f"{flags}: the study file {args.files[0]} sets these (its tests, effects and diagnosis "
+                         f"sections); change them there")
+    study = load_diagnosis_study(args.files[0])
+    return run_study_diagnosis(study, args.out, workers=args.workers)
+
+
+def _all_candidates() -> str:
+    from fmusa.diagnose.effects import CANDIDATES
+
+    return ",".join(CANDIDATES)
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
     from fmusa.diagnose.run import run_diagnosis
     from fmusa.diagnose.measured import ColumnSpec, load_experiments
 
+    if args.files and args.files[0].suffix.lower() in (".yaml", ".yml"):
+        return _print_diagnosis(args, _diagnose_study(args))
+    if args.drive is None:
+        from fmusa.diagnose.effects import DiagnoseError
+
+        raise DiagnoseError("--drive is required with CSV files: force or displacement (the channel the test "
+                         "imposed); or give a diagnosis study file")
     if args.max_points < 10:
         raise ValueError(f"--max-points must be >= 10, got {args.max_points}")
     if args.workers is not None and args.workers < 1:
@@ -634,6 +679,11 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
             print(f"read {e.path}: {', '.join(e.meta['detected'])} (detected; set with --delimiter, --decimal)")
     diag = run_diagnosis(exps, args.drive, args.out, fmu_path=args.fmu, candidates=cands,
                          workers=args.workers, max_starts=args.starts)
+    return _print_diagnosis(args, diag)
+
+
+def _print_diagnosis(args: argparse.Namespace, diag: dict) -> int:
+    """The verdict on the terminal, and where the files are."""
     g = diag["gain"]
     print(f"effect: {diag['effect']}")
     if diag["effect"] != "none":
@@ -647,6 +697,10 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         print(f"  cannot be told from {t['effect']}: {t['separating_test']}")
     if diag["leftover"]:
         print(f"  left in the residuals: {diag['leftover']}")
+    cp = diag.get("coupling")
+    if cp:
+        print(f"  coupled runs: {cp['scheme']}, {cp['calls']} FMU calls and {cp['cpu_s']:.2f} s CPU for one run of "
+              f"{cp['experiment']}")
     for name in ("diagnosis.json", "report.md"):
         if (args.out / name).exists():
             print(f"wrote {args.out / name}")
@@ -676,7 +730,9 @@ def _add_diagnose_shear(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--all", action="store_true", help="diagnose every specimen through the FMU (slow)")
     p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
     p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
-    p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
+    p.add_argument("--fmu", type=Path, default=None,
+                   help="with CSV files: an FMU of a model fmusa has a description of (ScrewVertebra; default "
+                        "dist/ScrewVertebra.fmu); for any other FMU write a diagnosis study file")
     p.set_defaults(func=cmd_diagnose_shear)
 
 

@@ -16,12 +16,14 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy import optimize, stats
 
-from fmusa.diagnose.effects import (EQUIVALENT_BY_CONSTRUCTION, Param, Scales, constant_rate, data_scales,
-                                    equivalent_intervals, equivalent_parameters, model_parameters)
-from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
+from fmusa.diagnose.effects import (DAMPING, EQUIVALENT_BY_CONSTRUCTION, STIFFNESS, Param, Scales, constant_rate,
+                                    data_scales, equivalent_intervals, equivalent_parameters, model_parameters,
+                                    with_bounds)
+from fmusa.diagnose.interface import ModelInterface
+from fmusa.diagnose.models import resolve
 
 __all__ = ["Fit", "ModelRunner", "calibrate", "MIN_EXPERIMENTS_LEFT_OUT", "heldout_masks", "heldout_folds",
-           "pooled_heldout", "heldout_rmse", "unify_equivalent", "fit_candidate"]
+           "pooled_heldout", "heldout_rmse", "unify_equivalent", "fit_candidate", "make_runner"]
 
 
 @dataclass
@@ -65,13 +67,17 @@ class ModelRunner:
 
     def __init__(self, fmu_path: str | os.PathLike, drive: str, names: Sequence[str],
                  fixed: dict | None = None, rtol: float = 1e-5,
-                 interface: ModelInterface = SCREW_VERTEBRA) -> None:
+                 interface: ModelInterface | None = None) -> None:
         from fmusa.fmi.plans import DrivenPlan
         from fmusa.fmi.runner import FMURunner
 
+        interface = resolve(interface, fmu_path)
         settings = interface.settings(drive, rtol)
         self.input_name = interface.input_name(drive)
         self.output = interface.output_name(drive)
+        # SI -> the FMU's units of the input, the FMU's units of the output -> SI
+        self.in_scale = float(interface.input_scale.get(drive, 1.0))
+        self.out_scale = float(interface.output_scale.get(drive, 1.0))
         self.runner = FMURunner(fmu_path, instance_name="diagnose")
         try:
             self.plan = DrivenPlan(self.runner, [interface.variable(n) for n in names],
@@ -82,7 +88,10 @@ class ModelRunner:
 
     def predict(self, values: Sequence[float], experiments: Sequence) -> list[np.ndarray]:
         """The response channel of every experiment under the given parameter values."""
-        return [self.plan(values, e.t, e.drive_signal)[:, 0] for e in experiments]
+        if self.in_scale == 1.0 and self.out_scale == 1.0:
+            return [self.plan(values, e.t, e.drive_signal)[:, 0] for e in experiments]
+        return [self.plan(values, e.t, np.asarray(e.drive_signal) / self.in_scale)[:, 0] * self.out_scale
+                for e in experiments]
 
     def close(self) -> None:
         self.runner.close()
@@ -299,18 +308,18 @@ def unify_equivalent(fits: dict[str, Fit]) -> dict[str, Fit]:
 
 
 def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
-                  max_starts: int = 6, interface: ModelInterface = SCREW_VERTEBRA) -> Fit:
+                  max_starts: int = 6, interface: ModelInterface | None = None) -> Fit:
     """Calibrate one model and score it on held-out data (runs in a worker process).
 
-    Under a drive of one constant rate (:func:`effects.constant_rate`) the damping d_y is held at 0: its
-    force d_y*v is a constant there, which the fit would trade against the stiffness (the baseline of issue
-    22 fitted a constant 150 N through d_y*v with c_y -> 0)."""
-    sc = data_scales(experiments)
+    Under a drive of one constant rate (:func:`effects.constant_rate`) the damping is held at 0: its
+    force d*v is a constant there, which the fit would trade against the stiffness (a baseline fitted a
+    constant 150 N through d*v with the stiffness -> 0)."""
+    interface = resolve(interface, fmu_path)
+    sc = with_bounds(data_scales(experiments), interface.bounds)
     const = constant_rate(experiments) if drive == "displacement" else None
-    fixed = {"d_y": 0.0} if const else {}
+    fixed = {DAMPING: 0.0} if const else {}
     names = [p.name for p in model_parameters(effect, drive, sc) if p.name not in fixed]
-    model = ModelRunner(fmu_path, drive, names, fixed={interface.variable(k): v for k, v in fixed.items()},
-                        interface=interface)
+    model = make_runner(fmu_path, drive, names, fixed, interface)
     try:
         fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed))
         fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc, held=tuple(fixed))
@@ -318,7 +327,20 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
     finally:
         model.close()
     if const:
-        fit.params = {"c_y": fit.params["c_y"], "d_y": 0.0, **{k: v for k, v in fit.params.items() if k != "c_y"}}
-        fit.ci95 = {"c_y": fit.ci95["c_y"], "d_y": (0.0, 0.0), **{k: v for k, v in fit.ci95.items() if k != "c_y"}}
-        fit.held = {"d_y": {"value": 0.0, "why": const["why"], "identifying_test": const["identifying_test"]}}
+        fit.params = {STIFFNESS: fit.params[STIFFNESS], DAMPING: 0.0,
+                      **{k: v for k, v in fit.params.items() if k != STIFFNESS}}
+        fit.ci95 = {STIFFNESS: fit.ci95[STIFFNESS], DAMPING: (0.0, 0.0),
+                    **{k: v for k, v in fit.ci95.items() if k != STIFFNESS}}
+        fit.held = {DAMPING: {"value": 0.0, "why": const["why"], "identifying_test": const["identifying_test"]}}
     return fit
+
+
+def make_runner(fmu_path: str, drive: str, names: Sequence[str], fixed: dict, interface: ModelInterface):
+    """The runner of one candidate: the FMU alone (effects inside it), or coupled to the interface element
+    (effects attached, :mod:`fmusa.diagnose.attached`). ``fixed`` in catalogue names."""
+    if interface.attached is not None:
+        from fmusa.diagnose.attached import CoupledRunner
+
+        return CoupledRunner(fmu_path, drive, names, fixed, interface=interface)
+    return ModelRunner(fmu_path, drive, names, fixed={interface.variable(k): v for k, v in fixed.items()},
+                       interface=interface)

@@ -8,16 +8,23 @@ how a model is run or fitted: the names of the fitted parameters (the baseline s
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from fmusa.errors import FmusaError
 
-__all__ = ["CANDIDATES", "SEPARATING_TESTS", "UNITS", "MAIN_PARAMETER", "DiagnoseError", "Param", "Scales",
-           "data_scales", "constant_rate", "model_parameters", "main_parameter", "separating_test", "EQUIVALENT_BY_CONSTRUCTION",
+__all__ = ["CANDIDATES", "STIFFNESS", "DAMPING", "BASELINE", "PARAM_MEANING", "EFFECT_MEANING", "SEPARATING_TESTS", "UNITS", "MAIN_PARAMETER", "DiagnoseError", "Param", "Scales",
+           "data_scales", "with_bounds", "constant_rate", "model_parameters", "main_parameter", "separating_test", "EQUIVALENT_BY_CONSTRUCTION",
            "equivalent_by_construction", "equivalent_parameters", "equivalent_intervals", "BASELINE_LOOK_ALIKES"]
+
+#: The baseline every candidate extends: the eq. 1 spring-damper, its two parameters under the catalogue's
+#: names. A model description (:class:`fmusa.diagnose.interface.ModelInterface`) binds each catalogue name to
+#: the FMU variable that carries it (its ``parameter_names``), so these names never have to be the FMU's.
+STIFFNESS = "c_y"
+DAMPING = "d_y"
+BASELINE = (STIFFNESS, DAMPING)
 
 CANDIDATES = ("nonlinear_stiffness", "viscoelastic_relaxation", "coulomb_friction", "yield_softening",
               "backlash_gap", "sensor_offset", "interface_damage")
@@ -157,6 +164,42 @@ def equivalent_intervals(effect: str, params: dict, ci95: dict, other: str) -> d
     return {k: (min(c[k] for c in corners), max(c[k] for c in corners)) for k in corners[0]}
 
 
+#: What each fitted parameter means (the report's tables).
+PARAM_MEANING = {
+    "c_y": "stiffness c (eq. 1)",
+    "d_y": "damping d (eq. 1)",
+    "gap": "slack: no force within ±gap",
+    "nl_ratio": "stiffness past the breakpoint / c",
+    "nl_y_b": "breakpoint displacement of the stiffness",
+    "yield_ratio": "stiffness after yield / c",
+    "yield_F": "yield force",
+    "fric_F": "Coulomb friction force",
+    "fric_x": "pre-slip displacement of the friction (stiffness fric_F/fric_x before it slides)",
+    "ve_k": "stiffness of the Maxwell branch",
+    "ve_tau": "relaxation time of the Maxwell branch",
+    "F_offset": "bias of the force channel",
+    "y_offset": "bias of the displacement channel",
+    "dmg_y0": "onset displacement of the interface damage (largest displacement reached)",
+    "dmg_rate": "softening rate of the damage per displacement past the onset",
+    "dmg_F_res": "residual force of the failed interface (friction plateau)",
+}
+
+#: What each effect means physically (fmu/MODEL.md, "Effects beyond eq. 1").
+EFFECT_MEANING = {
+    "none": "the baseline spring–damper (eq. 1) explains the data within their noise",
+    "nonlinear_stiffness": "the force–displacement curve bends (stiffness changes past a breakpoint) and is "
+                           "elastic: unloading retraces loading",
+    "viscoelastic_relaxation": "a Maxwell branch (spring in series with a dashpot): force relaxes at held "
+                               "displacement, displacement creeps at held force, stiffness rises with rate",
+    "coulomb_friction": "a rate-independent force opposing the motion: a hysteresis loop of constant width",
+    "yield_softening": "the interface yields (threads stripping bone): lower stiffness past a yield force and "
+                       "a permanent set after unloading",
+    "backlash_gap": "slack: no force until the displacement passes a gap",
+    "sensor_offset": "a constant bias in the measured channel",
+    "interface_damage": "the interface fails: past an onset displacement its strength drops towards a residual "
+                        "(friction) force, and it unloads and reloads on the secant to the origin",
+}
+
 UNITS = {"c_y": "N/m", "d_y": "N.s/m", "gap": "m", "nl_ratio": "1", "nl_y_b": "m", "yield_ratio": "1",
          "yield_F": "N", "fric_F": "N", "fric_x": "m", "ve_k": "N/m", "ve_tau": "s", "F_offset": "N", "y_offset": "m",
          "dmg_y0": "m", "dmg_rate": "1/m", "dmg_F_res": "N"}
@@ -205,6 +248,13 @@ class Scales:
     dt_min: float
     #: the damping the rate content of the data asks for: the least-squares d of F - c0 y on v, in [0, d_max]
     d0: float = 0.0
+    #: bounds a model description or study file sets in place of the data-scaled ones: name -> (lower, upper)
+    bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+
+
+def with_bounds(sc: Scales, bounds: Mapping[str, tuple[float, float]] | None) -> Scales:
+    """The scales with the given bounds in place of the data-scaled ones (their starts clipped into them)."""
+    return replace(sc, bounds=dict(bounds)) if bounds else sc
 
 
 def data_scales(experiments: Sequence) -> Scales:
@@ -254,12 +304,28 @@ def constant_rate(experiments: Sequence, tol: float = 0.05) -> dict | None:
 
 
 def model_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
-    """The fitted parameters of the baseline (c_y, d_y) plus those of one effect, with data-scaled bounds."""
+    """The fitted parameters of the baseline (c_y, d_y) plus those of one effect, with data-scaled bounds
+    (or the bounds ``sc.bounds`` sets, the starts clipped into them)."""
+    params = _catalogue_parameters(effect, drive, sc)
+    if not sc.bounds:
+        return params
+    out = []
+    for p in params:
+        if p.name in sc.bounds:
+            lo, hi = sc.bounds[p.name]
+            starts = tuple(dict.fromkeys(min(max(s, lo), hi) for s in p.starts))
+            p = replace(p, lower=lo, upper=hi, starts=starts, log=p.log and lo > 0)
+        out.append(p)
+    return out
+
+
+def _catalogue_parameters(effect: str, drive: str, sc: Scales) -> list[Param]:
+    """The catalogue's parameters of a model with data-scaled bounds."""
     if "+" in effect:   # several effects at once, e.g. "nonlinear_stiffness+viscoelastic_relaxation"
         parts = effect.split("+")
-        out = model_parameters(parts[0], drive, sc)
+        out = _catalogue_parameters(parts[0], drive, sc)
         for part in parts[1:]:
-            out += model_parameters(part, drive, sc)[2:]
+            out += _catalogue_parameters(part, drive, sc)[2:]
         return out
     c0, y_pk, F_pk = sc.c0, sc.y_pk, sc.F_pk
     d_max = 2.0 * F_pk / sc.v_pk

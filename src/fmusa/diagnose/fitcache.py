@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from fmusa.diagnose.calibrate import Fit, fit_candidate
-from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
+from fmusa.diagnose.interface import ModelInterface
 from fmusa.files import atomic_write
 
 __all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits"]
@@ -36,15 +36,25 @@ def _fit_job(args: FitJob) -> Fit | str:
 
 
 def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
-             interface: ModelInterface = SCREW_VERTEBRA) -> str:
+             interface: ModelInterface | None = None) -> str:
     """Identity of a diagnosis input: cached fits are reused only for the same data, drive, FMU and
-    interface (the default interface adds nothing, so caches written before it existed stay valid)."""
+    interface (the FMU's built-in description adds nothing, so caches written before descriptions existed
+    stay valid; a description's name is not part of it)."""
+    from dataclasses import replace
+
+    from fmusa.diagnose.models import resolve
+
     h = hashlib.sha256()
-    # v2: friction fits fric_x too; v3: held-out folds kept; v4: damping start from the data, d_y held at a
-    # constant rate, bounds hit recorded
+    # v2: friction fits fric_x too; v3: held-out folds kept; v4: damping start from the data, the damping held
+    # at a constant rate, bounds hit recorded
     h.update(f"{drive}|{max_starts}|v4".encode())
-    if interface != SCREW_VERTEBRA:
-        h.update(repr(interface).encode())
+    if interface is not None:
+        try:
+            default = replace(resolve(None, fmu), name="")
+        except Exception:  # noqa: BLE001 - an FMU without a built-in description: the interface is hashed
+            default = None
+        if replace(interface, name="") != default:
+            h.update(repr(replace(interface, name="")).encode())
     h.update(Path(fmu).read_bytes() if Path(fmu).is_file() else str(fmu).encode())
     for e in experiments:
         for a in (e.t, e.displacement, e.force):

@@ -22,47 +22,13 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from fmusa.diagnose.effects import BASELINE, EFFECT_MEANING, PARAM_MEANING, STIFFNESS
 from fmusa.diagnose.views import (by_loading_direction, delta_text, experiment_motion, natural, p_text, ratio_text,
                                   residual_series, response_channel)
 from fmusa.format import fmt, md_code, md_text
 from fmusa.files import atomic_write
 
 __all__ = ["write_report", "EFFECT_MEANING", "PARAM_MEANING", "CAPTIONS"]
-
-PARAM_MEANING = {
-    "c_y": "stiffness c (eq. 1)",
-    "d_y": "damping d (eq. 1)",
-    "gap": "slack: no force within ±gap",
-    "nl_ratio": "stiffness past the breakpoint / c",
-    "nl_y_b": "breakpoint displacement of the stiffness",
-    "yield_ratio": "stiffness after yield / c",
-    "yield_F": "yield force",
-    "fric_F": "Coulomb friction force",
-    "fric_x": "pre-slip displacement of the friction (stiffness fric_F/fric_x before it slides)",
-    "ve_k": "stiffness of the Maxwell branch",
-    "ve_tau": "relaxation time of the Maxwell branch",
-    "F_offset": "bias of the force channel",
-    "y_offset": "bias of the displacement channel",
-    "dmg_y0": "onset displacement of the interface damage (largest displacement reached)",
-    "dmg_rate": "softening rate of the damage per displacement past the onset",
-    "dmg_F_res": "residual force of the failed interface (friction plateau)",
-}
-
-#: What each effect means physically (fmu/MODEL.md, "Effects beyond eq. 1").
-EFFECT_MEANING = {
-    "none": "the baseline spring–damper (eq. 1) explains the data within their noise",
-    "nonlinear_stiffness": "the force–displacement curve bends (stiffness changes past a breakpoint) and is "
-                           "elastic: unloading retraces loading",
-    "viscoelastic_relaxation": "a Maxwell branch (spring in series with a dashpot): force relaxes at held "
-                               "displacement, displacement creeps at held force, stiffness rises with rate",
-    "coulomb_friction": "a rate-independent force opposing the motion: a hysteresis loop of constant width",
-    "yield_softening": "the interface yields (threads stripping bone): lower stiffness past a yield force and "
-                       "a permanent set after unloading",
-    "backlash_gap": "slack: no force until the displacement passes a gap",
-    "sensor_offset": "a constant bias in the measured channel",
-    "interface_damage": "the interface fails: past an onset displacement its strength drops towards a residual "
-                        "(friction) force, and it unloads and reloads on the secant to the origin",
-}
 
 
 def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
@@ -304,7 +270,7 @@ def _ranking_section(diag: Mapping) -> str:
     resp, unit, f = response_channel(diag)
     rows = []
     for i, r in enumerate(diag.get("ranking") or [], 1):
-        eparams = [(k, v) for k, v in (r.get("params") or {}).items() if k not in ("c_y", "d_y")]
+        eparams = [(k, v) for k, v in (r.get("params") or {}).items() if k not in BASELINE]
         ptxt = ", ".join(f"{k} = {fmt(natural(k, v)[0])}{(' ' + natural(k, v)[1]) if natural(k, v)[1] else ''}"
                          for k, v in eparams) or "–"
         rows.append([i, f"`{r['effect']}`" + (" ★" if r["effect"] in diag["effect"].split(" ≡ ") else ""),
@@ -543,7 +509,7 @@ def _fit_checks_section(diag: Mapping) -> str:
     line = diag.get("straight_line")
     if line:
         _, unit, f = response_channel(diag)
-        c, u = natural("c_y", line["c_y"])
+        c, u = natural(STIFFNESS, line[STIFFNESS])
         verdict = "not worse" if line.get("baseline_not_worse") else "WORSE (a fit that failed: see the caveats)"
         lines.append(f"- The fitted baseline (RMSE {fmt(base.get('rmse', float('nan')) * f)} {unit}) is {verdict} "
                      f"than the straight line through the origin with the secant stiffness {fmt(c)} {u} (RMSE "

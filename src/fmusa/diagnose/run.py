@@ -21,17 +21,17 @@ import numpy as np
 
 from fmusa.diagnose import residuals as rs
 from fmusa.diagnose.calibrate import MIN_EXPERIMENTS_LEFT_OUT, Fit, unify_equivalent
-from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, UNITS, DiagnoseError, data_scales,
-                                    equivalent_by_construction, equivalent_parameters, main_parameter,
-                                    model_parameters)
+from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, DAMPING, STIFFNESS, UNITS, DiagnoseError,
+                                    data_scales, equivalent_by_construction, equivalent_parameters,
+                                    main_parameter, model_parameters)
 from fmusa.diagnose.fitcache import data_key, run_fits
-from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
+from fmusa.diagnose.interface import ModelInterface
 from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members,
                                  indistinguishable, nested_p_value, protocol_features, rank_candidates)
 from fmusa.diagnose.units import check_units, model_scale
 from fmusa.files import atomic_write
 
-__all__ = ["diagnose", "response_range", "write_json", "run_diagnosis"]
+__all__ = ["diagnose", "response_range", "write_json", "run_diagnosis", "run_study_diagnosis"]
 
 
 def _check_input(experiments: Sequence, drive: str, candidates: Sequence[str], interface: ModelInterface) -> None:
@@ -120,16 +120,17 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
 
 
 def damping_look_alikes(base: Fit, members: Sequence[str], effect: str) -> list[dict]:
-    """With d_y held at 0 (a drive of one constant rate), a named effect that adds a constant force on such a
-    ramp (friction, a fast Maxwell branch, a force offset) may be the damping force: say so, with the test."""
-    if effect == "none" or "d_y" not in base.held:
+    """With the damping held at 0 (a drive of one constant rate), a named effect that adds a constant force on
+    such a ramp (friction, a fast Maxwell branch, a force offset) may be the damping force: say so, with the
+    test."""
+    if effect == "none" or DAMPING not in base.held:
         return []
     out = []
     for m in members:
         la = BASELINE_LOOK_ALIKES.get(m)
         if la:
-            out.append({"effect": "damping d_y (held at 0)", "of": m,
-                        "reason": f"cannot tell, because {base.held['d_y']['why']}; and {la['why']}",
+            out.append({"effect": f"damping {DAMPING} (held at 0)", "of": m,
+                        "reason": f"cannot tell, because {base.held[DAMPING]['why']}; and {la['why']}",
                         "separating_test": la["separating_test"]})
             break
     return out
@@ -137,7 +138,7 @@ def damping_look_alikes(base: Fit, members: Sequence[str], effect: str) -> list[
 
 def straight_line(experiments: Sequence, drive: str) -> dict:
     """The straight line through the origin that fits the response best (the secant stiffness): a fitted
-    baseline must never be worse (it holds this line at d_y = 0)."""
+    baseline must never be worse (it holds this line with no damping)."""
     ys = np.concatenate([np.asarray(e.displacement, float) for e in experiments])
     Fs = np.concatenate([np.asarray(e.force, float) for e in experiments])
     if drive == "displacement":
@@ -146,7 +147,7 @@ def straight_line(experiments: Sequence, drive: str) -> dict:
     else:
         c = float(np.dot(Fs, Fs) / np.dot(ys, Fs))
         r = Fs / c - ys
-    return {"c_y": c, "rmse": float(np.sqrt(np.mean(r ** 2)))}
+    return {STIFFNESS: c, "rmse": float(np.sqrt(np.mean(r ** 2)))}
 
 
 def response_range(experiments: Sequence) -> float:
@@ -181,23 +182,32 @@ def _thresholds(th: Thresholds) -> dict:
 
 
 def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | None = None,
-             candidates: Sequence[str] = CANDIDATES, workers: int | None = None,
+             candidates: Sequence[str] | None = None, workers: int | None = None,
              max_starts: int = 6, thresholds: Thresholds = Thresholds(), progress: bool = False,
-             cache_dir: str | os.PathLike | None = None, interface: ModelInterface = SCREW_VERTEBRA,
+             cache_dir: str | os.PathLike | None = None, interface: ModelInterface | None = None,
              chain: int = MAX_CHAIN) -> dict:
     """Calibrate the baseline and every candidate, rank them, and describe what is left.
 
     Returns a dict with the keys of diagnosis.json plus the fits (``_fits``) for the figures. With
     ``cache_dir`` each fit is saved as it completes and reused by a rerun on the same data, so an
-    interrupted diagnosis loses nothing already computed. ``interface`` names the FMU's variables.
-    ``chain``: the most effects of the chain (:func:`effect_chain`; 1 names one effect only)."""
+    interrupted diagnosis loses nothing already computed. ``interface`` names the FMU's variables (default:
+    the built-in description of the FMU's model, :mod:`fmusa.diagnose.models`); it is checked against the FMU
+    before anything runs (:func:`fmusa.diagnose.check.check_description`). ``candidates``: default those of
+    the description, else every one of the catalogue. ``chain``: the most effects of the chain
+    (:func:`effect_chain`; 1 names one effect only)."""
+    from fmusa.diagnose.check import check_description
+    from fmusa.diagnose.models import resolve
     from fmusa.fmi.info import FMURunError, default_fmu_path
 
-    _check_input(experiments, drive, candidates, interface)
     fmu = str(fmu_path or default_fmu_path())
-    sc = data_scales(experiments)
     if not Path(fmu).exists():
         raise DiagnoseError(f"FMU not found: {fmu}; build it with `make fmu` or pass --fmu")
+    interface = resolve(interface, fmu)
+    if candidates is None:
+        candidates = interface.candidates or CANDIDATES
+    _check_input(experiments, drive, candidates, interface)
+    check_description(fmu, interface, drive, candidates)
+    sc = data_scales(experiments)
     units = check_units(experiments, model_scale(fmu, interface))
     if progress:   # before the fits, which take minutes: a wrong unit is worth stopping for
         for w in units["warnings"]:
@@ -258,6 +268,10 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
                              for n, v in final.params.items()},
                   "rmse": final.rmse, "heldout_rmse": final.heldout_rmse} if steps else None,
         "data": _data_summary(experiments, drive),
+        # the FMU variable of each fitted parameter (the catalogue's names are the keys above); where the effects
+        # went and the model description's name
+        "model": {"description": interface.name, "effects": "attached" if interface.attached else "inside",
+                  "variables": {n: interface.variable(n) for f in [base, *fits.values()] for n in f.params}},
         "thresholds": _thresholds(thresholds),
         "units": units,
         "warnings": [dict(w) for w in units["warnings"]],
@@ -298,3 +312,56 @@ def run_diagnosis(experiments: Sequence, drive: str, out_dir: str | os.PathLike,
     figs = write_figures(diag, experiments, out)
     write_report(diag, experiments, out, figs)
     return diag
+
+
+def run_study_diagnosis(study, out_dir: str | os.PathLike, workers: int | None = None,
+                        progress: bool = True) -> dict:
+    """A diagnosis study file's diagnosis (:class:`fmusa.diagnose.study.DiagnosisStudy`): the study checked
+    against its FMU first, then the measured tests read, then :func:`run_diagnosis`."""
+    from fmusa.diagnose.check import check_description
+    from fmusa.fmi.info import default_fmu_path
+
+    fmu = str(study.fmu or default_fmu_path())
+    check_description(fmu, study.interface, study.tests.drive, study.interface.candidates or CANDIDATES)
+    experiments = study.experiments()
+    opts = study.diagnosis
+    diag = run_diagnosis(experiments, study.tests.drive, out_dir, fmu_path=fmu, interface=study.interface,
+                         workers=workers or opts.workers, max_starts=opts.starts, chain=opts.chain,
+                         progress=progress)
+    if study.interface.attached is not None:
+        diag["coupling"] = coupled_cost(fmu, study.interface, study.tests.drive, diag, experiments[0])
+        diag["ssp"] = write_extended_ssp(Path(out_dir) / "extended.ssp", fmu, study.interface, study.tests.drive,
+                                         diag["extended"]["params"], float(experiments[0].t[-1]), study.name)
+        write_json(diag, Path(out_dir) / "diagnosis.json")
+    return diag
+
+
+def write_extended_ssp(path: Path, fmu: str, interface: ModelInterface, drive: str, params: dict,
+                       stop_time: float, name: str) -> dict:
+    """The extended model (the model FMU, the element FMU with the fitted parameters, their connections) as an
+    SSP 1.0 archive next to diagnosis.json; when the coupling cannot be written as SSP (e.g. the interface's
+    velocity is a state, not an output), why, in place of the file."""
+    from fmusa.cosim.master import CouplingError
+    from fmusa.cosim.ssp import write_ssp
+    from fmusa.diagnose.attached import CoupledRunner, coupling_of
+
+    runner = CoupledRunner(fmu, drive, list(params), {}, interface=interface)
+    model, element = runner.parameter_values(list(params.values()))
+    try:
+        write_ssp(path, coupling_of(fmu, interface), model, element, stop_time, name=name)
+    except CouplingError as exc:
+        return {"written": False, "why": str(exc)}
+    return {"written": True, "path": path.name, "model_parameters": model, "element_parameters": element}
+
+
+def coupled_cost(fmu: str, interface: ModelInterface, drive: str, diag: dict, experiment) -> dict:
+    """One coupled run of the extended model on the first experiment, for what the diagnosis states about the
+    coupling: the scheme the master chose, its FMU calls and its wall and CPU time."""
+    from fmusa.diagnose.calibrate import make_runner
+
+    params = dict(diag["extended"]["params"])
+    runner = make_runner(fmu, drive, list(params), {}, interface)
+    runner.predict(list(params.values()), [experiment])
+    r = runner.last
+    return {"scheme": r.scheme, "calls": int(r.calls), "wall_s": float(r.wall_s), "cpu_s": float(r.cpu_s),
+            "notes": list(r.notes), "experiment": experiment.name, "points": len(experiment.t)}

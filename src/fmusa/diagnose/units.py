@@ -4,8 +4,8 @@ A fit never notices a wrong unit: its bounds and starts are scaled to the data (
 so a test in mm read as m is fitted as well as the right one, only 1000 times off (a 500 mm peak for a screw).
 :func:`check_units` compares what the data imply (the peak displacement, the peak force and the secant
 stiffness force / displacement) with plausible ranges taken from the FMU's own scale (:class:`ModelScale`:
-the start values the interface names, for ScrewVertebra the stiffness ``c_y``, the screw's length
-``L_screw``, the smoothing width ``smooth_w`` and the nominal load ``F_max``). When a quantity is outside
+the start values the model description names in its ``scale``: a stiffness, a length of the part, a
+smoothing width and a nominal load). When a quantity is outside
 its range, it tries the other units of each channel (the declared unit of the file replaced by another
 length or force unit) and names the one that brings every quantity into range, with the option that fixes
 it (``--displacement-unit mm``, ``ColumnSpec.displacement_unit``). Nothing is fitted or run.
@@ -29,7 +29,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
+from fmusa.diagnose.interface import ModelInterface
 from fmusa.diagnose.measured import FORCE_UNITS, LENGTH_UNITS, OPTIONS
 
 __all__ = ["ModelScale", "RANGES", "model_scale", "implied_magnitudes", "check_units"]
@@ -64,11 +64,13 @@ class ModelScale:
         return out
 
 
-def model_scale(fmu_path: str | os.PathLike, interface: ModelInterface = SCREW_VERTEBRA) -> ModelScale:
+def model_scale(fmu_path: str | os.PathLike, interface: ModelInterface | None = None) -> ModelScale:
     """The scale of the FMU: the start values of the variables ``interface.scale_variables`` names
     (missing or non-positive ones are left out, and their checks with them)."""
+    from fmusa.diagnose.models import resolve
     from fmusa.fmi.info import read_fmu_info
 
+    interface = resolve(interface, fmu_path)
     info = read_fmu_info(fmu_path)
     values, used = {}, {}
     for quantity, name in interface.scale_variables.items():

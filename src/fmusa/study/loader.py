@@ -1215,10 +1215,18 @@ def parse_study(text: str, path: str | os.PathLike = "<string>",
     else:
         study_path = Path(path).expanduser().resolve()
         base_dir = study_path.parent
+    return _parse(p, compose_yaml(text, label, p), base_dir, study_path, blocks)
+
+
+def compose_yaml(text: str, label: str, p: "_Parser | None" = None) -> Node | None:
+    """The YAML node tree of ``text`` (None when empty), checked for nesting and self-containing aliases, or a
+    StudyError with the line of the problem (``p``: the parser whose messages name the file)."""
+    p = p or _Parser(label)
     try:
         _check_depth(p, text)
         root = yaml.compose(text, Loader=_Loader)
         _check_graph(p, root)
+        return root
     except RecursionError:
         raise StudyError(f"{label}:1: lists or mappings nested too deeply; a study file nests a few "
                          f"levels") from None
@@ -1230,7 +1238,6 @@ def parse_study(text: str, path: str | os.PathLike = "<string>",
                          f"':' after each key, matching quotes and brackets)") from None
     except yaml.YAMLError as exc:
         raise StudyError(f"{label}:1: invalid YAML: {exc}") from None
-    return _parse(p, root, base_dir, study_path, blocks)
 
 
 #: Largest study file read: study files are a few kilobytes; this stops a wrong path (a device, a
@@ -1240,6 +1247,11 @@ MAX_STUDY_BYTES = 1_000_000
 
 def load_study(path: str | os.PathLike, blocks: Mapping[str, BlockValidator] | None = None) -> Study:
     """Load and validate the study file ``path``. Raises :class:`StudyError` (a ValueError)."""
+    return parse_study(read_study_text(path), path, blocks)
+
+
+def read_study_text(path: str | os.PathLike) -> str:
+    """The text of a study file, read with the checks every study file gets (exists, a file, bounded, UTF-8)."""
     file = Path(path)
     try:
         if not file.is_file():
@@ -1257,4 +1269,11 @@ def load_study(path: str | os.PathLike, blocks: Mapping[str, BlockValidator] | N
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise StudyError(f"{path}:1: not UTF-8 text (byte {exc.start}); save the study file as UTF-8") from None
-    return parse_study(text, path, blocks)
+    return text
+
+
+# ============================================================================ for other study files
+#: The reading machinery of this loader for the other kinds of study file (``fmusa diagnose``'s): a parser
+#: whose errors name file:line, and a checked mapping (duplicate and unknown keys refused with a suggestion).
+YamlParser = _Parser
+YamlMap = _Map

@@ -1,0 +1,96 @@
+"""Candidate effects attached to an FMU that cannot be edited: the model coupled to the interface element FMU.
+
+With ``effects: where: attached`` the effects are parameters of the element FMU (the eq. 1 spring-damper and
+every effect of the catalogue, under the catalogue's names), which :mod:`fmusa.cosim.master` couples to the
+model at the interface the description names (the model's force input, its relative displacement and velocity
+outputs). :class:`CoupledRunner` is the :class:`~fmusa.diagnose.calibrate.ModelRunner` of that case: the same
+``predict``, each experiment one coupled run, the measured drive fed to the model's drive input.
+"""
+from __future__ import annotations
+
+import os
+from typing import Sequence
+
+import numpy as np
+
+from fmusa.diagnose.interface import ModelInterface
+
+__all__ = ["CoupledRunner", "coupling_of"]
+
+
+def coupling_of(fmu_path: str | os.PathLike, interface: ModelInterface):
+    """The :class:`fmusa.cosim.master.Coupling` of the model FMU and the description's element."""
+    from fmusa.cosim.master import Coupling
+
+    att = interface.attached
+    return Coupling(model_fmu=fmu_path, element_fmu=att.element_fmu, force_input=att.force_input,
+                    displacement_output=att.displacement_output, velocity_output=att.velocity_output,
+                    force_sign=att.force_sign, scheme=att.scheme)
+
+
+class CoupledRunner:
+    """The model FMU coupled to the interface element, driven by the experiments' measured drive.
+
+    ``names``: the fitted parameters (catalogue names); each goes to the element when the element has its
+    variable, else to the model (a baseline of the user's own, e.g. ``spring.c``). ``fixed``: catalogue name ->
+    value, held in every run. The model's drive settings (``interface.settings``) are set on the model."""
+
+    def __init__(self, fmu_path: str | os.PathLike, drive: str, names: Sequence[str], fixed: dict | None = None,
+                 rtol: float = 1e-6, interface: ModelInterface | None = None) -> None:
+        from fmusa.cosim.master import check_coupling
+        from fmusa.fmi.info import read_fmu_info
+
+        if interface is None or interface.attached is None:
+            raise ValueError("CoupledRunner needs a description with effects attached")
+        self.interface = interface
+        self.coupling = coupling_of(fmu_path, interface)
+        check_coupling(self.coupling)
+        element = read_fmu_info(self.coupling.element())
+        self.on_element = {n: element.variable(interface.variable(n)) is not None
+                           for n in list(names) + list(fixed or {})}
+        self.names = list(names)
+        self.fixed = dict(fixed or {})
+        self.settings = interface.settings(drive, rtol)
+        self.input_name = interface.input_name(drive)
+        self.output = interface.output_name(drive)
+        self.in_scale = float(interface.input_scale.get(drive, 1.0))
+        self.out_scale = float(interface.output_scale.get(drive, 1.0))
+        self.rtol = rtol
+        #: the last coupled run's scheme, FMU calls and wall time, for what a coupled run costs
+        self.last = None
+
+    def parameter_values(self, values: Sequence[float]) -> tuple[dict, dict]:
+        """(model FMU's, element FMU's) variable values of one run: the drive's settings and the parameters."""
+        return self._params(values)
+
+    def _params(self, values: Sequence[float]) -> tuple[dict, dict]:
+        model, element = dict(self.settings), {}
+        for n, v in [*zip(self.names, values), *self.fixed.items()]:
+            (element if self.on_element[n] else model)[self.interface.variable(n)] = float(v)
+        return model, element
+
+    def predict(self, values: Sequence[float], experiments: Sequence) -> list[np.ndarray]:
+        """The response channel of every experiment under the given parameter values (one coupled run each)."""
+        from fmusa.cosim.master import simulate_coupled
+
+        model, element = self._params(values)
+        out = []
+        for e in experiments:
+            t = np.asarray(e.t, float)
+            u = np.asarray(e.drive_signal, float) / self.in_scale
+            name = self.input_name
+
+            def drive(time: float, t=t, u=u, name=name) -> dict[str, float]:
+                return {name: float(np.interp(time, t, u))}
+
+            try:
+                res = simulate_coupled(self.coupling, model, element, float(t[-1]), t, [self.output],
+                                       model_inputs=drive, rtol=self.rtol)
+            except Exception as exc:   # the fit backs off from a failed run (calibrate._residual_fn)
+                raise RuntimeError(f"coupled run failed: {exc}") from exc
+            self.last = res
+            out.append(res.frame[self.output].to_numpy(float) * self.out_scale)
+        return out
+
+    def close(self) -> None:
+        """Nothing held between runs (each coupled run makes and frees its own instances)."""
