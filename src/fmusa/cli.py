@@ -524,6 +524,9 @@ def _add_diagnose(sub: argparse._SubParsersAction, full: bool = True) -> None:
                    help=f"comma-separated subset of: {', '.join(CANDIDATES)}")
     p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
     p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
+    p.add_argument("--max-runs", type=_int_at_least(1), default=None, metavar="N",
+                   help="the most FMU runs the diagnosis may make (default: no limit); when they end, the "
+                        "candidates not fitted are left out and named in the report")
     p.add_argument("--fmu", type=Path, default=None, help="FMU file (default: dist/ScrewVertebra.fmu)")
 
 
@@ -542,7 +545,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     exps = load_experiments(args.files, args.drive, spec, zero_drive=not args.no_zero_drive,
                             max_points=args.max_points)
     diag = run_diagnosis(exps, args.drive, args.out, fmu_path=args.fmu, candidates=cands,
-                         workers=args.workers, max_starts=args.starts)
+                         workers=args.workers, max_starts=args.starts, max_runs=args.max_runs)
     g = diag["gain"]
     print(f"effect: {diag['effect']}")
     if diag["effect"] != "none":
@@ -556,6 +559,9 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         print(f"  cannot be told from {t['effect']}: {t['separating_test']}")
     if diag["leftover"]:
         print(f"  left in the residuals: {diag['leftover']}")
+    runs = diag["runs"]
+    print(f"FMU runs: {runs['total']}" + (f" of a budget of {runs['budget']}" if runs["budget"] else "")
+          + (f"; the budget ended, left out: {', '.join(runs['left_out'])}" if runs["left_out"] else ""))
     for name in ("diagnosis.json", "report.md"):
         if (args.out / name).exists():
             print(f"wrote {args.out / name}")
