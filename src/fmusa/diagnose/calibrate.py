@@ -230,11 +230,15 @@ def _bounds(params: list[Param]) -> tuple[np.ndarray, np.ndarray]:
     return (np.array([p.to_x(p.lower) for p in params]), np.array([p.to_x(p.upper) for p in params]))
 
 
-def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int) -> optimize.OptimizeResult:
+#: the trust-region loop's stopping tolerances on the cost and the step (scipy's ftol, xtol)
+FTOL = XTOL = 1e-6
+
+
+def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None = None) -> optimize.OptimizeResult:
     """One bounded trust-region fit from x0 (nudged inside the bounds, which trf requires)."""
     x0 = np.clip(x0, lo + 1e-12 * (hi - lo), hi - 1e-12 * (hi - lo))
     return optimize.least_squares(fn, x0, jac=fn.jac, bounds=(lo, hi), method="trf", x_scale="jac",
-                                  max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
+                                  max_nfev=max_nfev, xtol=tol or XTOL, ftol=tol or FTOL)
 
 
 def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, float]]:
@@ -259,8 +263,9 @@ def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, floa
     return out
 
 
-#: two starts agree when their least-squares costs differ by at most this fraction of the smaller one
-AGREE_RTOL = 1e-6
+#: two starts agree when their residual sums of squares differ by at most this in BIC units (n ln(rss1/rss2)):
+#: a tenth of what the ranking's tie threshold and significance tests could notice
+AGREE_DBIC = 0.1
 
 
 def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence, sc: Scales,
@@ -271,7 +276,7 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
     ``held``: parameters of the model that are not fitted; ``model`` must have been built without them
     (their values in its ``fixed``), and the fit's params, intervals and k leave them out. ``start``: a first
     start in natural units (e.g. from a direct fit of the data), tried before the generic ones. ``agree``:
-    stop trying starts once that many have reached the best cost so far (within :data:`AGREE_RTOL`); 0 tries
+    stop trying starts once that many have reached the best cost so far (within :data:`AGREE_DBIC`); 0 tries
     them all."""
     params = [p for p in model_parameters(effect, drive, sc) if p.name not in held]
     scale = _response_scale(drive, sc)
@@ -283,6 +288,7 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
         starts = [np.array([p.to_x(min(max(float(start.get(p.name, p.starts[0])), p.lower), p.upper))
                             for p in params])] + starts
     model.stage = "fit"
+    n_points = sum(len(e.t) for e in experiments)
     costs: list[float] = []
     for x0 in starts:
         res = _least_squares(fn, x0, lo, hi, max_nfev)
@@ -290,7 +296,8 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
         costs.append(float(res.cost))
         if best is None or res.cost < best.cost:
             best = res
-        if agree and sum(c <= best.cost * (1 + AGREE_RTOL) + 1e-300 for c in costs) >= agree:
+        if agree and sum(n_points * math.log(max(c, 1e-300) / max(best.cost, 1e-300)) <= AGREE_DBIC
+                         for c in costs) >= agree:
             break
     n = sum(len(e.t) for e in experiments)
     values = [p.from_x(x) for p, x in zip(params, best.x)]
@@ -419,13 +426,13 @@ def unify_equivalent(fits: dict[str, Fit]) -> dict[str, Fit]:
 
 def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
                   max_starts: int = 6, interface: ModelInterface = SCREW_VERTEBRA, parallel: int = 1,
-                  agree: int = 0) -> Fit:
+                  agree: int = 0, start: dict | None = None) -> Fit:
     """Calibrate one model and score it on held-out data (runs in a worker process).
 
     Under a drive of one constant rate (:func:`effects.constant_rate`) the damping d_y is held at 0: its
     force d_y*v is a constant there, which the fit would trade against the stiffness (the baseline of issue
     22 fitted a constant 150 N through d_y*v with c_y -> 0). ``parallel``: FMU instances for the rounds of a
-    Jacobian; ``agree``: as in :func:`calibrate`. The fit's ``runs`` counts its FMU runs by stage; when the
+    Jacobian; ``agree``, ``start``: as in :func:`calibrate`. The fit's ``runs`` counts its FMU runs by stage; when the
     run budget ends, :class:`~fmusa.diagnose.budget.BudgetExhausted` carries them out in ``runs``."""
     from fmusa.diagnose.budget import BudgetExhausted
 
@@ -437,7 +444,7 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
                         interface=interface, parallel=parallel)
     try:
         fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed),
-                        agree=agree)
+                        agree=agree, start=start)
         fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc, held=tuple(fixed))
         fit.heldout_rmse = pooled_heldout(fit.heldout_folds)
         fit.runs = dict(model.runs)

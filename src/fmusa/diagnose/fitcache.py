@@ -24,8 +24,8 @@ from fmusa.files import atomic_write
 
 __all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits"]
 
-#: (fmu path, candidate, drive, experiments, max_starts, interface[, parallel, agree]): the arguments of
-#: fit_candidate.
+#: (fmu path, candidate, drive, experiments, max_starts, interface[, parallel, agree, start]): the
+#: arguments of fit_candidate.
 FitJob = tuple
 
 
@@ -54,6 +54,7 @@ def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
     # v2: friction fits fric_x too; v3: held-out folds kept; v4: damping start from the data, d_y held at a
     # constant rate, bounds hit recorded
     h.update(f"{drive}|{max_starts}|v4".encode())
+    h.update(b"|tol1e-6|chain-start")     # the stopping tolerances and the chain's first start
     if agree:       # starts stopped once they agree: another fit than all of them
         h.update(f"|agree{agree}".encode())
     if interface != SCREW_VERTEBRA:

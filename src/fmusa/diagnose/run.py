@@ -80,7 +80,7 @@ def _fit_summary(f: Fit) -> dict:
 MAX_CHAIN = 3
 
 #: a fit stops trying starts once this many reached its best cost
-AGREE_STARTS = 0
+AGREE_STARTS = 2
 
 
 def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect: str, candidates: Sequence[str],
@@ -106,8 +106,9 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
                 and not any(equivalent_by_construction(c, m) for m in named)]
         if not rest:
             break
+        # first start: the model so far at its optimum, the added effect at its own first start
         jobs = [(fmu, f"{name}+{c}", drive, list(experiments), max_starts, interface,
-                 jacobian_lanes(workers, len(rest)), agree) for c in rest]
+                 jacobian_lanes(workers, len(rest)), agree, dict(current.params)) for c in rest]
         results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress, budget)
         runs.update(results)
         if any(isinstance(r, LeftOut) for r in results.values()):
