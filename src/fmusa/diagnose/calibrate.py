@@ -71,8 +71,8 @@ class ModelRunner:
 
     Every run is counted by stage (:attr:`runs`; the caller sets :attr:`stage`) and taken from this process's
     run budget (:mod:`fmusa.diagnose.budget`). With ``parallel`` > 1, :meth:`predict_many` runs its points as
-    one round on that many instances of the FMU in threads (each instance its own extracted copy, so they
-    share no state; the FMU's C code runs outside the interpreter lock)."""
+    one round on that many instances of the FMU in threads (the FMU's C code runs outside the interpreter
+    lock; an FMU that declares canBeInstantiatedOnlyOncePerProcess gets one instance)."""
 
     def __init__(self, fmu_path: str | os.PathLike, drive: str, names: Sequence[str],
                  fixed: dict | None = None, rtol: float = 1e-5,
@@ -81,7 +81,10 @@ class ModelRunner:
         self.input_name = interface.input_name(drive)
         self.output = interface.output_name(drive)
         self.runner, self.plan = self._open()
-        self.parallel = max(1, int(parallel))
+        cs = self.runner.model_description.coSimulation
+        # an FMU that allows one instance per process gets one: its rounds run one point after another
+        once = bool(getattr(cs, "canBeInstantiatedOnlyOncePerProcess", False))
+        self.parallel = 1 if once else max(1, int(parallel))
         self._extra: list[tuple] = []
         #: FMU runs made, by stage ("fit", "heldout", ...), one per experiment simulated
         self.runs: dict[str, int] = {}
@@ -183,10 +186,14 @@ class Residuals:
         return [p.from_x(xi) for p, xi in zip(self.params, x)]
 
     def _scaled(self, preds) -> np.ndarray:
+        n = sum(int(m.sum()) for m in self.masks)
         if isinstance(preds, RuntimeError):
-            return np.full(sum(int(m.sum()) for m in self.masks), 1e3)
-        return np.concatenate([(pr - e.response_signal)[m] / self.scale
-                               for pr, e, m in zip(preds, self.experiments, self.masks)])
+            return np.full(n, 1e3)
+        r = np.concatenate([(pr - e.response_signal)[m] / self.scale
+                            for pr, e, m in zip(preds, self.experiments, self.masks)])
+        # an output that is not a finite number, or a thousand times the measured peak, is a failed
+        # simulation too (the FMU did not say so); left in, it would blow up the Jacobian
+        return r if np.all(np.abs(r) <= 1e3) else np.full(n, 1e3)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         try:
@@ -448,7 +455,7 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
         fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc, held=tuple(fixed))
         fit.heldout_rmse = pooled_heldout(fit.heldout_folds)
         fit.runs = dict(model.runs)
-    except BudgetExhausted as exc:
+    except Exception as exc:   # the runs spent go with the error (BudgetExhausted, or a fit that failed)
         exc.runs = dict(model.runs)
         raise
     finally:

@@ -37,7 +37,20 @@ def _fit_job(args: FitJob) -> Fit | rb.LeftOut | str:
     except rb.BudgetExhausted as exc:
         return rb.LeftOut(args[1], dict(getattr(exc, "runs", {}) or {}))
     except Exception as exc:  # noqa: BLE001 - reported per candidate in diagnosis.json
-        return f"{type(exc).__name__}: {exc}"
+        return FailedFit(f"{type(exc).__name__}: {exc}", getattr(exc, "runs", None))
+
+
+class FailedFit(str):
+    """Why a fit failed (a str, as diagnosis.json states it), with the FMU runs it spent before."""
+    runs: dict
+
+    def __new__(cls, reason: str, runs: dict | None = None) -> "FailedFit":
+        obj = super().__new__(cls, reason)
+        obj.runs = dict(runs or {})
+        return obj
+
+    def __reduce__(self):
+        return (FailedFit, (str(self), self.runs))
 
 
 def _start_worker(limit: int | None, value) -> None:

@@ -146,7 +146,9 @@ def _stage_runs(r) -> dict:
     if isinstance(r, LeftOut):
         fit, held = r.runs.get("fit", 0), r.runs.get("heldout", 0)
         return {"fit": fit, "heldout": held, "total": fit + held, "left_out": True}
-    return {"fit": 0, "heldout": 0, "total": 0, "failed": True}
+    spent = getattr(r, "runs", None) or {}       # a FailedFit: what it spent before it failed
+    fit, held = spent.get("fit", 0), spent.get("heldout", 0)
+    return {"fit": fit, "heldout": held, "total": fit + held, "failed": True}
 
 
 def run_count(results: dict, chain_results: dict, budget: RunBudget) -> dict:
