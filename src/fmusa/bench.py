@@ -896,10 +896,12 @@ def bench_diagnose_runs(fmu_path: Path, workers: int | None = None, slow_workers
     if force is not None:
         out["diagnose_force_stiffening"] = _timed_diagnosis([force], "force", fmu_path, workers)
     tests = shear_c67.list_tests(shear_c67.DEFAULT_DATA)
-    row = tests[(tests.specimen == "H01") & (tests.direction == "Ant") & (tests.rate_mm_s == 10)]
+    row = tests[(tests.specimen == "H1") & (tests.direction == "Ant") & (tests.rate_mm_s == 10)]
     if len(row):
         exps = [shear_c67.load_test(row.iloc[0], max_points=300)]
         out["diagnose_h01_anterior_10mm_s"] = _timed_diagnosis(exps, "displacement", fmu_path, workers)
+    else:
+        out["diagnose_h01_anterior_10mm_s"] = {"skipped": f"no test H1 Ant 10 mm/s in {shear_c67.DEFAULT_DATA}"}
     if force is not None and slow_workers > 0:
         with tempfile.TemporaryDirectory(prefix="fmusa-bench-slow-") as tmp:
             log = Path(tmp) / "runs.log"
