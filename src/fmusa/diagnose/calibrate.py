@@ -238,7 +238,7 @@ def _bounds(params: list[Param]) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: the trust-region loop's stopping tolerances on the cost and the step (scipy's ftol, xtol)
-FTOL = XTOL = 1e-6
+FTOL = XTOL = 1e-10
 
 
 def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None = None) -> optimize.OptimizeResult:

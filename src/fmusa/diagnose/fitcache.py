@@ -67,7 +67,7 @@ def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
     # v2: friction fits fric_x too; v3: held-out folds kept; v4: damping start from the data, d_y held at a
     # constant rate, bounds hit recorded
     h.update(f"{drive}|{max_starts}|v4".encode())
-    h.update(b"|tol1e-6|chain-start")     # the stopping tolerances and the chain's first start
+    h.update(b"|chain-start")     # the chain's fits start from the model so far
     if agree:       # starts stopped once they agree: another fit than all of them
         h.update(f"|agree{agree}".encode())
     if interface != SCREW_VERTEBRA:
