@@ -244,8 +244,10 @@ FTOL = XTOL = 1e-10
 def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None = None) -> optimize.OptimizeResult:
     """One bounded trust-region fit from x0 (nudged inside the bounds, which trf requires)."""
     x0 = np.clip(x0, lo + 1e-12 * (hi - lo), hi - 1e-12 * (hi - lo))
-    return optimize.least_squares(fn, x0, jac=fn.jac, bounds=(lo, hi), method="trf", x_scale="jac",
-                                  max_nfev=max_nfev, xtol=tol or XTOL, ftol=tol or FTOL)
+    # one FMU instance: scipy's own forward differences (the same runs, one after another)
+    jac = fn.jac if fn.model.parallel > 1 else "2-point"
+    return optimize.least_squares(fn, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
+                                  diff_step=fn.rel_step, max_nfev=max_nfev, xtol=tol or XTOL, ftol=tol or FTOL)
 
 
 def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, float]]:
