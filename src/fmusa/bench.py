@@ -914,6 +914,87 @@ def bench_diagnose(fmu_path: Path, workers: int | None = None) -> dict:
     return out
 
 
+def _synthetic_force_test():
+    """The force-driven synthetic test with a hidden stiffening (tests/effects_reference.py, the seed the
+    identifiability tests use), 200 samples; None where the tests folder is not there."""
+    import zlib
+
+    tests_dir = Path(__file__).resolve().parents[2] / "tests"
+    if not (tests_dir / "effects_reference.py").is_file():
+        return None
+    sys.path.insert(0, str(tests_dir))
+    try:
+        import effects_reference as er
+    finally:
+        sys.path.remove(str(tests_dir))
+    from fmusa.diagnose.measured import Experiment, downsample
+
+    effect, drive = "nonlinear_stiffness", "force"
+    df, _ = er.synthesize(effect, drive, seed=zlib.crc32(f"{effect}/{drive}".encode()) % 10_000)
+    return downsample(Experiment(name="stiffening-force", path=Path("stiffening-force.csv"), drive=drive,
+                                 t=df.time.values, displacement=df.displacement.values,
+                                 force=df.force.values), 200)
+
+
+def _timed_diagnosis(exps, drive: str, fmu, workers: int) -> dict:
+    """One whole diagnosis (every candidate, the chain, cold cache): wall and CPU seconds (this process
+    and its worker processes), its FMU runs by its own count, and its verdict."""
+    from fmusa.diagnose.run import diagnose
+
+    c0, k0 = _cpu_s()
+    t0 = time.perf_counter()
+    d = diagnose(exps, drive, fmu_path=fmu, workers=workers)
+    wall = time.perf_counter() - t0
+    c1, k1 = _cpu_s()
+    return {"wall_s": wall, "cpu_s": (c1 - c0) + (k1 - k0), "runs": d["runs"]["total"], "workers": workers,
+            "effect": d["effect"], "chain": [s["effect"] for s in d["chain"]],
+            "runs_by_stage": {"baseline": d["runs"]["baseline"]["total"],
+                              **{n: r["total"] for n, r in d["runs"]["candidates"].items()},
+                              **{f"chain:{n}": r["total"] for n, r in d["runs"]["chain"].items()}},
+            "loadavg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
+
+
+def bench_diagnose_runs(fmu_path: Path, workers: int | None = None, slow_workers: int = 16,
+                        delay_s: float = 0.2) -> dict:
+    """What one diagnosis of one test costs, in FMU runs, CPU and wall seconds: the force-driven synthetic
+    test with a hidden stiffening and H01 anterior at 10 mm/s, on all cores; and the force-driven test on
+    a stand-in for a slow export (the FMU rebuilt to sleep ``delay_s`` a run, :mod:`fmusa.fmi.instrument`)
+    with ``slow_workers`` workers, whose own log of its runs checks the diagnosis's count."""
+    import tempfile
+
+    from fmusa.applications.shear_c67 import data as shear_c67
+    from fmusa.fmi.instrument import count_logged_runs, instrumented_copy
+
+    workers = workers or os.cpu_count() or 1
+    out: dict = {}
+    force = _synthetic_force_test()
+    if force is not None:
+        out["diagnose_force_stiffening"] = _timed_diagnosis([force], "force", fmu_path, workers)
+    tests = shear_c67.list_tests(shear_c67.DEFAULT_DATA)
+    row = tests[(tests.specimen == "H1") & (tests.direction == "Ant") & (tests.rate_mm_s == 10)]
+    if len(row):
+        exps = [shear_c67.load_test(row.iloc[0], max_points=300)]
+        out["diagnose_h01_anterior_10mm_s"] = _timed_diagnosis(exps, "displacement", fmu_path, workers)
+    else:
+        out["diagnose_h01_anterior_10mm_s"] = {"skipped": f"no test H1 Ant 10 mm/s in {shear_c67.DEFAULT_DATA}"}
+    if force is not None and slow_workers > 0:
+        with tempfile.TemporaryDirectory(prefix="fmusa-bench-slow-") as tmp:
+            log = Path(tmp) / "runs.log"
+            try:
+                slow = instrumented_copy(fmu_path, Path(tmp) / "fmu", log, delay_s)
+            except Exception as exc:  # noqa: BLE001 - no compiler here: say so in bench.json
+                out["diagnose_slow_fmu"] = {"skipped": f"{type(exc).__name__}: {exc}"}
+            else:
+                r = _timed_diagnosis([force], "force", slow, slow_workers)
+                r.update(delay_s_per_run=delay_s, runs_logged_by_fmu=count_logged_runs(log))
+                out["diagnose_slow_fmu"] = r
+    for k, r in out.items():
+        if "wall_s" in r:
+            print(f"{k}: {r['runs']} FMU runs, {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU on "
+                  f"{r['workers']} workers (load {r['loadavg_1min']}); effect {r['effect']}, chain {r['chain']}")
+    return out
+
+
 def bench_fmi3(runs: int = 20, fmu_path: Path | None = None) -> dict:
     """An FMI 3.0 FMU through fmusa (fmusa.fmi.fmi3): MapleSim 2024's CoupledClutches from the shared vendor FMUs
     (``../shared/vendor-fmus/`` next to the repository), co-simulation and model exchange, 1.5 s sampled every
@@ -959,6 +1040,16 @@ def _print_start_methods(sm: dict) -> None:
         print(f"{m} / fork: " + ", ".join(f"{k} {v:.2f}x" for k, v in r.items()))
 
 
+def _machine() -> dict:
+    """The machine a figure was measured on, and its load then."""
+    import fmpy
+
+    return {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(), "python": sys.version.split()[0],
+            "fmpy": fmpy.__version__, "loadavg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+            "timestamp": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
 def _merge_into(path: Path, result: dict) -> None:
     """Merge ``result`` into the JSON file ``path`` (kept keys of earlier runs), written whole by rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -994,6 +1085,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="first recompute the 6-DOF Saltelli reference (N = 4096, 73,728 runs) it is compared with")
     ap.add_argument("--no-diagnose", dest="diagnose", action="store_false",
                     help="skip the timings of `fmusa diagnose`")
+    ap.add_argument("--no-diagnose-runs", dest="diagnose_runs", action="store_false",
+                    help="skip the FMU runs, CPU and wall time of whole diagnoses (minutes)")
+    ap.add_argument("--only-diagnose-runs", action="store_true",
+                    help="measure only the whole diagnoses and merge them into --out")
     ap.add_argument("--slow-fmu-workers", default="16",
                     help="worker counts of the paper study on the slow stand-in FMU, e.g. 1,2,4,16 (0 skips it)")
     ap.add_argument("--no-slow-fmu-sequential", dest="slow_sequential", action="store_false",
@@ -1005,6 +1100,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     fmu_path = (args.fmu or default_fmu_path()).resolve()
     methods = tuple(m.strip() for m in args.start_methods.split(",") if m.strip())
+    if args.only_diagnose_runs:
+        _merge_into(args.out, {**bench_diagnose_runs(fmu_path, args.workers), "diagnose_runs_machine": _machine()})
+        return 0
     if args.only_start_methods:
         sm = bench_start_methods(methods, args.sobol_runs, args.workers)
         _print_start_methods(sm)
@@ -1033,14 +1131,7 @@ def main(argv: list[str] | None = None) -> int:
         "speedup_vs_fmpy_simulate_fmu": med_fmpy / med,
         "monitors_max_rel_diff_vs_fmpy": max(diffs.values()),
         "monitors_rel_diff_vs_fmpy": diffs,
-        "machine": {
-            "cpu_count": os.cpu_count(),
-            "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "python": sys.version.split()[0],
-            "fmpy": fmpy.__version__,
-            "loadavg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
-        },
+        "machine": _machine(),
         "timestamp": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
 
@@ -1053,6 +1144,8 @@ def main(argv: list[str] | None = None) -> int:
     result.update(bench_closed_form_c())
     result.update(bench_six_dof_runs(fmu_path=args.fmu))
     result.update(bench_fmi3())      # FMI 3.0 (MapleSim's CoupledClutches), when ../shared is there
+    if args.diagnose_runs:
+        result.update(bench_diagnose_runs(fmu_path, args.workers))
     if args.diagnose:
         result.update(bench_diagnose(fmu_path, args.workers))
         print(f"diagnose: one driven run {result['diagnose_run_ms_displacement_baseline']:.2f} ms (baseline, "

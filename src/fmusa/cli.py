@@ -616,6 +616,9 @@ def _add_diagnose(sub: argparse._SubParsersAction, full: bool = True) -> None:
                    help=f"comma-separated subset of: {', '.join(CANDIDATES)}")
     p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
     p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
+    p.add_argument("--max-runs", type=_int_at_least(1), default=None, metavar="N",
+                   help="the most FMU runs the diagnosis may make (default: no limit); when they end, the "
+                        "candidates not fitted are left out and named in the report")
     p.add_argument("--fmu", type=Path, default=None,
                    help="with CSV files: an FMU of a model fmusa has a description of (ScrewVertebra; default "
                         "dist/ScrewVertebra.fmu); for any other FMU write a diagnosis study file")
@@ -643,7 +646,7 @@ def _diagnose_study(args: argparse.Namespace) -> dict:
         raise DiagnoseError(f"{flags}: the study file {args.files[0]} sets these (its tests, effects and diagnosis "
                          f"sections); change them there")
     study = load_diagnosis_study(args.files[0])
-    return run_study_diagnosis(study, args.out, workers=args.workers)
+    return run_study_diagnosis(study, args.out, workers=args.workers, max_runs=args.max_runs)
 
 
 def _all_candidates() -> str:
@@ -678,7 +681,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         if e.meta.get("detected"):
             print(f"read {e.path}: {', '.join(e.meta['detected'])} (detected; set with --delimiter, --decimal)")
     diag = run_diagnosis(exps, args.drive, args.out, fmu_path=args.fmu, candidates=cands,
-                         workers=args.workers, max_starts=args.starts)
+                         workers=args.workers, max_starts=args.starts, max_runs=args.max_runs)
     return _print_diagnosis(args, diag)
 
 
@@ -701,6 +704,9 @@ def _print_diagnosis(args: argparse.Namespace, diag: dict) -> int:
     if cp:
         print(f"  coupled runs: {cp['scheme']}, {cp['calls']} FMU calls and {cp['cpu_s']:.2f} s CPU for one run of "
               f"{cp['experiment']}")
+    runs = diag["runs"]
+    print(f"FMU runs: {runs['total']}" + (f" of a budget of {runs['budget']}" if runs["budget"] else "")
+          + (f"; the budget ended, left out: {', '.join(runs['left_out'])}" if runs["left_out"] else ""))
     for name in ("diagnosis.json", "report.md"):
         if (args.out / name).exists():
             print(f"wrote {args.out / name}")

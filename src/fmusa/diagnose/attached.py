@@ -58,6 +58,29 @@ class CoupledRunner:
         self.rtol = rtol
         #: the last coupled run's scheme, FMU calls and wall time, for what a coupled run costs
         self.last = None
+        #: coupled runs made, by stage ("fit", "heldout", ...), one per experiment simulated; one lane
+        self.runs: dict[str, int] = {}
+        self.stage = "fit"
+        self.parallel = 1
+
+    def _count(self, n: int) -> None:
+        """Take ``n`` runs from the run budget (BudgetExhausted when it has ended) and count them."""
+        from fmusa.diagnose.budget import current
+
+        b = current()
+        if b is not None:
+            b.take(n)
+        self.runs[self.stage] = self.runs.get(self.stage, 0) + n
+
+    def predict_many(self, points: Sequence[Sequence[float]], experiments: Sequence) -> list:
+        """:meth:`predict` at every point, one after another: per point the predictions or the RuntimeError."""
+        out: list = []
+        for v in points:
+            try:
+                out.append(self.predict(v, experiments))
+            except RuntimeError as exc:
+                out.append(exc)
+        return out
 
     def parameter_values(self, values: Sequence[float]) -> tuple[dict, dict]:
         """(model FMU's, element FMU's) variable values of one run: the drive's settings and the parameters."""
@@ -73,6 +96,7 @@ class CoupledRunner:
         """The response channel of every experiment under the given parameter values (one coupled run each)."""
         from fmusa.cosim.master import simulate_coupled
 
+        self._count(len(experiments))
         model, element = self._params(values)
         out = []
         for e in experiments:

@@ -50,6 +50,12 @@ class Fit:
     at_bounds: list[dict] = field(default_factory=list)
     #: parameters held (not fitted), with their values and why
     held: dict = field(default_factory=dict)
+    #: FMU runs this fit made, by stage ("fit": the starts and the final prediction; "heldout": the refits)
+    runs: dict[str, int] = field(default_factory=dict)
+    #: the least-squares cost each start reached, in the order tried
+    start_costs: list[float] = field(default_factory=list)
+    #: taken from a cache of an earlier diagnosis (its runs were spent then, not now)
+    cached: bool = False
 
     @property
     def aic(self) -> float:
@@ -63,37 +69,101 @@ class Fit:
 # ---------------------------------------------------------------------- simulation
 
 class ModelRunner:
-    """The FMU of one candidate, driven by the experiments' measured drive."""
+    """The FMU of one candidate, driven by the experiments' measured drive.
+
+    Every run is counted by stage (:attr:`runs`; the caller sets :attr:`stage`) and taken from this process's
+    run budget (:mod:`fmusa.diagnose.budget`). With ``parallel`` > 1, :meth:`predict_many` runs its points as
+    one round on that many instances of the FMU in threads (the FMU's C code runs outside the interpreter
+    lock; an FMU that declares canBeInstantiatedOnlyOncePerProcess gets one instance)."""
 
     def __init__(self, fmu_path: str | os.PathLike, drive: str, names: Sequence[str],
                  fixed: dict | None = None, rtol: float = 1e-5,
-                 interface: ModelInterface | None = None) -> None:
-        from fmusa.fmi.plans import DrivenPlan
-        from fmusa.fmi.runner import FMURunner
-
+                 interface: ModelInterface | None = None, parallel: int = 1) -> None:
         interface = resolve(interface, fmu_path)
-        settings = interface.settings(drive, rtol)
+        self._args = (fmu_path, drive, list(names), dict(fixed or {}), rtol, interface)
         self.input_name = interface.input_name(drive)
         self.output = interface.output_name(drive)
         # SI -> the FMU's units of the input, the FMU's units of the output -> SI
         self.in_scale = float(interface.input_scale.get(drive, 1.0))
         self.out_scale = float(interface.output_scale.get(drive, 1.0))
-        self.runner = FMURunner(fmu_path, instance_name="diagnose")
+        self.runner, self.plan = self._open()
+        cs = self.runner.model_description.coSimulation
+        # an FMU that allows one instance per process gets one: its rounds run one point after another
+        once = bool(getattr(cs, "canBeInstantiatedOnlyOncePerProcess", False))
+        self.parallel = 1 if once else max(1, int(parallel))
+        self._extra: list[tuple] = []
+        #: FMU runs made, by stage ("fit", "heldout", ...), one per experiment simulated
+        self.runs: dict[str, int] = {}
+        self.stage = "fit"
+
+    def _open(self) -> tuple:
+        """One more instance of the FMU with its driven plan."""
+        from fmusa.fmi.plans import DrivenPlan
+        from fmusa.fmi.runner import FMURunner
+
+        fmu_path, drive, names, fixed, rtol, interface = self._args
+        settings = interface.settings(drive, rtol)
+        runner = FMURunner(fmu_path, instance_name="diagnose")
         try:
-            self.plan = DrivenPlan(self.runner, [interface.variable(n) for n in names],
-                                   {**settings, **(fixed or {})}, self.input_name, [self.output])
+            plan = DrivenPlan(runner, [interface.variable(n) for n in names], {**settings, **fixed},
+                              self.input_name, [self.output])
         except Exception:
-            self.runner.close()
+            runner.close()
             raise
+        return runner, plan
+
+    def _count(self, n: int) -> None:
+        """Take ``n`` runs from the budget (BudgetExhausted when it has ended) and count them."""
+        from fmusa.diagnose.budget import current
+
+        b = current()
+        if b is not None:
+            b.take(n)
+        self.runs[self.stage] = self.runs.get(self.stage, 0) + n
+
+    def _simulate(self, plan, values: Sequence[float], experiments: Sequence) -> list[np.ndarray]:
+        if self.in_scale == 1.0 and self.out_scale == 1.0:
+            return [plan(values, e.t, e.drive_signal)[:, 0] for e in experiments]
+        return [plan(values, e.t, np.asarray(e.drive_signal) / self.in_scale)[:, 0] * self.out_scale
+                for e in experiments]
 
     def predict(self, values: Sequence[float], experiments: Sequence) -> list[np.ndarray]:
         """The response channel of every experiment under the given parameter values."""
-        if self.in_scale == 1.0 and self.out_scale == 1.0:
-            return [self.plan(values, e.t, e.drive_signal)[:, 0] for e in experiments]
-        return [self.plan(values, e.t, np.asarray(e.drive_signal) / self.in_scale)[:, 0] * self.out_scale
-                for e in experiments]
+        self._count(len(experiments))
+        return self._simulate(self.plan, values, experiments)
+
+    def predict_many(self, points: Sequence[Sequence[float]], experiments: Sequence) -> list:
+        """:meth:`predict` at every point, as one round on up to ``parallel`` FMU instances: per point the
+        predictions, or the RuntimeError its simulation raised."""
+        self._count(len(points) * len(experiments))
+
+        def run(plan, pts):
+            out = []
+            for v in pts:
+                try:
+                    out.append(self._simulate(plan, v, experiments))
+                except RuntimeError as exc:
+                    out.append(exc)
+            return out
+
+        lanes = min(self.parallel, len(points))
+        if lanes <= 1:
+            return run(self.plan, points)
+        while len(self._extra) < lanes - 1:
+            self._extra.append(self._open())
+        plans = [self.plan] + [p for _, p in self._extra[:lanes - 1]]
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(lanes) as ex:
+            parts = list(ex.map(run, plans, [list(points[i::lanes]) for i in range(lanes)]))
+        out: list = [None] * len(points)
+        for i, part in enumerate(parts):
+            out[i::lanes] = part
+        return out
 
     def close(self) -> None:
+        for runner, _ in self._extra:
+            runner.close()
         self.runner.close()
 
 
@@ -104,19 +174,61 @@ def _response_scale(drive: str, sc: Scales) -> float:
     return sc.F_pk if drive == "displacement" else sc.y_pk
 
 
-def _residual_fn(model: ModelRunner, params: list[Param], experiments: Sequence, masks,
-                 scale: float) -> Callable[[np.ndarray], np.ndarray]:
-    """The scaled residuals of the masked points as a function of the optimiser's coordinates; a failed
-    simulation gives large residuals, so the optimiser backs off instead of stopping."""
-    def fn(x: np.ndarray) -> np.ndarray:
-        values = [p.from_x(xi) for p, xi in zip(params, x)]
+class Residuals:
+    """The scaled residuals of the masked points as a function of the optimiser's coordinates, and their
+    finite-difference Jacobian with all its columns as one round on the workers
+    (:meth:`ModelRunner.predict_many`) instead of one run after another.
+
+    A failed simulation gives large residuals, so the optimiser backs off instead of stopping. The
+    Jacobian is the forward difference scipy's ``least_squares`` takes with ``diff_step``: a relative step,
+    turned back where it would leave the bounds, from the residuals at x (the last evaluation, which the
+    trust-region loop always made just before asking for the Jacobian there)."""
+
+    def __init__(self, model: ModelRunner, params: list[Param], experiments: Sequence, masks, scale: float,
+                 lo: np.ndarray, hi: np.ndarray, rel_step: float = 1e-4) -> None:
+        self.model, self.params, self.experiments, self.masks, self.scale = model, params, experiments, masks, scale
+        self.lo, self.hi, self.rel_step = lo, hi, rel_step
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _values(self, x: np.ndarray) -> list[float]:
+        return [p.from_x(xi) for p, xi in zip(self.params, x)]
+
+    def _scaled(self, preds) -> np.ndarray:
+        n = sum(int(m.sum()) for m in self.masks)
+        if isinstance(preds, RuntimeError):
+            return np.full(n, 1e3)
+        r = np.concatenate([(pr - e.response_signal)[m] / self.scale
+                            for pr, e, m in zip(preds, self.experiments, self.masks)])
+        # an output that is not a finite number, or a thousand times the measured peak, is a failed
+        # simulation too (the FMU did not say so); left in, it would blow up the Jacobian
+        return r if np.all(np.abs(r) <= 1e3) else np.full(n, 1e3)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
         try:
-            preds = model.predict(values, experiments)
-        except RuntimeError:
-            return np.full(sum(int(m.sum()) for m in masks), 1e3)
-        return np.concatenate([(pr - e.response_signal)[m] / scale
-                               for pr, e, m in zip(preds, experiments, masks)])
-    return fn
+            preds = self.model.predict(self._values(x), self.experiments)
+        except RuntimeError as exc:
+            preds = exc
+        f = self._scaled(preds)
+        self._last = (np.array(x, float), f)
+        return f
+
+    def jac(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, float)
+        f0 = self._last[1] if self._last is not None and np.array_equal(self._last[0], x) else self(x)
+        h = self.rel_step * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
+        out = (x + h < self.lo) | (x + h > self.hi)
+        h[out] *= -1
+        points, steps = [], []
+        for j in range(len(x)):
+            xj = x.copy()
+            xj[j] = x[j] + h[j]
+            steps.append(xj[j] - x[j])
+            points.append(self._values(xj))
+        preds = self.model.predict_many(points, self.experiments)
+        J = np.empty((len(f0), len(x)))
+        for j, (pr, dx) in enumerate(zip(preds, steps)):
+            J[:, j] = (self._scaled(pr) - f0) / dx
+        return J
 
 
 def _starts(params: list[Param], max_starts: int) -> list[np.ndarray]:
@@ -133,11 +245,17 @@ def _bounds(params: list[Param]) -> tuple[np.ndarray, np.ndarray]:
     return (np.array([p.to_x(p.lower) for p in params]), np.array([p.to_x(p.upper) for p in params]))
 
 
-def _least_squares(fn, x0, lo, hi, max_nfev: int) -> optimize.OptimizeResult:
+#: the trust-region loop's stopping tolerances on the cost and the step (scipy's ftol, xtol)
+FTOL = XTOL = 1e-10
+
+
+def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None = None) -> optimize.OptimizeResult:
     """One bounded trust-region fit from x0 (nudged inside the bounds, which trf requires)."""
     x0 = np.clip(x0, lo + 1e-12 * (hi - lo), hi - 1e-12 * (hi - lo))
-    return optimize.least_squares(fn, x0, bounds=(lo, hi), method="trf", x_scale="jac",
-                                  diff_step=1e-4, max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
+    # one FMU instance: scipy's own forward differences (the same runs, one after another)
+    jac = fn.jac if fn.model.parallel > 1 else "2-point"
+    return optimize.least_squares(fn, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
+                                  diff_step=fn.rel_step, max_nfev=max_nfev, xtol=tol or XTOL, ftol=tol or FTOL)
 
 
 def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, float]]:
@@ -162,35 +280,50 @@ def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, floa
     return out
 
 
+#: two starts agree when their residual sums of squares differ by at most this in BIC units (n ln(rss1/rss2)):
+#: a tenth of what the ranking's tie threshold and significance tests could notice
+AGREE_DBIC = 0.1
+
+
 def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence, sc: Scales,
               max_starts: int = 6, max_nfev: int = 60, held: Sequence[str] = (),
-              start: dict | None = None) -> Fit:
+              start: dict | None = None, agree: int = 0) -> Fit:
     """Multi-start bounded least squares of the response channel on all experiments jointly.
 
     ``held``: parameters of the model that are not fitted; ``model`` must have been built without them
     (their values in its ``fixed``), and the fit's params, intervals and k leave them out. ``start``: a first
-    start in natural units (e.g. from a direct fit of the data), tried before the generic ones."""
+    start in natural units (e.g. from a direct fit of the data), tried before the generic ones. ``agree``:
+    stop trying starts once that many have reached the best cost so far (within :data:`AGREE_DBIC`); 0 tries
+    them all."""
     params = [p for p in model_parameters(effect, drive, sc) if p.name not in held]
     scale = _response_scale(drive, sc)
     masks = [np.ones(len(e.t), bool) for e in experiments]
-    fn = _residual_fn(model, params, experiments, masks, scale)
     lo, hi = _bounds(params)
+    fn = Residuals(model, params, experiments, masks, scale, lo, hi)
     best, nfev, starts = None, 0, _starts(params, max_starts)
     if start:
         starts = [np.array([p.to_x(min(max(float(start.get(p.name, p.starts[0])), p.lower), p.upper))
                             for p in params])] + starts
+    model.stage = "fit"
+    n_points = sum(len(e.t) for e in experiments)
+    costs: list[float] = []
     for x0 in starts:
         res = _least_squares(fn, x0, lo, hi, max_nfev)
         nfev += res.nfev
+        costs.append(float(res.cost))
         if best is None or res.cost < best.cost:
             best = res
+        if agree and sum(n_points * math.log(max(c, 1e-300) / max(best.cost, 1e-300)) <= AGREE_DBIC
+                         for c in costs) >= agree:
+            break
     n = sum(len(e.t) for e in experiments)
     values = [p.from_x(x) for p, x in zip(params, best.x)]
     preds = model.predict(values, experiments)
     rss = float(sum(np.sum((pr - e.response_signal) ** 2) for pr, e in zip(preds, experiments)))
     return Fit(effect=effect, params={p.name: v for p, v in zip(params, values)},
                ci95=_confidence(best, params, n), rss=rss, n=n, k=len(params), rmse=math.sqrt(rss / n),
-               predictions=preds, starts_tried=len(starts), nfev=nfev, at_bounds=at_bounds(params, best.x, lo, hi))
+               predictions=preds, starts_tried=len(costs), nfev=nfev, at_bounds=at_bounds(params, best.x, lo, hi),
+               start_costs=costs)
 
 
 def at_bounds(params: list[Param], x: np.ndarray, lo: np.ndarray, hi: np.ndarray, rel: float = 1e-6) -> list[dict]:
@@ -246,9 +379,10 @@ def heldout_folds(model: ModelRunner, fit: Fit, drive: str, experiments: Sequenc
     lo, hi = _bounds(params)
     x_full = np.array([p.to_x(min(max(fit.params[p.name], p.lower), p.upper)) for p in params])
     folds = []
+    model.stage = "heldout"
     for held in heldout_masks(experiments):
         train = [~m for m in held]
-        fn = _residual_fn(model, params, experiments, train, scale)
+        fn = Residuals(model, params, experiments, train, scale, lo, hi)
         res = _least_squares(fn, x_full, lo, hi, max_nfev)
         values = [p.from_x(x) for p, x in zip(params, res.x)]
         preds = model.predict(values, experiments)
@@ -308,22 +442,32 @@ def unify_equivalent(fits: dict[str, Fit]) -> dict[str, Fit]:
 
 
 def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
-                  max_starts: int = 6, interface: ModelInterface | None = None) -> Fit:
+                  max_starts: int = 6, interface: ModelInterface | None = None, parallel: int = 1,
+                  agree: int = 0, start: dict | None = None) -> Fit:
     """Calibrate one model and score it on held-out data (runs in a worker process).
 
     Under a drive of one constant rate (:func:`effects.constant_rate`) the damping is held at 0: its
     force d*v is a constant there, which the fit would trade against the stiffness (a baseline fitted a
-    constant 150 N through d*v with the stiffness -> 0)."""
+    constant 150 N through d*v with the stiffness -> 0). ``parallel``: FMU instances for the rounds of a
+    Jacobian; ``agree``, ``start``: as in :func:`calibrate`. The fit's ``runs`` counts its FMU runs by stage; when
+    the run budget ends, :class:`~fmusa.diagnose.budget.BudgetExhausted` carries them out in ``runs``."""
+    from fmusa.diagnose.budget import BudgetExhausted
+
     interface = resolve(interface, fmu_path)
     sc = with_bounds(data_scales(experiments), interface.bounds)
     const = constant_rate(experiments) if drive == "displacement" else None
     fixed = {DAMPING: 0.0} if const else {}
     names = [p.name for p in model_parameters(effect, drive, sc) if p.name not in fixed]
-    model = make_runner(fmu_path, drive, names, fixed, interface)
+    model = make_runner(fmu_path, drive, names, fixed, interface, parallel=parallel)
     try:
-        fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed))
+        fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed),
+                        agree=agree, start=start)
         fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc, held=tuple(fixed))
         fit.heldout_rmse = pooled_heldout(fit.heldout_folds)
+        fit.runs = dict(model.runs)
+    except Exception as exc:   # the runs spent go with the error (BudgetExhausted, or a fit that failed)
+        exc.runs = dict(model.runs)
+        raise
     finally:
         model.close()
     if const:
@@ -335,7 +479,8 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
     return fit
 
 
-def make_runner(fmu_path: str, drive: str, names: Sequence[str], fixed: dict, interface: ModelInterface):
+def make_runner(fmu_path: str, drive: str, names: Sequence[str], fixed: dict, interface: ModelInterface,
+                parallel: int = 1):
     """The runner of one candidate: the FMU alone (effects inside it), or coupled to the interface element
     (effects attached, :mod:`fmusa.diagnose.attached`). ``fixed`` in catalogue names."""
     if interface.attached is not None:
@@ -343,4 +488,4 @@ def make_runner(fmu_path: str, drive: str, names: Sequence[str], fixed: dict, in
 
         return CoupledRunner(fmu_path, drive, names, fixed, interface=interface)
     return ModelRunner(fmu_path, drive, names, fixed={interface.variable(k): v for k, v in fixed.items()},
-                       interface=interface)
+                       interface=interface, parallel=parallel)

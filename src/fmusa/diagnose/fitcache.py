@@ -17,26 +17,50 @@ from typing import Sequence
 
 import numpy as np
 
+from fmusa.diagnose import budget as rb
 from fmusa.diagnose.calibrate import Fit, fit_candidate
 from fmusa.diagnose.interface import ModelInterface
 from fmusa.files import atomic_write
 
 __all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits"]
 
-#: (fmu path, candidate, drive, experiments, max_starts, interface): the arguments of fit_candidate.
+#: (fmu path, candidate, drive, experiments, max_starts, interface[, parallel, agree, start]): the
+#: arguments of fit_candidate.
 FitJob = tuple
 
 
-def _fit_job(args: FitJob) -> Fit | str:
-    """A candidate's fit, or the reason it failed (one bad candidate must not sink the others)."""
+def _fit_job(args: FitJob) -> Fit | rb.LeftOut | str:
+    """A candidate's fit, what it spent when the run budget ended, or the reason it failed (one bad
+    candidate must not sink the others)."""
     try:
         return fit_candidate(*args)
+    except rb.BudgetExhausted as exc:
+        return rb.LeftOut(args[1], dict(getattr(exc, "runs", {}) or {}))
     except Exception as exc:  # noqa: BLE001 - reported per candidate in diagnosis.json
-        return f"{type(exc).__name__}: {exc}"
+        return FailedFit(f"{type(exc).__name__}: {exc}", getattr(exc, "runs", None))
+
+
+class FailedFit(str):
+    """Why a fit failed (a str, as diagnosis.json states it), with the FMU runs it spent before."""
+    runs: dict
+
+    def __new__(cls, reason: str, runs: dict | None = None) -> "FailedFit":
+        obj = super().__new__(cls, reason)
+        obj.runs = dict(runs or {})
+        return obj
+
+    def __reduce__(self):
+        return (FailedFit, (str(self), self.runs))
+
+
+def _start_worker(limit: int | None, value) -> None:
+    """A fit worker: Ctrl-C left to the parent, the diagnosis's run budget shared."""
+    _ignore_sigint()
+    rb.install(limit, value)
 
 
 def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
-             interface: ModelInterface | None = None) -> str:
+             interface: ModelInterface | None = None, agree: int = 0) -> str:
     """Identity of a diagnosis input: cached fits are reused only for the same data, drive, FMU and
     interface (the FMU's built-in description adds nothing, so caches written before descriptions existed
     stay valid; a description's name is not part of it)."""
@@ -55,6 +79,9 @@ def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
             default = None
         if replace(interface, name="") != default:
             h.update(repr(replace(interface, name="")).encode())
+    h.update(b"|chain-start")     # the chain's fits start from the model so far
+    if agree:       # starts stopped once they agree: another fit than all of them
+        h.update(f"|agree{agree}".encode())
     h.update(Path(fmu).read_bytes() if Path(fmu).is_file() else str(fmu).encode())
     for e in experiments:
         for a in (e.t, e.displacement, e.force):
@@ -67,7 +94,8 @@ def fit_to_json(f: Fit, key: str) -> dict:
     return {"key": key, "effect": f.effect, "params": f.params, "ci95": {k: list(v) for k, v in f.ci95.items()},
             "rss": f.rss, "n": f.n, "k": f.k, "rmse": f.rmse, "heldout_rmse": f.heldout_rmse,
             "predictions": [p.tolist() for p in f.predictions], "starts_tried": f.starts_tried, "nfev": f.nfev,
-            "heldout_folds": list(f.heldout_folds), "at_bounds": list(f.at_bounds), "held": dict(f.held)}
+            "heldout_folds": list(f.heldout_folds), "at_bounds": list(f.at_bounds), "held": dict(f.held),
+            "runs": dict(f.runs), "start_costs": list(f.start_costs)}
 
 
 def fit_from_json(d: dict) -> Fit:
@@ -76,7 +104,8 @@ def fit_from_json(d: dict) -> Fit:
                rss=d["rss"], n=d["n"], k=d["k"], rmse=d["rmse"], heldout_rmse=d["heldout_rmse"],
                predictions=[np.array(p) for p in d["predictions"]], starts_tried=d["starts_tried"],
                nfev=d["nfev"], heldout_folds=list(d.get("heldout_folds") or []),
-               at_bounds=list(d.get("at_bounds") or []), held=dict(d.get("held") or {}))
+               at_bounds=list(d.get("at_bounds") or []), held=dict(d.get("held") or {}),
+               runs=dict(d.get("runs") or {}), start_costs=list(d.get("start_costs") or []))
 
 
 def _cached(cache_dir: Path | None, name: str, key: str) -> Fit | None:
@@ -143,16 +172,18 @@ def _kill_workers(ex: ProcessPoolExecutor) -> None:
 
 
 def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
-             progress: bool) -> dict[str, Fit | str]:
-    """Every job's fit (or the reason it failed), taken from the cache when it is there, and saved as
-    soon as it is done."""
-    results: dict[str, Fit | str] = {}
+             progress: bool, budget: rb.RunBudget | None = None) -> dict[str, Fit | rb.LeftOut | str]:
+    """Every job's fit (or what it spent when the run budget ended, or the reason it failed), taken from
+    the cache when it is there, and saved as soon as it is done. ``budget`` counts (and bounds) the runs
+    of every worker."""
+    results: dict[str, Fit | rb.LeftOut | str] = {}
     todo = []
     for job in jobs:
         hit = _cached(cache_dir, job[1], key)
         if hit is None:
             todo.append(job)
         else:
+            hit.cached = True
             results[job[1]] = hit
 
     def keep(name: str, r: Fit | str) -> None:
@@ -160,12 +191,15 @@ def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
         if cache_dir is not None and isinstance(r, Fit):
             _save(cache_dir, name, r, key)
         if progress:
-            what = f"rmse {r.rmse:.4g}, held-out {r.heldout_rmse:.4g}" if isinstance(r, Fit) else f"failed: {r}"
+            what = (f"rmse {r.rmse:.4g}, held-out {r.heldout_rmse:.4g}" if isinstance(r, Fit)
+                    else "left out: the run budget ended" if isinstance(r, rb.LeftOut) else f"failed: {r}")
             print(f"  fitted {name}: {what}", flush=True)
 
     if workers > 1 and len(todo) > 1:
+        shared = budget.shared() if budget is not None else (None, None)
         ex = ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn"),
-                                 initializer=_ignore_sigint)
+                                 initializer=_start_worker if budget is not None else _ignore_sigint,
+                                 initargs=shared if budget is not None else ())
         try:
             with _sigint_ignored():    # the workers start with Ctrl-C ignored (kept across their exec)
                 futs = {ex.submit(_fit_job, j): j[1] for j in todo}
@@ -180,6 +214,11 @@ def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
             raise
         ex.shutdown(wait=True)
     else:
-        for j in todo:
-            keep(j[1], _fit_job(j))
+        old = rb.set_current(budget) if budget is not None else None
+        try:
+            for j in todo:
+                keep(j[1], _fit_job(j))
+        finally:
+            if budget is not None:
+                rb.set_current(old)
     return results

@@ -23,6 +23,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from fmusa.diagnose.effects import BASELINE, EFFECT_MEANING, PARAM_MEANING, STIFFNESS
+from fmusa.diagnose.runs_report import budget_notice, runs_section
 from fmusa.diagnose.views import (by_loading_direction, delta_text, experiment_motion, natural, p_text, ratio_text,
                                   residual_series, response_channel)
 from fmusa.format import fmt, md_code, md_text
@@ -538,10 +539,10 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
              f"baseline spring–damper (eq. 1: stiffness c, damping d) and against the baseline plus each "
              f"candidate effect ({len(diag.get('ranking') or [])} candidates); the effect is named only when "
              f"its gain is significant.\n",
-             _warnings_section(diag),
+             budget_notice(diag), _warnings_section(diag),
              _data_section(diag, experiments), _verdict_section(diag), _params_section(diag), _chain_section(diag), _fit_checks_section(diag),
              _ranking_section(diag), _residual_section(diag, experiments), _ties_section(diag),
-             _caveats_section(diag)]
+             _caveats_section(diag), runs_section(diag)]
     if figures:
         fig_txt = "## Figures\n\n"
         for p in figures:

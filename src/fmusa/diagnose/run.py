@@ -20,6 +20,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fmusa.diagnose import residuals as rs
+from fmusa.diagnose.budget import LeftOut, RunBudget
 from fmusa.diagnose.calibrate import MIN_EXPERIMENTS_LEFT_OUT, Fit, unify_equivalent
 from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, DAMPING, STIFFNESS, UNITS, DiagnoseError,
                                     data_scales, equivalent_by_construction, equivalent_parameters,
@@ -78,15 +79,21 @@ def _fit_summary(f: Fit) -> dict:
 #: the most effects a chain names (the first and up to two on top of it)
 MAX_CHAIN = 3
 
+#: a fit stops trying starts once this many reached its best cost
+AGREE_STARTS = 2
+
 
 def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect: str, candidates: Sequence[str],
                  experiments: Sequence, drive: str, fmu: str, max_starts: int, interface: ModelInterface,
-                 workers: int, cache_dir, key: str, progress: bool, th: Thresholds, chain: int) -> list[dict]:
+                 workers: int, cache_dir, key: str, progress: bool, th: Thresholds, chain: int,
+                 budget: RunBudget | None = None, agree: int = 0, runs: dict | None = None) -> list[dict]:
     """After the first effect, each remaining candidate on top of the model so far, while the best addition
     passes the same tests as the first (significant against the model so far: ΔBIC, held-out ratio, F test)
     and matters (:func:`rank.effect_size`). Each step: the effect, its gain over the model before it (fitted
     and held-out RMSE ratios, ΔBIC, p) and the fit. Candidates equivalent to a named one are not tried (the
-    same equations add nothing)."""
+    same equations add nothing). ``runs``: filled with each step's fits (candidate name -> Fit or LeftOut),
+    for the run count; when the run budget ends within a step, the chain stops there."""
+    runs = {} if runs is None else runs
     if effect == "none":
         return []
     steps = [{"effect": lead, "model": lead, "gain": _gain(base, ext, lead), "rmse": ext.rmse,
@@ -99,8 +106,13 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
                 and not any(equivalent_by_construction(c, m) for m in named)]
         if not rest:
             break
-        jobs = [(fmu, f"{name}+{c}", drive, list(experiments), max_starts, interface) for c in rest]
-        results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress)
+        # first start: the model so far at its optimum, the added effect at its own first start
+        jobs = [(fmu, f"{name}+{c}", drive, list(experiments), max_starts, interface,
+                 jacobian_lanes(workers, len(rest)), agree, dict(current.params)) for c in rest]
+        results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress, budget)
+        runs.update(results)
+        if any(isinstance(r, LeftOut) for r in results.values()):
+            break       # a step is chosen among all its candidates or not at all
         combos = {c: results[f"{name}+{c}"] for c in rest if isinstance(results.get(f"{name}+{c}"), Fit)}
         if not combos:
             break
@@ -117,6 +129,41 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         named |= set(group_members(nxt))
         current = fit
     return steps
+
+
+def jacobian_lanes(workers: int, jobs: int) -> int:
+    """FMU instances per fit for the rounds of its Jacobian: the workers left over when there are fewer
+    fits running at once than workers (a slow FMU then waits one run per round, not one per column)."""
+    return max(1, -(-int(workers) // max(1, int(jobs))))
+
+
+def _stage_runs(r) -> dict:
+    """One fit's runs, as the run count states them."""
+    if isinstance(r, Fit):
+        fit, held = r.runs.get("fit", 0), r.runs.get("heldout", 0)
+        return {"fit": fit, "heldout": held, "total": fit + held,
+                **({"cached": True} if r.cached else {})}
+    if isinstance(r, LeftOut):
+        fit, held = r.runs.get("fit", 0), r.runs.get("heldout", 0)
+        return {"fit": fit, "heldout": held, "total": fit + held, "left_out": True}
+    spent = getattr(r, "runs", None) or {}       # a FailedFit: what it spent before it failed
+    fit, held = spent.get("fit", 0), spent.get("heldout", 0)
+    return {"fit": fit, "heldout": held, "total": fit + held, "failed": True}
+
+
+def run_count(results: dict, chain_results: dict, budget: RunBudget) -> dict:
+    """Every FMU run of the diagnosis by stage (the baseline, each candidate, each step of the chain; per
+    fit the runs of its own fit and of its held-out refits), the total the shared counter saw, the budget,
+    and what the budget left out. Fits reused from a cache spent their runs in an earlier diagnosis: they
+    are listed (``cached``) but not in the total."""
+    stages = {"baseline": _stage_runs(results["none"]),
+              "candidates": {n: _stage_runs(r) for n, r in results.items() if n != "none"},
+              "chain": {n: _stage_runs(r) for n, r in chain_results.items()}}
+    by_fits = sum(s["total"] for s in [stages["baseline"], *stages["candidates"].values(),
+                                       *stages["chain"].values()] if not s.get("cached"))
+    left = [n for n, r in {**results, **chain_results}.items() if isinstance(r, LeftOut)]
+    return {"total": budget.used, "counted_by_fits": by_fits, "budget": budget.limit,
+            "budget_ended": bool(left), "left_out": left, **stages}
 
 
 def damping_look_alikes(base: Fit, members: Sequence[str], effect: str) -> list[dict]:
@@ -185,7 +232,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
              candidates: Sequence[str] | None = None, workers: int | None = None,
              max_starts: int = 6, thresholds: Thresholds = Thresholds(), progress: bool = False,
              cache_dir: str | os.PathLike | None = None, interface: ModelInterface | None = None,
-             chain: int = MAX_CHAIN) -> dict:
+             chain: int = MAX_CHAIN, max_runs: int | None = None,
+             agree: int = AGREE_STARTS) -> dict:
     """Calibrate the baseline and every candidate, rank them, and describe what is left.
 
     Returns a dict with the keys of diagnosis.json plus the fits (``_fits``) for the figures. With
@@ -194,7 +242,10 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     the built-in description of the FMU's model, :mod:`fmusa.diagnose.models`); it is checked against the FMU
     before anything runs (:func:`fmusa.diagnose.check.check_description`). ``candidates``: default those of
     the description, else every one of the catalogue. ``chain``: the most effects of the chain
-    (:func:`effect_chain`; 1 names one effect only)."""
+    (:func:`effect_chain`; 1 names one effect only). ``max_runs``: the most FMU runs the
+    diagnosis may make (None: no limit); when they end, the candidates not fitted are left out (named in
+    ``runs``), and the verdict is among those fitted. ``agree``: a fit stops trying starts once that many
+    reached its best cost (0: all starts)."""
     from fmusa.diagnose.check import check_description
     from fmusa.diagnose.models import resolve
     from fmusa.fmi.info import FMURunError, default_fmu_path
@@ -212,11 +263,17 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     if progress:   # before the fits, which take minutes: a wrong unit is worth stopping for
         for w in units["warnings"]:
             print(f"warning: {w['message']}", flush=True)
-    jobs = [(fmu, name, drive, list(experiments), max_starts, interface) for name in ("none", *candidates)]
-    workers = workers or min(len(jobs), os.cpu_count() or 1)
-    key = data_key(experiments, drive, max_starts, fmu, interface)
-    results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress)
+    names = ("none", *candidates)
+    workers = workers or min(len(names), os.cpu_count() or 1)
+    jobs = [(fmu, name, drive, list(experiments), max_starts, interface, jacobian_lanes(workers, len(names)),
+             agree) for name in names]
+    key = data_key(experiments, drive, max_starts, fmu, interface, agree)
+    budget = RunBudget(max_runs)
+    results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress, budget)
     base = results["none"]
+    if isinstance(base, LeftOut):
+        raise DiagnoseError(f"the run budget of {max_runs} FMU runs ended before the baseline was fitted "
+                            f"({budget.used} runs made); allow more runs (--max-runs)")
     if not isinstance(base, Fit):
         raise FMURunError(f"the baseline could not be fitted: {base}")
     line = straight_line(experiments, drive)
@@ -233,8 +290,10 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         lead = fits[lead].mapped_from
     ext = fits[lead] if effect != "none" else base
     res_base, res_ext = _structure(base, experiments, drive), _structure(ext, experiments, drive)
+    chain_results: dict = {}
     steps = effect_chain(base, ext, lead, members, effect, candidates, experiments, drive, fmu, max_starts,
-                         interface, workers, cache_dir, key, progress, thresholds, chain)
+                         interface, workers, cache_dir, key, progress, thresholds, chain, budget, agree,
+                         chain_results)
     final = steps[-1]["fit"] if steps else ext
     res_final = _structure(final, experiments, drive) if len(steps) > 1 else res_ext
     features = protocol_features(experiments)
@@ -256,7 +315,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "extended": _fit_summary(ext),
         "gain": _gain(base, ext, effect),
         "ranking": ranking,
-        "failed": {n: r for n, r in results.items() if not isinstance(r, Fit)},
+        "failed": {n: r for n, r in results.items() if isinstance(r, str)},
+        "runs": run_count(results, chain_results, budget),
         "indistinguishable": indistinguishable(effect, ties, ranking, features, fits, drive)
                              + damping_look_alikes(base, members, effect),
         "protocol": features,
@@ -315,7 +375,7 @@ def run_diagnosis(experiments: Sequence, drive: str, out_dir: str | os.PathLike,
 
 
 def run_study_diagnosis(study, out_dir: str | os.PathLike, workers: int | None = None,
-                        progress: bool = True) -> dict:
+                        progress: bool = True, max_runs: int | None = None) -> dict:
     """A diagnosis study file's diagnosis (:class:`fmusa.diagnose.study.DiagnosisStudy`): the study checked
     against its FMU first, then the measured tests read, then :func:`run_diagnosis`."""
     from fmusa.diagnose.check import check_description
@@ -327,7 +387,7 @@ def run_study_diagnosis(study, out_dir: str | os.PathLike, workers: int | None =
     opts = study.diagnosis
     diag = run_diagnosis(experiments, study.tests.drive, out_dir, fmu_path=fmu, interface=study.interface,
                          workers=workers or opts.workers, max_starts=opts.starts, chain=opts.chain,
-                         progress=progress)
+                         progress=progress, max_runs=max_runs)
     if study.interface.attached is not None:
         diag["coupling"] = coupled_cost(fmu, study.interface, study.tests.drive, diag, experiments[0])
         diag["ssp"] = write_extended_ssp(Path(out_dir) / "extended.ssp", fmu, study.interface, study.tests.drive,
