@@ -19,6 +19,7 @@ from scipy import optimize, stats
 from fmusa.diagnose.effects import (EQUIVALENT_BY_CONSTRUCTION, Param, Scales, constant_rate, data_scales,
                                     equivalent_intervals, equivalent_parameters, model_parameters)
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
+from fmusa.diagnose.intervals import interval_report
 
 __all__ = ["Fit", "ModelRunner", "calibrate", "MIN_EXPERIMENTS_LEFT_OUT", "heldout_masks", "heldout_folds",
            "pooled_heldout", "heldout_rmse", "unify_equivalent", "fit_candidate"]
@@ -48,6 +49,8 @@ class Fit:
     at_bounds: list[dict] = field(default_factory=list)
     #: parameters held (not fitted), with their values and why
     held: dict = field(default_factory=dict)
+    #: how ci95 was made (:func:`intervals.interval_report`): method, phi, n_eff, and the Gauss–Newton intervals
+    intervals: dict = field(default_factory=dict)
 
     @property
     def aic(self) -> float:
@@ -131,26 +134,28 @@ def _least_squares(fn, x0, lo, hi, max_nfev: int) -> optimize.OptimizeResult:
                                   diff_step=1e-4, max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
 
 
-def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, float]]:
-    """95 % intervals from the Gauss-Newton covariance, on the optimiser's scale (so log-scaled ones are
-    asymmetric), clipped to the bounds. Residual autocorrelation makes them too narrow: see the report."""
-    k = len(params)
-    dof = max(n - k, 1)
-    s2 = 2.0 * res.cost / dof
-    J = res.jac
+def _to_natural(p: Param, lo_x: float, hi_x: float) -> tuple[float, float]:
+    """An interval on the optimiser's scale in natural units, clipped to the bounds."""
+    lo_x, hi_x = max(lo_x, p.to_x(p.lower)), min(hi_x, p.to_x(p.upper))
+    lo_v = p.from_x(lo_x) if math.isfinite(lo_x) else p.lower
+    hi_v = p.from_x(hi_x) if math.isfinite(hi_x) else p.upper
+    return (max(lo_v, p.lower), min(hi_v, p.upper))
+
+
+def _confidence(res, params: list[Param], n: int, lengths: Sequence[int] | None = None) -> tuple[dict, dict]:
+    """95 % intervals on the optimiser's scale (so log-scaled ones are asymmetric), clipped to the bounds:
+    the AR(1) sandwich where the residuals are autocorrelated, Gauss–Newton where they are not
+    (:func:`intervals.interval_report`); and how they were made (method, φ, effective n, the Gauss–Newton
+    intervals beside)."""
     try:
-        cov = np.linalg.pinv(J.T @ J) * s2
-        se = np.sqrt(np.clip(np.diag(cov), 0, None))
-    except np.linalg.LinAlgError:
-        se = np.full(k, np.inf)
-    q = stats.t.ppf(0.975, dof)
-    out = {}
-    for p, x, e in zip(params, res.x, se):
-        lo_x, hi_x = max(x - q * e, p.to_x(p.lower)), min(x + q * e, p.to_x(p.upper))
-        lo_v = p.from_x(lo_x) if math.isfinite(lo_x) else p.lower
-        hi_v = p.from_x(hi_x) if math.isfinite(hi_x) else p.upper
-        out[p.name] = (max(lo_v, p.lower), min(hi_v, p.upper))
-    return out
+        rep = interval_report(res.jac, res.fun, res.x, lengths)
+    except (np.linalg.LinAlgError, ValueError):
+        inf = {p.name: (p.lower, p.upper) for p in params}
+        return inf, {"method": "none (the covariance could not be computed)", "gauss_newton": inf}
+    ci = {p.name: _to_natural(p, lo, hi) for p, lo, hi in zip(params, rep["lower"], rep["upper"])}
+    gn = {p.name: _to_natural(p, lo, hi) for p, lo, hi in zip(params, *rep["gauss_newton"])}
+    return ci, {"method": rep["method"], "phi": rep["phi"], "phi_used": rep["phi_used"], "n_eff": rep["n_eff"],
+                "p_value": rep["p_value"], "gauss_newton": gn}
 
 
 def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence, sc: Scales,
@@ -176,11 +181,12 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
         if best is None or res.cost < best.cost:
             best = res
     n = sum(len(e.t) for e in experiments)
+    ci, how = _confidence(best, params, n, [len(e.t) for e in experiments])
     values = [p.from_x(x) for p, x in zip(params, best.x)]
     preds = model.predict(values, experiments)
     rss = float(sum(np.sum((pr - e.response_signal) ** 2) for pr, e in zip(preds, experiments)))
     return Fit(effect=effect, params={p.name: v for p, v in zip(params, values)},
-               ci95=_confidence(best, params, n), rss=rss, n=n, k=len(params), rmse=math.sqrt(rss / n),
+               ci95=ci, rss=rss, n=n, k=len(params), rmse=math.sqrt(rss / n), intervals=how,
                predictions=preds, starts_tried=len(starts), nfev=nfev, at_bounds=at_bounds(params, best.x, lo, hi))
 
 
@@ -299,8 +305,9 @@ def unify_equivalent(fits: dict[str, Fit]) -> dict[str, Fit]:
 
 
 def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
-                  max_starts: int = 6, interface: ModelInterface = SCREW_VERTEBRA) -> Fit:
-    """Calibrate one model and score it on held-out data (runs in a worker process).
+                  max_starts: int = 6, interface: ModelInterface = SCREW_VERTEBRA, start: dict | None = None) -> Fit:
+    """Calibrate one model and score it on held-out data (runs in a worker process); ``start`` as in
+    :func:`calibrate`.
 
     Under a drive of one constant rate (:func:`effects.constant_rate`) the damping d_y is held at 0: its
     force d_y*v is a constant there, which the fit would trade against the stiffness (the baseline of issue
@@ -312,7 +319,8 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
     model = ModelRunner(fmu_path, drive, names, fixed={interface.variable(k): v for k, v in fixed.items()},
                         interface=interface)
     try:
-        fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed))
+        fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed),
+                        start=start)
         fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc, held=tuple(fixed))
         fit.heldout_rmse = pooled_heldout(fit.heldout_folds)
     finally:

@@ -41,8 +41,8 @@ def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
     interface (the default interface adds nothing, so caches written before it existed stay valid)."""
     h = hashlib.sha256()
     # v2: friction fits fric_x too; v3: held-out folds kept; v4: damping start from the data, d_y held at a
-    # constant rate, bounds hit recorded
-    h.update(f"{drive}|{max_starts}|v4".encode())
+    # constant rate, bounds hit recorded; v5: intervals for correlated residuals
+    h.update(f"{drive}|{max_starts}|v5".encode())
     if interface != SCREW_VERTEBRA:
         h.update(repr(interface).encode())
     h.update(Path(fmu).read_bytes() if Path(fmu).is_file() else str(fmu).encode())
@@ -57,7 +57,9 @@ def fit_to_json(f: Fit, key: str) -> dict:
     return {"key": key, "effect": f.effect, "params": f.params, "ci95": {k: list(v) for k, v in f.ci95.items()},
             "rss": f.rss, "n": f.n, "k": f.k, "rmse": f.rmse, "heldout_rmse": f.heldout_rmse,
             "predictions": [p.tolist() for p in f.predictions], "starts_tried": f.starts_tried, "nfev": f.nfev,
-            "heldout_folds": list(f.heldout_folds), "at_bounds": list(f.at_bounds), "held": dict(f.held)}
+            "heldout_folds": list(f.heldout_folds), "at_bounds": list(f.at_bounds), "held": dict(f.held),
+            "intervals": {k: ({n: list(v) for n, v in x.items()} if k == "gauss_newton" else x)
+                          for k, x in f.intervals.items()}}
 
 
 def fit_from_json(d: dict) -> Fit:
@@ -66,7 +68,9 @@ def fit_from_json(d: dict) -> Fit:
                rss=d["rss"], n=d["n"], k=d["k"], rmse=d["rmse"], heldout_rmse=d["heldout_rmse"],
                predictions=[np.array(p) for p in d["predictions"]], starts_tried=d["starts_tried"],
                nfev=d["nfev"], heldout_folds=list(d.get("heldout_folds") or []),
-               at_bounds=list(d.get("at_bounds") or []), held=dict(d.get("held") or {}))
+               at_bounds=list(d.get("at_bounds") or []), held=dict(d.get("held") or {}),
+               intervals={k: ({n: tuple(v) for n, v in x.items()} if k == "gauss_newton" else x)
+                          for k, x in (d.get("intervals") or {}).items()})
 
 
 def _cached(cache_dir: Path | None, name: str, key: str) -> Fit | None:
