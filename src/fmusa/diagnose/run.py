@@ -26,7 +26,7 @@ from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, UNITS, Dia
                                     model_parameters)
 from fmusa.diagnose.fitcache import data_key, run_fits
 from fmusa.diagnose.interface import SCREW_VERTEBRA, ModelInterface
-from fmusa.diagnose.plausibility import implausible, test_support, unidentifiable
+from fmusa.diagnose.plausibility import implausible, support_of, unidentifiable
 from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members,
                                  indistinguishable, nested_p_value, protocol_features, rank_candidates)
 from fmusa.diagnose.units import check_units, model_scale
@@ -118,7 +118,7 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
     current, name = ext, lead
     rr = response_range(experiments)
     features = protocol_features(experiments)
-    support = test_support(experiments)
+    support = support_of(experiments)
     while len(steps) < chain:
         rest = [c for c in candidates if c not in named
                 and not any(equivalent_by_construction(c, m) for m in named)]
@@ -179,7 +179,7 @@ def _refit_from(fmu: str, model: str, drive: str, experiments: Sequence, max_sta
 def _screened_ranking(base: Fit, fits: dict, th: Thresholds, experiments: Sequence) -> tuple[list[dict], list]:
     """The ranking of the single effects, where a fit with a parameter the tests cannot support
     (:func:`plausibility.implausible`) is listed last, not significant, with why; and those removals."""
-    support = test_support(experiments)
+    support = support_of(experiments)
     bad = {n: implausible(n, f.params, support) for n, f in fits.items()}
     ok = {n: f for n, f in fits.items() if not bad[n]}
     rr = response_range(experiments)
