@@ -30,12 +30,11 @@ def closed_form(theta: np.ndarray, y: np.ndarray = Y) -> np.ndarray:
 
 def ar1_noise(n: int, phi: float, sd: float, rng: np.random.Generator) -> np.ndarray:
     """Stationary AR(1) noise of marginal SD ``sd``."""
+    from scipy.signal import lfilter
+
     e = rng.normal(size=n)
-    out = np.empty(n)
-    out[0] = e[0]
-    for i in range(1, n):
-        out[i] = phi * out[i - 1] + np.sqrt(1 - phi ** 2) * e[i]
-    return out * sd
+    e[1:] *= np.sqrt(1 - phi ** 2)                 # e[0] already has the stationary variance
+    return lfilter([1.0], [1.0, -phi], e) * sd
 
 
 def coverage(phi: float, replicates: int, seed: int) -> dict:

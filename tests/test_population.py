@@ -72,3 +72,20 @@ def test_shear_population_leave_one_out():
         f = c["fit"]
         assert f["prediction"][0] < f["mean"] < f["prediction"][1]
         assert 0 <= min(x["shrinkage"] for x in f["specimens"]) <= max(x["shrinkage"] for x in f["specimens"]) <= 1
+
+
+def test_population_of_diagnoses_pools_the_final_models():
+    """Three specimens' diagnoses: c_y pooled over all three, the effect's parameter over the two whose final
+    model has it; a standard error from each 95 % interval."""
+    from fmusa.diagnose.population import population_of_diagnoses
+
+    def diag(c, ci, extra=None):
+        params = {"c_y": {"value": c, "ci95": ci}, **(extra or {})}
+        return {"final": {"params": params}}
+    diags = {"S1": diag(100.0, [96.08, 103.92], {"nl_ratio": {"value": 2.0, "ci95": [1.9, 2.1]}}),
+             "S2": diag(120.0, [116.08, 123.92], {"nl_ratio": {"value": 2.4, "ci95": [2.3, 2.5]}}),
+             "S3": diag(110.0, [106.08, 113.92])}
+    pop = population_of_diagnoses(diags)
+    assert pop["c_y"]["k"] == 3 and pop["nl_ratio"]["k"] == 2 and pop["nl_ratio"]["without"] == ["S3"]
+    assert pop["c_y"]["specimens"][0]["se"] == pytest.approx(2.0, rel=1e-3)
+    assert pop["c_y"]["mean"] == pytest.approx(110.0) and pop["c_y"]["tau"] ** 2 == pytest.approx(100.0 - 4.0, rel=1e-3)

@@ -18,7 +18,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy import stats
 
-__all__ = ["random_effects", "leave_one_out", "summary_text", "MIN_SPECIMENS"]
+__all__ = ["random_effects", "leave_one_out", "population_of_diagnoses", "summary_text", "MIN_SPECIMENS"]
 
 #: a between-specimen spread and a prediction range need at least this many specimens (t on k − 2 dof)
 MIN_SPECIMENS = 3
@@ -118,3 +118,29 @@ def summary_text(fit: Mapping, unit: str = "", digits: int = 3) -> str:
     new = (f"; a new specimen: {lo:.{digits}g} to {hi:.{digits}g}{u}" if math.isfinite(lo) else "")
     return (f"{fit['mean']:.{digits}g}{u} ± {fit['tau']:.{digits}g}{u} between specimens "
             f"({fit['k']} specimens{new})")
+
+
+def population_of_diagnoses(diags: Mapping[str, Mapping], level: float = 0.95) -> dict:
+    """The population of every parameter that the final models of several specimens' diagnoses
+    (:func:`fmusa.diagnose.run.diagnose`, one per specimen, keyed by its name) share: :func:`random_effects`
+    of the values with standard errors from their 95 % intervals ((upper − lower)/(2 × 1.96); the intervals
+    of log-scaled parameters are asymmetric, so this is their average half-width). A parameter is pooled
+    only over the specimens whose final model has it; those whose model differs are named."""
+    z = stats.norm.ppf(0.5 + level / 2)
+    values: dict[str, list] = {}
+    for name, d in diags.items():
+        final = d.get("final") or {}
+        params = final.get("params") or {n: {"value": v, "ci95": (d.get("baseline") or {}).get("ci95", {}).get(n)}
+                                         for n, v in ((d.get("baseline") or {}).get("params") or {}).items()}
+        for p, v in params.items():
+            ci = v.get("ci95")
+            if ci is None or len(ci) != 2:
+                continue
+            values.setdefault(p, []).append((name, float(v["value"]), (float(ci[1]) - float(ci[0])) / (2 * z)))
+    out = {}
+    for p, rows in values.items():
+        fit = random_effects([r[1] for r in rows], [r[2] for r in rows], [r[0] for r in rows], level)
+        fit["without"] = [n for n in diags if n not in {r[0] for r in rows}]
+        out[p] = fit
+    return out
+

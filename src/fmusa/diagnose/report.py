@@ -455,7 +455,7 @@ def _caveats_section(diag: Mapping) -> str:
                 f"sandwich (JᵀJ)⁻¹JᵀΣJ(JᵀJ)⁻¹ and the quantile a t on about {max(iv.get('n_eff', 1), 1):.0f} "
                 "effective samples. On synthetic tests with AR(1) noise (φ 0 to 0.95) such intervals cover the "
                 "true parameters in 90–98 % of cases, where Gauss–Newton intervals, which assume white residuals, "
-                "are too narrow (they cover 24–75 % for φ from 0.95 to 0.5); a misfit that is no AR(1) process (a "
+                "are too narrow (they cover about 80 % at φ = 0.5 and 25 % at φ = 0.95); a misfit that is no AR(1) process (a "
                 "systematic bend the model lacks) is covered only as far as it looks like one.")
     elif iv.get("method"):
         out += ("- The 95 % intervals of the final model are Gauss–Newton intervals, which assume white residuals: "

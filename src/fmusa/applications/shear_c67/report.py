@@ -195,8 +195,45 @@ def _population_section(summary: dict) -> list[str]:
                  f"{_f(max(s['shrinkage'] for s in f['specimens']), '.2f')} | {loo['inside']} of {loo['tested']}"
                  + (f" (outside: {', '.join(miss)})" if miss else "") + " |")
     L.append("")
+    units = summary.get("population_units") or {}
+    for d, params in units.items():
+        c = params.get("c_y")
+        if not c or not c.get("k"):
+            continue
+        lo, hi = c["prediction"]
+        L.append(f"The diagnosed units' final models, {DIRECTION_NAMES.get(d, d)}: stiffness c {_f(c['mean'] / 1e3, '.4g')} "
+                 f"± {_f(c['tau'] / 1e3, '.3g')} N/mm between specimens over {c['k']} specimens"
+                 + (f", a new specimen {_f(lo / 1e3, '.3g')} to {_f(hi / 1e3, '.3g')} N/mm" if math.isfinite(lo)
+                    else f" ({c.get('note', '')})")
+                 + "; per specimen (estimate → shrunk, shrinkage): "
+                 + ", ".join(f"{x['name']} {_f(x['estimate'] / 1e3, '.4g')} → {_f(x['shrunk'] / 1e3, '.4g')} "
+                             f"({_f(x['shrinkage'], '.2f')})" for x in c["specimens"]) + ".\n")
     L.append(f"In all, the authors' k1 of {pop['inside']} of {pop['tested']} left-out specimen tests "
              f"({100 * pop['share']:.0f} %) falls inside the range predicted from the other specimens (nominal 95 %).\n")
+    return L
+
+
+def _bands_section(summary: dict) -> list[str]:
+    """Each rate predicted from the unit's other rates with a 95 % band: the share of its samples inside."""
+    bands = {k: v for k, v in (summary.get("prediction_bands") or {}).items() if v}
+    if not bands:
+        return []
+    L = ["## Prediction bands: each rate predicted from the other rates\n",
+         "The two-phase elastic curve with damping, fitted to two rates of a unit, predicts the third with a "
+         "95 % band for a new measurement (the parameters' covariance, AR(1) sandwich where the training "
+         "residuals are autocorrelated, and the residual variance). A share near 95 % is a band that holds; "
+         "a share far below says the model does not carry over to that rate; a band much wider than the "
+         "response says little.\n",
+         "| unit | predicted rate [mm/s] | samples inside the 95 % band | median half-width [N] | "
+         "held-out RMSE [N] | training intervals |", "|---|---|---|---|---|---|"]
+    shares = []
+    for key, rows in bands.items():
+        for r in rows:
+            shares.append(r["share_inside"])
+            L.append(f"| {_unit(key)} | {r['rate_mm_s']:g} | {100 * r['share_inside']:.0f} % | "
+                     f"{_f(r['half_width_median_N'], '.3g')} | {_f(r['heldout_rmse_N'], '.3g')} | {r['method']} |")
+    L.append("")
+    L.append(f"Median share inside over the {len(shares)} predicted rates: {100 * float(np.median(shares)):.0f} %.\n")
     return L
 
 
@@ -603,7 +640,8 @@ def _rate_section(summary: dict) -> list[str]:
 
 def write_report(summary: dict, cmp_: pd.DataFrame, out: Path, figs: list[Path]) -> Path:
     """out/report.md: the data, the diagnosis per unit, the comparison with the authors, the rates."""
-    L = (_intro(summary) + _units_section(summary) + _population_section(summary) + _bilinear_section(summary, cmp_)
+    L = (_intro(summary) + _units_section(summary) + _population_section(summary) + _bands_section(summary)
+         + _bilinear_section(summary, cmp_)
          + _rate_section(summary))
     for p in figs:
         L.append(f"![{p.stem}](figures/{p.name})\n")

@@ -22,10 +22,11 @@ import pandas as pd
 
 from fmusa.applications.shear_c67 import bilinear
 from fmusa.applications.shear_c67 import data as shear_c67
+from fmusa.applications.shear_c67.prediction import held_out_rate_bands
 from fmusa.diagnose.calibrate import ModelRunner, calibrate, fit_candidate
 from fmusa.diagnose.effects import CANDIDATES, data_scales
 from fmusa.diagnose.measured import MeasuredDataError
-from fmusa.diagnose.population import MIN_SPECIMENS, leave_one_out, random_effects
+from fmusa.diagnose.population import MIN_SPECIMENS, leave_one_out, population_of_diagnoses, random_effects
 from fmusa.diagnose.run import run_diagnosis
 from fmusa.files import atomic_path, atomic_write
 
@@ -220,6 +221,10 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     for key, diag in groups.items():
         print(f"{key}: rate dependence on top of the two-phase curve", flush=True)
         rate_models[key] = rate_dependence(unit_exps[key], fmu, diag, max_starts)
+    bands = {}
+    for key in groups:
+        print(f"{key}: prediction bands of each rate from the others", flush=True)
+        bands[key] = held_out_rate_bands(unit_exps[key], fmu, max_starts)
     print(f"two-line fits of {len(tests)} tests", flush=True)
     ours = fit_bilinear_per_test(tests, fmu, max_points, max_starts, model_specimens=chosen)
     cmp_ = ours.merge(authors, on=["specimen", "direction", "rate_mm_s"], how="left")
@@ -228,6 +233,10 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     data["diagnosed_tests"] = int(tests.specimen.isin(chosen).sum())
     summary = summarize(groups, cmp_, data)
     summary["rate_models"] = rate_models
+    summary["prediction_bands"] = bands
+    summary["population_units"] = {
+        d: population_of_diagnoses({k: g for k, g in groups.items() if k.endswith(f"_{d}")})
+        for d in dict.fromkeys(k.rsplit("_", 1)[1] for k in groups)}
     atomic_write(out / "summary.json", json.dumps(summary, indent=2, default=_json_default))
     with atomic_path(out / "bilinear_comparison.csv") as tmp:
         cmp_.drop(columns=["model_k1_ci"]).to_csv(tmp, index=False, encoding="utf-8")
