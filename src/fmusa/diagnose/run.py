@@ -134,10 +134,10 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress)
         combos = {c: results[f"{name}+{c}"] for c in rest if isinstance(results.get(f"{name}+{c}"), Fit)}
         for c in list(combos):
-            if combos[c].rss > current.rss * (1 + 1e-9):       # nested: never worse at its optimum
+            if combos[c].rss > current.rss * (1 + 1e-6):       # nested: never worse at its optimum
                 worse = combos[c]
                 combos[c] = _refit_from(fmu, f"{name}+{c}", drive, experiments, max_starts, interface, current)
-                if combos[c].rss > current.rss * (1 + 1e-9):
+                if combos[c].rss > current.rss * (1 + 1e-6):
                     removed.append({"step": len(steps) + 1, "effect": c, "model": f"{name}+{c}",
                                     "check": "optimiser",
                                     "reason": f"the fit (RMSE {worse.rmse:.4g}) is worse than the model it extends "
