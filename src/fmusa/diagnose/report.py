@@ -77,10 +77,10 @@ def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
 # ============================================================================ report
 CAPTIONS = {
     "fit_time.png": "Measured response against time for each experiment (grey points) with the calibrated "
-                    "baseline (dashed) and the extended model (solid); each panel's title gives both RMSEs.",
-    "loops.png": "Force against displacement: the measured points and the loops the two models trace. A loop "
+                    "baseline (dashed) and the final model (solid: the baseline with every effect of the chain); each panel's title gives both RMSEs.",
+    "loops.png": "Force against displacement: the measured points and the loops the baseline and the final model trace. A loop "
                  "in the data that the baseline's line does not open is hysteresis (friction, viscosity, yield).",
-    "residuals.png": "Residuals (model − measured) of the baseline (top) and of the extended model (bottom) "
+    "residuals.png": "Residuals (model − measured) of the baseline (top) and of the final model (bottom) "
                      "against time, displacement, velocity and loading direction; black: binned means ± sd. "
                      "A binned mean that follows an axis is an effect of that quantity the model lacks.",
     "ranking.png": "Every candidate against the baseline: held-out and fitted RMSE ratios, ΔBIC and the p of "
