@@ -258,8 +258,9 @@ def _params_section(diag: Mapping) -> str:
         rows.append([f"`{n}`", PARAM_MEANING.get(n, ""), unit, b, x])
     eff = diag["effect"]
     out = "## Parameters\n\n"
-    how = ", ".join(f"{label}: {_interval_method(s)}" for label, s in
-                    (("baseline", diag.get("baseline") or {}), ("final model", _final_summary(diag))))
+    shown = (("baseline", diag.get("baseline") or {}),) + ((("final model", _final_summary(diag)),)
+                                                          if diag["effect"] != "none" else ())
+    how = "; ".join(f"{label}: {_interval_method(s)}" for label, s in shown)
     out += (f"Values with their 95 % confidence intervals in brackets ({how}; see the caveats). "
             f"Final model: {final_label(diag)}" if eff != "none" else
             f"Values with their 95 % confidence intervals in brackets ({how}; see the caveats). "
@@ -370,7 +371,7 @@ def _leftover_text(diag: Mapping, unit: str, f: float) -> str:
     model = f"final model ({final_label(diag)})" if eff != "none" else "baseline"
     if not (diag.get("leftover") or (st and st.get("structured"))):
         return f"Nothing: the residuals of the {model} pass all four tests as white noise.\n"
-    out = f"Structure remains in the residuals of the {model}: {structure_text(st, unit, f)}."
+    out = f"Structure remains in the residuals of the {model}: {structure_text(st, unit, f).removeprefix('structured: ')}."
     osc, drift = (st or {}).get("oscillation"), (st or {}).get("drift")
     axis = (st or {}).get("axis") or {}
     if osc and axis.get("derived_time"):
