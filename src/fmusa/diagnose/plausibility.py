@@ -134,7 +134,7 @@ def unidentifiable(effect: str, features: Mapping[str, bool], drive: str = "disp
         return None
     if any(all(features.get(f) for f in alt) for alt in row["needs"]):
         return None
-    missing = " or ".join(" and ".join(f.replace("_", " ") for f in alt) for alt in row["needs"])
+    missing = ", or ".join(" with ".join(f.replace("_", " ") for f in alt) for alt in row["needs"])
     return {"effect": effect, "missing": missing, "hidden_by": row["hidden_by"], "separating_test": row["test"],
             "reason": f"cannot tell, because the tests have no {missing}: {row['hidden_by']} gives the same "
                       f"response here"}
