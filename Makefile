@@ -29,7 +29,7 @@ MINGW_CFLAGS := -std=c99 -O3 -shared -Wall -Wextra -static-libgcc -s -Wl,--no-in
 HAVE_MINGW := $(if $(MINGW_CC),$(shell command -v $(MINGW_CC) 2>/dev/null))
 FMU_BINARIES := $(FMU_SO) $(if $(HAVE_MINGW),$(FMU_DLL))
 
-.PHONY: all fmu modelica-venv sweep test identifiability slow bench diagnose docs clean
+.PHONY: all fmu modelica-venv sweep test identifiability slow bench diagnose docs reference clean
 .DELETE_ON_ERROR:
 
 all: fmu
@@ -107,13 +107,58 @@ $(FMU): $(FMU_BINARIES) $(FMU_BUILD)/modelDescription.xml
 	  cd $(FMU_BUILD) && $(PYTHON) -m zipfile -c $(abspath $@) modelDescription.xml binaries sources; \
 	fi
 
-fmu: $(FMU)
+# ---------------------------------------------------------------- interface element FMU
+# The same generators (fmu/generate.py, fmu/codegen.py) on modelica/InterfaceElement.mo, the shared FMI layer
+# fmu/fmi2.c (with model exchange and FMU state, switched on by fmu/element/model.h) and the element's glue.
+EL_FMU := dist/InterfaceElement.fmu
+EL_BUILD := build/element
+EL_MO := modelica/InterfaceElement.mo
+EL_SO := $(EL_BUILD)/binaries/linux64/InterfaceElement.so
+EL_DLL := $(EL_BUILD)/binaries/win64/InterfaceElement.dll
+EL_STAMP := build/.element-sources
+EL_C := fmi2.c element.c el_generated.c
+EL_GEN := $(EL_BUILD)/sources/el_generated.c $(EL_BUILD)/sources/el_generated.h $(EL_BUILD)/sources/el_model.h
+EL_SRC := fmu/fmi2.c $(wildcard fmu/element/*.c) $(wildcard fmu/element/*.h)
+EL_BINARIES := $(EL_SO) $(if $(HAVE_MINGW),$(EL_DLL))
+
+$(EL_BUILD)/modelDescription.xml $(EL_BUILD)/sources/variables.h &: fmu/generate.py $(EL_MO) | $(STAMP)
+	$(VPY) fmu/generate.py $(EL_BUILD) $(EL_MO)
+
+$(EL_GEN) &: fmu/codegen.py $(EL_MO) | $(STAMP)
+	$(VPY) fmu/codegen.py $(EL_BUILD)/sources $(EL_MO)
+
+$(EL_STAMP): $(EL_SRC) $(EL_GEN) $(EL_BUILD)/sources/variables.h | $(STAMP)
+	mkdir -p $(EL_BUILD)/sources
+	cp $(EL_SRC) $(EL_BUILD)/sources/
+	cc_dir=$$($(VPY) -c 'import fmpy, os; print(os.path.join(os.path.dirname(fmpy.__file__), "c-code"))') && \
+	  for h in $(FMI_HEADERS); do cp "$$cc_dir/$$h" $(EL_BUILD)/sources/; done
+	touch $@
+
+$(EL_SO): $(EL_STAMP)
+	mkdir -p $(dir $@)
+	$(CC) $(CFLAGS) -I$(EL_BUILD)/sources -o $@ $(addprefix $(EL_BUILD)/sources/,$(EL_C)) -lm
+
+$(EL_DLL): $(EL_STAMP)
+	mkdir -p $(dir $@)
+	$(MINGW_CC) $(MINGW_CFLAGS) -I$(EL_BUILD)/sources -o $@ $(addprefix $(EL_BUILD)/sources/,$(EL_C))
+
+$(EL_FMU): $(EL_BINARIES) $(EL_BUILD)/modelDescription.xml
+	$(if $(HAVE_MINGW),,rm -rf $(EL_BUILD)/binaries/win64)
+	mkdir -p $(dir $@)
+	rm -f $@
+	if command -v zip >/dev/null 2>&1; then \
+	  cd $(EL_BUILD) && zip -q -r -X $(abspath $@) modelDescription.xml binaries sources; \
+	else \
+	  cd $(EL_BUILD) && $(PYTHON) -m zipfile -c $(abspath $@) modelDescription.xml binaries sources; \
+	fi
+
+fmu: $(FMU) $(EL_FMU)
 
 # ---------------------------------------------------------------- study, tests, benchmark
 sweep: $(STAMP) $(FMU)
 	$(VENV)/bin/fmusa sweep studies/paper.yaml --out out/paper
 
-test: $(STAMP) $(FMU) $(MODELICA_STAMP)
+test: $(STAMP) $(FMU) $(EL_FMU) $(MODELICA_STAMP)
 	$(VENV)/bin/pytest -q -p no:cacheprovider tests
 
 # The whole identifiability table through the FMU (`make test` runs a representative subset of its cells).
@@ -121,7 +166,7 @@ identifiability: $(STAMP) $(FMU)
 	$(VENV)/bin/pytest -q -p no:cacheprovider --run-slow tests/test_identifiability.py
 
 # Every test marked slow (kept out of `make test`): the identifiability cells and hidden-effect cells it skips.
-slow: $(STAMP) $(FMU)
+slow: $(STAMP) $(FMU) $(EL_FMU)
 	$(VENV)/bin/pytest -q -p no:cacheprovider --run-slow -m slow tests
 
 # The diagnosis of the real C6/C7 shear tests (data/shear-c67) against the authors' own analysis.
@@ -142,6 +187,12 @@ DOCS_STAMP := $(VENV)/.installed-docs
 $(DOCS_STAMP): pyproject.toml | $(STAMP)
 	$(VENV)/bin/pip install -e '.[test,docs]'
 	touch $@
+
+# The generated pages that are committed (study keys, model, troubleshooting, the identifiability table in
+# docs/diagnosing.md), so that they read on the repository page: rewritten from the code (docs/_gen/reference.py);
+# tests/test_docs.py and the docs build fail when one is out of date.
+reference: $(STAMP)
+	$(VPY) docs/_gen/reference.py
 
 docs: $(DOCS_STAMP) $(FMU)
 	$(VENV)/bin/fmusa pullout --out build/docs/tour

@@ -20,7 +20,9 @@ Run: ``python fmu/codegen.py OUTDIR`` (``make fmu`` does, into build/fmu/sources
 from __future__ import annotations
 
 import math
+import re
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import casadi as ca
@@ -55,6 +57,42 @@ IDENTITY_CALLS = {"smooth": 1, "noEvent": 0}
 #: Functions pymoca's CasADi backend lacks, folded where their arguments are numbers (parameter defaults).
 FOLDED_CALLS = {"atan2": math.atan2}
 PREFIX = "sv_"
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One model the generator translates: its file, the solver's states in order, the variables the FMU
+    computes itself, and its variants (ScrewVertebra: force/motion modes and core variants; a model without
+    modes has one variant, ``full``)."""
+    model: str
+    mo_file: Path
+    states: tuple[str, ...]
+    prefix: str
+    solver_owned: tuple[str, ...] = ()
+    modes: dict = field(default_factory=dict)
+    core_off: tuple[str, ...] = ()
+    core_modes: tuple[str, ...] = ()
+    position: str | None = None
+    velocity: str | None = None
+
+
+#: ScrewVertebra: the 6-DOF screw with its solver's monitors, modes and core variants.
+SCREW = Spec(MODEL, MO_FILE, STATES, PREFIX, SOLVER_OWNED, MODES, CORE_OFF, CORE_MODES, POSITION, VELOCITY)
+#: InterfaceElement: the 1-DOF interface force element (its states are those of the effects' history).
+ELEMENT = Spec("InterfaceElement", HERE.parent / "modelica" / "InterfaceElement.mo",
+               ("z_y", "z_f", "F_ve", "kappa"), "el_")
+SPECS = {s.model: s for s in (SCREW, ELEMENT)}
+
+
+def spec_for(path: Path | None) -> Spec:
+    """The spec of a Modelica file: that of the known model the file declares."""
+    if path is None:
+        return SCREW
+    text = Path(path).read_text(encoding="utf-8")
+    for spec in SPECS.values():
+        if re.search(rf"^\s*model\s+{spec.model}\b", text, re.M):
+            return spec
+    sys.exit(f"{path}: declares none of the models the generator knows ({', '.join(SPECS)})")
 
 
 # ----------------------------------------------------------------------------------------------- parse
@@ -102,17 +140,17 @@ def _is_assert(eq) -> bool:
         and left.operator.name == "assert"
 
 
-def parse_model(path: Path = MO_FILE) -> ast.Tree:
+def parse_model(path: Path = MO_FILE, spec: Spec = SCREW) -> ast.Tree:
     """The Modelica source as a pymoca tree, reduced to what the generated code computes: no asserts (the
     FMU validates its parameters in C), no monitors (the solver's), no initial section (the FMU starts at
     rest), smooth()/noEvent() read as their argument."""
     tree = pymoca.parser.parse(path.read_text(encoding="utf-8"))
     if tree is None:
         sys.exit(f"{path}: pymoca could not parse the Modelica source")
-    cls = tree.classes.get(MODEL)
+    cls = tree.classes.get(spec.model)
     if cls is None:
-        sys.exit(f"{path}: no model {MODEL}")
-    owned = set(SOLVER_OWNED)
+        sys.exit(f"{path}: no model {spec.model}")
+    owned = set(spec.solver_owned)
     missing = owned - set(cls.symbols)
     if missing:
         sys.exit(f"{path}: SOLVER_OWNED of {__file__} names {sorted(missing)}, which the model does not declare")
@@ -136,9 +174,11 @@ def parse_model(path: Path = MO_FILE) -> ast.Tree:
 class Dae:
     """The flattened model in SX: residuals res(t, x, xd, z, p, u) = 0, parameter values and bindings."""
 
-    def __init__(self, tree: ast.Tree) -> None:
-        finals = {n for n, sym in tree.classes[MODEL].symbols.items() if sym.final}
-        model = generate(tree, MODEL)
+    def __init__(self, tree: ast.Tree, spec: Spec = SCREW) -> None:
+        self.spec = spec
+        self.states = STATES = spec.states
+        finals = {n for n, sym in tree.classes[spec.model].symbols.items() if sym.final}
+        model = generate(tree, spec.model)
         self.model = model
         names = lambda vs: [v.symbol.name() for v in vs]  # noqa: E731
         state_names = names(model.states)
@@ -218,7 +258,7 @@ def _total_derivative(e, dae: Dae, known_xd: dict[int, "ca.SX"]):
     """d/dt of e(t, x, u) along the model: the states' rates where an explicit equation gives them
     (der(q) = qd), the unknown der symbol otherwise; inputs vary linearly within a communication step."""
     de = ca.jacobian(e, dae.t)
-    for i in range(len(STATES)):
+    for i in range(len(dae.states)):
         if ca.depends_on(e, dae.x[i]):
             rate = known_xd.get(i, dae.xd[i])
             de = de + ca.jacobian(e, dae.x[i]) * rate
@@ -233,7 +273,7 @@ def explicit_ode(dae: Dae, res, nominal: dict[str, float]):
     prescribed states and their rates, for the motion-driven mode). Blocks of the block lower triangular
     form are solved one after another; each must be affine in its unknowns (checked) and is solved by
     Gaussian elimination whose pivots are chosen at a nominal point, preferring constant coefficients."""
-    nx = len(STATES)
+    nx = len(dae.states)
     w = ca.vertcat(dae.xd, dae.z)
     eqs = [res[i] for i in range(res.numel())]
     # kinematic equations der(q) = expression without unknowns
@@ -296,8 +336,8 @@ def explicit_ode(dae: Dae, res, nominal: dict[str, float]):
 
 
 def _unknown_name(dae: Dae, j: int) -> str:
-    nx = len(STATES)
-    return f"der({STATES[j]})" if j < nx else dae.z_names[j - nx]
+    nx = len(dae.states)
+    return f"der({dae.states[j]})" if j < nx else dae.z_names[j - nx]
 
 
 def _solve_block(A, b, dae: Dae, sol, w, nominal):
@@ -407,7 +447,7 @@ class Variant:
         self.Ft = ca.jacobian(xd, dae.t) + ca.mtimes(ca.jacobian(xd, dae.u), dae.ud)
         # outputs: every model output that is not a state, from the solved algebraic variables
         zs = {n: z[i] for i, n in enumerate(dae.z_names)}
-        self.out_names = [n for n in dae.outputs if n not in STATES]
+        self.out_names = [n for n in dae.outputs if n not in dae.states]
         missing = [n for n in self.out_names if n not in zs]
         if missing:
             sys.exit(f"outputs {missing} are neither states nor algebraic variables of the model")
@@ -419,11 +459,11 @@ class Variant:
         names = ["t", "x", "p", "d", "u", "ud"]
         # every output dense: the C reads whole vectors (CasADi writes only the structural non-zeros of a
         # sparse one)
-        f_rhs = ca.Function(f"{PREFIX}{self.name}_rhs", ins, [ca.densify(self.xd)], names, ["xd"])
+        f_rhs = ca.Function(f"{dae.spec.prefix}{self.name}_rhs", ins, [ca.densify(self.xd)], names, ["xd"])
         # J transposed: CasADi writes a dense matrix by columns, the solver reads J by rows
-        f_lin = ca.Function(f"{PREFIX}{self.name}_lin", ins, [ca.densify(self.xd), ca.densify(self.J.T), ca.densify(self.Ft)],
+        f_lin = ca.Function(f"{dae.spec.prefix}{self.name}_lin", ins, [ca.densify(self.xd), ca.densify(self.J.T), ca.densify(self.Ft)],
                             names, ["xd", "J", "Ft"])
-        f_out = ca.Function(f"{PREFIX}{self.name}_out", ins, [ca.densify(self.out)], names, ["out"])
+        f_out = ca.Function(f"{dae.spec.prefix}{self.name}_out", ins, [ca.densify(self.out)], names, ["out"])
         return [f_rhs, f_lin, f_out]
 
 
@@ -448,7 +488,7 @@ def drive_function(dae: Dae, variant: Variant):
             values.append(val)
             subst_from.append(dae.x[i])
             subst_to.append(val)
-    f = ca.Function(f"{PREFIX}{variant.name}_drive", [dae.t, dae.p, dae.d, dae.u, dae.ud],
+    f = ca.Function(f"{dae.spec.prefix}{variant.name}_drive", [dae.t, dae.p, dae.d, dae.u, dae.ud],
                     [ca.densify(ca.vertcat(*values))], ["t", "p", "d", "u", "ud"], ["x_drive"])
     return f, fixed_states
 
@@ -477,21 +517,27 @@ def c_ident(name: str) -> str:
     return name.replace("[", "_").replace("]", "")
 
 
-def build(path: Path = MO_FILE) -> dict:
-    """Every generated function and the facts sv_model.h states."""
-    tree = parse_model(path)
-    dae = Dae(tree)
+def build(path: Path | None = None, spec: Spec | None = None) -> dict:
+    """Every generated function and the facts <prefix>model.h states (the spec: by the file's model name)."""
+    spec = spec or spec_for(path)
+    path = Path(path) if path is not None else spec.mo_file
+    tree = parse_model(path, spec)
+    dae = Dae(tree, spec)
+    PREFIX = spec.prefix
     p_default = [dae.p_default[n] for n in dae.p_names]
     fd = ca.Function(f"{PREFIX}derived", [dae.p], [ca.densify(dae.derived)], ["p"], ["d"])
     # the nominal point at which block pivots are chosen: default parameters, a small displacement
-    nominal = dict(t=0.5, x=[1e-4] * len(STATES), p=p_default, d=fd(p_default).full().ravel().tolist())
-    off = {n: dae.p_default[n] for n in CORE_OFF}
+    nominal = dict(t=0.5, x=[1e-4] * len(spec.states), p=p_default, d=fd(p_default).full().ravel().tolist())
+    off = {n: dae.p_default[n] for n in spec.core_off}
     variants = []
-    for mode_name, mode in MODES.items():
-        if mode_name in CORE_MODES:
+    for mode_name, mode in spec.modes.items():
+        if mode_name in spec.core_modes:
             variants.append(Variant(dae, f"{mode_name}_core", {"mode": mode, **off}, nominal))
         variants.append(Variant(dae, f"{mode_name}_full", {"mode": mode}, nominal))
-    check_core_axial_block(dae, variants[0])
+    if not spec.modes:
+        variants.append(Variant(dae, "full", {}, nominal))
+    if spec.position:
+        check_core_axial_block(dae, variants[0])
     functions = [fd]
     drives = {}
     for v in variants:
@@ -500,35 +546,42 @@ def build(path: Path = MO_FILE) -> dict:
             f, fixed = drive_function(dae, v)
             functions.append(f)
             drives[v.name] = fixed
-    kinks = time_kinks(ca.vertcat(*[v.xd for v in variants]), dae)
-    fk = ca.Function(f"{PREFIX}kinks", [dae.p, dae.d], [ca.densify(ca.vertcat(*kinks))], ["p", "d"], ["t_kink"])
-    functions.append(fk)
-    public = {n for n, sym in tree.classes[MODEL].symbols.items() if sym.visibility == ast.Visibility.PUBLIC}
+    kinks = time_kinks(ca.vertcat(*[v.xd for v in variants]), dae) if spec.modes else []
+    if spec.modes:
+        fk = ca.Function(f"{PREFIX}kinks", [dae.p, dae.d], [ca.densify(ca.vertcat(*kinks))], ["p", "d"],
+                         ["t_kink"])
+        functions.append(fk)
+    public = {n for n, sym in tree.classes[spec.model].symbols.items() if sym.visibility == ast.Visibility.PUBLIC}
     return dict(dae=dae, variants=variants, functions=functions, drives=drives, n_kinks=len(kinks),
                 public=public)
 
 
 def header(info: dict) -> str:
     dae, variants = info["dae"], info["variants"]
+    spec = dae.spec
+    STATES = spec.states
+    P = spec.prefix.upper()
     fns = info["functions"]
-    lines = ["/* Generated by fmu/codegen.py from modelica/ScrewVertebra.mo: do not edit.",
+    lines = [f"/* Generated by fmu/codegen.py from modelica/{spec.mo_file.name}: do not edit.",
              " * The model as the FMU's solver and FMI layer see it: sizes, the order of the states,",
-             " * parameters, inputs and outputs in the vectors of the generated functions (sv_generated.c),",
+             f" * parameters, inputs and outputs in the vectors of the generated functions ({spec.prefix}generated.c),",
              " * and which variant applies. */",
-             "#ifndef SV_MODEL_H", "#define SV_MODEL_H", "", '#include "sv_generated.h"', ""]
+             f"#ifndef {P}MODEL_H", f"#define {P}MODEL_H", "", f'#include "{spec.prefix}generated.h"', ""]
     lines += [f"#define SV_NX {len(STATES)}", f"#define SV_NP {len(dae.p_names)}",
               f"#define SV_ND {len(dae.d_names)}", f"#define SV_NU {len(dae.u_names)}",
               f"#define SV_NOUT {len(variants[0].out_names)}", f"#define SV_NKINKS {info['n_kinks']}", ""]
     for i, n in enumerate(STATES):
         lines.append(f"#define SV_IX_{n} {i}")
-    lines += [f"#define SV_IX_POSITION SV_IX_{POSITION}", f"#define SV_IX_VELOCITY SV_IX_{VELOCITY}", ""]
-    def table(macro: str, names: list[str], what: str) -> None:
-        lines.append(f"/* X(index, name) for every {what} */")
-        lines.append(f"#define {macro}(X) \\")
+    if spec.position:
+        lines += [f"#define SV_IX_POSITION SV_IX_{spec.position}", f"#define SV_IX_VELOCITY SV_IX_{spec.velocity}", ""]
+    def table(macro: str, names: list[str], what: str, into: list[str] | None = None) -> None:
+        out = lines if into is None else into
+        out.append(f"/* X(index, name) for every {what} */")
+        out.append(f"#define {macro}(X) \\")
         for i, n in enumerate(names):
             if n:
-                lines.append(f"    X({i}, {c_ident(n)}) \\")
-        lines.append("")
+                out.append(f"    X({i}, {c_ident(n)}) \\")
+        out.append("")
     table("SV_PARAMETERS", dae.p_names, "entry of p (the FMU's parameters)")
     table("SV_DERIVED", dae.d_names, "entry of d (the derived parameters)")
     table("SV_INPUTS", dae.u_names, "entry of u (the inputs; ud holds their time derivatives)")
@@ -545,16 +598,8 @@ def header(info: dict) -> str:
     for i, n in enumerate(dae.d_names):
         lines.append(f"#define SV_D_{c_ident(n)} {i}")
     lines.append("")
-    cond = " && ".join(f"(p)[SV_P_{c_ident(n)}] == {dae.p_default[n]!r}" for n in CORE_OFF)
-    lines += ["/* The core variants apply: every effect beyond eq. 1 (and the table) is off. */",
-              f"#define SV_IS_CORE(p) ({cond})", ""]
-    lines.append(f"#define SV_MODE_FORCE {MODES['force']}")
-    lines.append(f"#define SV_MODE_MOTION {MODES['motion']}")
-    drives = list(info["drives"].values())
-    if any(d != drives[0] for d in drives):
-        sys.exit("the motion-driven variants prescribe different states")
-    lines.append(f"#define SV_NDRIVE {len(drives[0])}")
-    table("SV_DRIVE", drives[0], "state the motion drive prescribes (the output of the _drive functions)")
+    if spec.modes:
+        lines += _mode_lines(info, dae, table)
     sz_arg = max(f.sz_arg() for f in fns)
     sz_res = max(f.sz_res() for f in fns)
     sz_iw = max(f.sz_iw() for f in fns)
@@ -562,12 +607,30 @@ def header(info: dict) -> str:
     lines += ["/* The largest work arrays any generated function needs */",
               f"#define SV_SZ_ARG {sz_arg}", f"#define SV_SZ_RES {sz_res}", f"#define SV_SZ_IW {max(sz_iw, 1)}",
               f"#define SV_SZ_W {max(sz_w, 1)}", "", "#endif", ""]
-    return "\n".join(lines)
+    return "\n".join(lines).replace("SV_", P)
+
+
+def _mode_lines(info: dict, dae: "Dae", table) -> list[str]:
+    """The header's lines on ScrewVertebra's modes, core variants and drive."""
+    spec = dae.spec
+    lines: list[str] = []
+    cond = " && ".join(f"(p)[SV_P_{c_ident(n)}] == {dae.p_default[n]!r}" for n in spec.core_off)
+    lines += ["/* The core variants apply: every effect beyond eq. 1 (and the table) is off. */",
+              f"#define SV_IS_CORE(p) ({cond})", ""]
+    lines.append(f"#define SV_MODE_FORCE {spec.modes['force']}")
+    lines.append(f"#define SV_MODE_MOTION {spec.modes['motion']}")
+    drives = list(info["drives"].values())
+    if any(d != drives[0] for d in drives):
+        sys.exit("the motion-driven variants prescribe different states")
+    lines.append(f"#define SV_NDRIVE {len(drives[0])}")
+    table("SV_DRIVE", drives[0], "state the motion drive prescribes (the output of the _drive functions)", lines)
+    return lines
 
 
 def write(outdir: Path, info: dict) -> list[Path]:
     outdir.mkdir(parents=True, exist_ok=True)
-    cg = ca.CodeGenerator("sv_generated.c", {"with_header": True, "with_export": False, "verbose": False,
+    pre = info["dae"].spec.prefix
+    cg = ca.CodeGenerator(f"{pre}generated.c", {"with_header": True, "with_export": False, "verbose": False,
                                              "casadi_int": "int"})
     for f in info["functions"]:
         for i in range(f.n_out()):
@@ -576,16 +639,17 @@ def write(outdir: Path, info: dict) -> list[Path]:
         cg.add(f)
     cg.generate(str(outdir) + "/")
     # CasADi's functions take arguments some of them do not use: not a defect of this model
-    c = outdir / "sv_generated.c"
+    c = outdir / f"{pre}generated.c"
     c.write_text("#if defined(__GNUC__)\n#pragma GCC diagnostic ignored \"-Wunused-parameter\"\n#endif\n"
                  + c.read_text(encoding="utf-8"), encoding="utf-8")
-    (outdir / "sv_model.h").write_text(header(info), encoding="utf-8")
-    return [outdir / "sv_generated.c", outdir / "sv_generated.h", outdir / "sv_model.h"]
+    (outdir / f"{pre}model.h").write_text(header(info), encoding="utf-8")
+    return [outdir / f"{pre}generated.c", outdir / f"{pre}generated.h", outdir / f"{pre}model.h"]
 
 
 def main() -> None:
+    """codegen.py [OUTDIR [MODEL.mo]]: MODEL.mo defaults to modelica/ScrewVertebra.mo."""
     out = Path(sys.argv[1]) if len(sys.argv) > 1 else HERE.parent / "build" / "fmu" / "sources"
-    info = build()
+    info = build(Path(sys.argv[2]) if len(sys.argv) > 2 else None)
     for p in write(out, info):
         print(f"wrote {p}")
 

@@ -1,6 +1,8 @@
-/* FMI 2.0 co-simulation layer of ScrewVertebra: state machine, argument checks, logging. The equations
- * live in model.c; nothing here knows the physics. Every call checks that it is allowed in the current
- * state and that its arguments are valid, and reports problems through the logger callback. */
+/* FMI 2.0 layer of fmusa's FMUs (ScrewVertebra, InterfaceElement): state machine, argument checks, logging.
+ * The equations live in the model's glue (model.c, element.c) behind model.h; nothing here knows the physics.
+ * Co-simulation always; model exchange and getting/setting the FMU state where model.h says MODEL_ME and
+ * MODEL_FMU_STATE (in the style of the Modelica Reference FMUs). Every call checks that it is allowed in the
+ * current state and that its arguments are valid, and reports problems through the logger callback. */
 #include <math.h>
 #include <stdarg.h>
 #include <stdio.h>
@@ -17,14 +19,19 @@ typedef enum {
     ST_STEP_FAILED = 1 << 3,
     ST_TERMINATED = 1 << 4,
     ST_ERROR = 1 << 5,
+    ST_EVENT_MODE = 1 << 6,        /* model exchange */
+    ST_CONT_TIME = 1 << 7,
 } State;
 
-#define ST_ANY (ST_INSTANTIATED | ST_INIT | ST_STEP_COMPLETE | ST_STEP_FAILED | ST_TERMINATED | ST_ERROR)
-#define ST_RUNNING (ST_STEP_COMPLETE | ST_STEP_FAILED)
+#define ST_ANY (ST_INSTANTIATED | ST_INIT | ST_STEP_COMPLETE | ST_STEP_FAILED | ST_TERMINATED | ST_ERROR \
+                | ST_EVENT_MODE | ST_CONT_TIME)
+#define ST_ME_RUNNING (ST_EVENT_MODE | ST_CONT_TIME)
+#define ST_RUNNING (ST_STEP_COMPLETE | ST_STEP_FAILED | ST_ME_RUNNING)
 #define ST_READABLE (ST_INIT | ST_STEP_COMPLETE | ST_STEP_FAILED | ST_TERMINATED | ST_ERROR)
 
 typedef struct {
     ModelInstance model;
+    fmi2Type type;
     State state;
     char *name;
     fmi2CallbackLogger logger;
@@ -107,9 +114,9 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
         if (logger) logger(env, name, fmi2Error, "logStatusError", "fmi2Instantiate: missing instance name");
         return NULL;
     }
-    if (fmuType != fmi2CoSimulation) {
+    if (fmuType != fmi2CoSimulation && !(MODEL_ME && fmuType == fmi2ModelExchange)) {
         if (logger) logger(env, name, fmi2Error, "logStatusError",
-                           "fmi2Instantiate: ScrewVertebra supports co-simulation only");
+                           "fmi2Instantiate: " MODEL_NAME " supports co-simulation only");
         return NULL;
     }
     if (!fmuGUID || strcmp(fmuGUID, MODEL_GUID) != 0) {
@@ -126,6 +133,7 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
     c->logger = logger;
     c->env = env;
     c->logging_on = loggingOn;
+    c->type = fmuType;
     model_set_start_values(&c->model);
     c->state = ST_INSTANTIATED;
     return c;
@@ -176,7 +184,7 @@ fmi2Status fmi2ExitInitializationMode(fmi2Component comp)
         return fail(c, "fmi2ExitInitializationMode", msg);
     }
     c->last_successful_time = c->start_time;
-    c->state = ST_STEP_COMPLETE;
+    c->state = c->type == fmi2ModelExchange ? ST_EVENT_MODE : ST_STEP_COMPLETE;
     return fmi2OK;
 }
 
@@ -185,7 +193,7 @@ fmi2Status fmi2Terminate(fmi2Component comp)
     Instance *c = comp;
     if (!allowed(c, "fmi2Terminate", ST_RUNNING)) return fmi2Error;
     log_msg(c, fmi2OK, "logAll", "terminated at t = %g after %ld steps (%ld rejected, %ld rhs evaluations)",
-            c->model.time, c->model.solver.n_steps, c->model.solver.n_rejected, c->model.solver.n_rhs);
+            c->model.time, MODEL_N_STEPS(&c->model), MODEL_N_REJECTED(&c->model), MODEL_N_RHS(&c->model));
     c->state = ST_TERMINATED;
     return fmi2OK;
 }
@@ -208,6 +216,7 @@ static fmi2Status get_values(Instance *c, const char *fn, const fmi2ValueReferen
 {
     if (!allowed(c, fn, ST_ANY)) return fmi2Error;
     if (null_args(c, fn, vr, nvr, value)) return fmi2Error;
+    if (c->state & (ST_RUNNING | ST_TERMINATED)) model_refresh(&c->model);
     for (size_t i = 0; i < nvr; i++) {
         const VarInfo *info = model_variable(vr[i]);
         if (!info || info->type != type) {
@@ -233,9 +242,10 @@ static fmi2Status set_values(Instance *c, const char *fn, const fmi2ValueReferen
             ERR(c, "%s: unknown value reference %u for this type", fn, vr[i]);
             return fmi2Error;
         }
-        if (info->causality == CAUS_CALCULATED || info->causality == CAUS_OUTPUT) {
+        if (info->causality == CAUS_CALCULATED || info->causality == CAUS_OUTPUT || info->causality == CAUS_LOCAL) {
             ERR(c, "%s: %s is %s and cannot be set", fn, info->name,
-                info->causality == CAUS_OUTPUT ? "an output" : "a calculated parameter");
+                info->causality == CAUS_OUTPUT ? "an output" :
+                info->causality == CAUS_LOCAL ? "a local variable" : "a calculated parameter");
             return fmi2Error;
         }
         if (info->causality == CAUS_PARAMETER && !(c->state & (ST_INSTANTIATED | ST_INIT))) {
@@ -255,7 +265,10 @@ static fmi2Status set_values(Instance *c, const char *fn, const fmi2ValueReferen
             x = ((const fmi2Boolean *)value)[i] ? 1.0 : 0.0;
         }
         c->model.v[vr[i]] = x;
-        if (info->causality == CAUS_INPUT) c->model.t_inputs = c->model.time;
+        if (info->causality == CAUS_INPUT) {
+            c->model.t_inputs = c->model.time;
+            MODEL_TOUCH(&c->model);
+        }
     }
     return fmi2OK;
 }
@@ -306,8 +319,52 @@ fmi2Status fmi2SetString(fmi2Component c, const fmi2ValueReference vr[], size_t 
     return fail(c, "fmi2SetString", "the model has no String variables");
 }
 
-/* ------------------------------------------------------------------ FMU state: not supported */
+/* ------------------------------------------------------------------ FMU state */
 
+#if MODEL_FMU_STATE
+/* The model instance holds no pointers: a state is a copy of it, with the FMI state and time. */
+typedef struct {
+    ModelInstance model;
+    State state;
+    double last_successful_time;
+} Snapshot;
+
+fmi2Status fmi2GetFMUstate(fmi2Component comp, fmi2FMUstate *s)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2GetFMUstate", ST_INSTANTIATED | ST_INIT | ST_RUNNING | ST_TERMINATED)) return fmi2Error;
+    if (!s) return fail(c, "fmi2GetFMUstate", "FMUstate is NULL");
+    Snapshot *snap = *s ? (Snapshot *)*s : malloc(sizeof(Snapshot));   /* a given state is overwritten */
+    if (!snap) return fail(c, "fmi2GetFMUstate", "out of memory");
+    snap->model = c->model;
+    snap->state = c->state;
+    snap->last_successful_time = c->last_successful_time;
+    *s = snap;
+    return fmi2OK;
+}
+
+fmi2Status fmi2SetFMUstate(fmi2Component comp, fmi2FMUstate s)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2SetFMUstate", ST_INSTANTIATED | ST_INIT | ST_RUNNING | ST_TERMINATED)) return fmi2Error;
+    if (!s) return fail(c, "fmi2SetFMUstate", "FMUstate is NULL");
+    const Snapshot *snap = s;
+    c->model = snap->model;
+    c->state = snap->state;
+    c->last_successful_time = snap->last_successful_time;
+    return fmi2OK;
+}
+
+fmi2Status fmi2FreeFMUstate(fmi2Component comp, fmi2FMUstate *s)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2FreeFMUstate", ST_ANY)) return fmi2Error;
+    if (!s) return fail(c, "fmi2FreeFMUstate", "FMUstate is NULL");
+    free(*s);
+    *s = NULL;
+    return fmi2OK;
+}
+#else
 fmi2Status fmi2GetFMUstate(fmi2Component c, fmi2FMUstate *s)
 {
     (void)s;
@@ -325,6 +382,7 @@ fmi2Status fmi2FreeFMUstate(fmi2Component c, fmi2FMUstate *s)
     (void)s;
     return fail(c, "fmi2FreeFMUstate", "not supported (canGetAndSetFMUstate = false)");
 }
+#endif
 
 fmi2Status fmi2SerializedFMUstateSize(fmi2Component c, fmi2FMUstate s, size_t *size)
 {
@@ -363,7 +421,8 @@ fmi2Status fmi2SetRealInputDerivatives(fmi2Component comp, const fmi2ValueRefere
                                        const fmi2Integer order[], const fmi2Real value[])
 {
     Instance *c = comp;
-    if (!allowed(c, "fmi2SetRealInputDerivatives", ST_INSTANTIATED | ST_INIT | ST_RUNNING)) return fmi2Error;
+    if (!allowed(c, "fmi2SetRealInputDerivatives", ST_INSTANTIATED | ST_INIT | ST_STEP_COMPLETE | ST_STEP_FAILED))
+        return fmi2Error;
     if (null_args(c, "fmi2SetRealInputDerivatives", vr, nvr, value) || (nvr > 0 && !order)) return fmi2Error;
     for (size_t i = 0; i < nvr; i++) {
         const VarInfo *info = model_variable(vr[i]);
@@ -380,8 +439,9 @@ fmi2Status fmi2SetRealInputDerivatives(fmi2Component comp, const fmi2ValueRefere
             ERR(c, "fmi2SetRealInputDerivatives: derivative of %s is not finite", info->name);
             return fmi2Error;
         }
-        c->model.dv[vr[i]] = value[i];
+            c->model.dv[vr[i]] = value[i];
     }
+    MODEL_TOUCH(&c->model);
     return fmi2OK;
 }
 
@@ -468,3 +528,132 @@ fmi2Status fmi2GetStringStatus(fmi2Component c, const fmi2StatusKind s, fmi2Stri
     (void)value;
     return fail(c, "fmi2GetStringStatus", "no string status");
 }
+
+/* ------------------------------------------------------------------ model exchange */
+
+#if MODEL_ME
+fmi2Status fmi2EnterEventMode(fmi2Component comp)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2EnterEventMode", ST_ME_RUNNING)) return fmi2Error;
+    c->state = ST_EVENT_MODE;
+    return fmi2OK;
+}
+
+fmi2Status fmi2NewDiscreteStates(fmi2Component comp, fmi2EventInfo *info)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2NewDiscreteStates", ST_EVENT_MODE)) return fmi2Error;
+    if (!info) return fail(c, "fmi2NewDiscreteStates", "fmi2EventInfo is NULL");
+    /* no discrete states, no time or state events: the model is continuous */
+    info->newDiscreteStatesNeeded = fmi2False;
+    info->terminateSimulation = fmi2False;
+    info->nominalsOfContinuousStatesChanged = fmi2False;
+    info->valuesOfContinuousStatesChanged = fmi2False;
+    info->nextEventTimeDefined = fmi2False;
+    info->nextEventTime = 0.0;
+    return fmi2OK;
+}
+
+fmi2Status fmi2EnterContinuousTimeMode(fmi2Component comp)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2EnterContinuousTimeMode", ST_EVENT_MODE)) return fmi2Error;
+    c->state = ST_CONT_TIME;
+    return fmi2OK;
+}
+
+fmi2Status fmi2CompletedIntegratorStep(fmi2Component comp, fmi2Boolean noSetFMUStatePriorToCurrentPoint,
+                                       fmi2Boolean *enterEventMode, fmi2Boolean *terminateSimulation)
+{
+    Instance *c = comp;
+    (void)noSetFMUStatePriorToCurrentPoint;
+    if (!allowed(c, "fmi2CompletedIntegratorStep", ST_CONT_TIME)) return fmi2Error;
+    if (!enterEventMode || !terminateSimulation)
+        return fail(c, "fmi2CompletedIntegratorStep", "enterEventMode or terminateSimulation is NULL");
+    *enterEventMode = fmi2False;
+    *terminateSimulation = fmi2False;
+    return fmi2OK;
+}
+
+fmi2Status fmi2SetTime(fmi2Component comp, fmi2Real time)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2SetTime", ST_ME_RUNNING)) return fmi2Error;
+    if (!isfinite(time)) return fail(c, "fmi2SetTime", "time is not finite");
+    c->model.time = time;
+    c->model.t_inputs = time;   /* model exchange: the inputs are the values set, no extrapolation */
+    MODEL_TOUCH(&c->model);
+    return fmi2OK;
+}
+
+fmi2Status fmi2SetContinuousStates(fmi2Component comp, const fmi2Real x[], size_t nx)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2SetContinuousStates", ST_CONT_TIME)) return fmi2Error;
+    if (nx != NX) {
+        ERR(c, "fmi2SetContinuousStates: nx = %zu, the model has %d states", nx, NX);
+        return fmi2Error;
+    }
+    if (!x) return fail(c, "fmi2SetContinuousStates", "x is NULL");
+    for (size_t i = 0; i < nx; i++)
+        if (!isfinite(x[i])) {
+            ERR(c, "fmi2SetContinuousStates: state %zu = %g is not finite", i, x[i]);
+            return fmi2Error;
+        }
+    model_set_states(&c->model, x);
+    return fmi2OK;
+}
+
+fmi2Status fmi2GetDerivatives(fmi2Component comp, fmi2Real derivatives[], size_t nx)
+{
+    Instance *c = comp;
+    char msg[512];
+    if (!allowed(c, "fmi2GetDerivatives", ST_INIT | ST_ME_RUNNING | ST_TERMINATED | ST_ERROR)) return fmi2Error;
+    if (nx != NX) {
+        ERR(c, "fmi2GetDerivatives: nx = %zu, the model has %d states", nx, NX);
+        return fmi2Error;
+    }
+    if (!derivatives) return fail(c, "fmi2GetDerivatives", "derivatives is NULL");
+    if (model_derivatives(&c->model, derivatives, msg, sizeof msg)) return fail(c, "fmi2GetDerivatives", msg);
+    return fmi2OK;
+}
+
+fmi2Status fmi2GetEventIndicators(fmi2Component comp, fmi2Real eventIndicators[], size_t ni)
+{
+    Instance *c = comp;
+    (void)eventIndicators;
+    if (!allowed(c, "fmi2GetEventIndicators", ST_INIT | ST_ME_RUNNING | ST_TERMINATED | ST_ERROR)) return fmi2Error;
+    if (ni != 0) {
+        ERR(c, "fmi2GetEventIndicators: ni = %zu, the model has no event indicators", ni);
+        return fmi2Error;
+    }
+    return fmi2OK;
+}
+
+fmi2Status fmi2GetContinuousStates(fmi2Component comp, fmi2Real x[], size_t nx)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2GetContinuousStates", ST_INIT | ST_ME_RUNNING | ST_TERMINATED | ST_ERROR)) return fmi2Error;
+    if (nx != NX) {
+        ERR(c, "fmi2GetContinuousStates: nx = %zu, the model has %d states", nx, NX);
+        return fmi2Error;
+    }
+    if (!x) return fail(c, "fmi2GetContinuousStates", "x is NULL");
+    model_get_states(&c->model, x);
+    return fmi2OK;
+}
+
+fmi2Status fmi2GetNominalsOfContinuousStates(fmi2Component comp, fmi2Real x_nominal[], size_t nx)
+{
+    Instance *c = comp;
+    if (!allowed(c, "fmi2GetNominalsOfContinuousStates", ST_ANY & ~ST_ERROR)) return fmi2Error;
+    if (nx != NX) {
+        ERR(c, "fmi2GetNominalsOfContinuousStates: nx = %zu, the model has %d states", nx, NX);
+        return fmi2Error;
+    }
+    if (!x_nominal) return fail(c, "fmi2GetNominalsOfContinuousStates", "x_nominal is NULL");
+    for (size_t i = 0; i < nx; i++) x_nominal[i] = 1.0;
+    return fmi2OK;
+}
+#endif

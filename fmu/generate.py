@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Generate modelDescription.xml and variables.h from the public declarations of modelica/ScrewVertebra.mo.
+"""Generate modelDescription.xml and variables.h from the public declarations of a Modelica model
+(modelica/ScrewVertebra.mo, modelica/InterfaceElement.mo).
 
 The Modelica model is the single source of the FMU's public variable contract: names, types,
 causalities, variabilities, units, start values and descriptions are read from its public component
@@ -44,6 +45,14 @@ HERE = Path(__file__).resolve().parent
 MO_FILE = HERE.parent / "modelica" / "ScrewVertebra.mo"
 MODEL_NAME = "ScrewVertebra"
 SOURCES = ["fmi2.c", "model.c", "solver.c", "sv_generated.c"]
+#: What each model's FMU offers beyond its variables: its C sources, the interfaces (a model exchange FMU
+#: exports its states, the public outputs whose der() the equations use, and their derivatives), FMU state
+#: support, the default experiment.
+FMUS = {
+    "ScrewVertebra": dict(sources=SOURCES, model_exchange=False, fmu_state=False, experiment=("0", "12", "0.01")),
+    "InterfaceElement": dict(sources=["fmi2.c", "element.c", "el_generated.c"], model_exchange=True,
+                             fmu_state=True, experiment=("0", "1", "0.001")),
+}
 TYPES = ("Real", "Integer", "Boolean")
 # The type attributes a public declaration may set (others, such as min or fixed, are not carried to the XML).
 ATTRIBUTES = ("unit", "start")
@@ -89,9 +98,12 @@ class Variable:
 
 @dataclass(frozen=True)
 class Model:
-    """The model's description string and its public scalar variables in value-reference order."""
+    """The model's description string and its public scalar variables in value-reference order (for a model
+    exchange FMU, the derivatives of its states after them)."""
     description: str
     variables: list[Variable]
+    name: str = MODEL_NAME
+    states: tuple[str, ...] = ()    # model exchange: the continuous states, in the order of <Derivatives>
 
 
 # --------------------------------------------------------------------------------------------------
@@ -345,9 +357,18 @@ def _causality(prefixes: list[str], final: bool, has_binding: bool, type_name: s
     return causality, "continuous" if continuous else "discrete"
 
 
-def parse_model(text: str, source: str = "<string>") -> Model:
+def state_names(spec: P.Long_class_specifierContext) -> set[str]:
+    """The variables whose der() the equation sections use: the model's continuous states."""
+    names: set[str] = set()
+    for child in spec.composition().getChildren():
+        if isinstance(child, P.Equation_sectionContext):
+            names |= set(re.findall(r"\bder\(\s*(\w+)\s*\)", text_of(child)))
+    return names
+
+
+def parse_model(text: str, source: str = "<string>", model_name: str = MODEL_NAME) -> Model:
     """The model's description and public scalar variables, as the FMU exports them."""
-    spec = find_model(parse_modelica(text, source))
+    spec = find_model(parse_modelica(text, source), model_name)
     model_description = "".join(modelica_string(s) for s in spec.string_comment().STRING())
     env: dict[str, object] = {}
     variables: list[Variable] = []
@@ -412,12 +433,28 @@ def parse_model(text: str, source: str = "<string>") -> Model:
                     causality=causality, variability=variability,
                     initial={"parameter": "exact", "calculatedParameter": "calculated"}.get(causality, ""),
                     start=starts[k], unit=units[k], description=f"{description} {suffix}" if dims else description))
-    return Model(model_description, variables)
+    if not FMUS.get(model_name, {}).get("model_exchange"):
+        return Model(model_description, variables, model_name)
+    # model exchange: the states are public Real outputs (in declaration order); their derivatives follow
+    states = state_names(spec)
+    declared = {v.name: v for v in variables}
+    hidden = sorted(s for s in states if s not in declared or declared[s].causality != "output")
+    if hidden:
+        raise ModelicaError(f"the states {hidden} must be public outputs for the model exchange FMU")
+    ordered = tuple(v.name for v in variables if v.name in states)
+    for s in ordered:
+        variables.append(Variable(vr=len(variables) + 1, name=f"der({s})", type="Real", causality="local",
+                                  variability="continuous", initial="", start="", unit="",
+                                  description=f"Rate of {s}"))
+    return Model(model_description, variables, model_name, ordered)
 
 
 def read_model(path: Path = MO_FILE) -> Model:
-    """The FMU's contract read from a Modelica file (by default modelica/ScrewVertebra.mo)."""
-    return parse_model(path.read_text(encoding="utf-8"), str(path))
+    """The FMU's contract read from a Modelica file (by default modelica/ScrewVertebra.mo; the model is the
+    one of FMUS the file declares)."""
+    text = path.read_text(encoding="utf-8")
+    declared = [m for m in FMUS if re.search(rf"^\s*model\s+{m}\b", text, re.M)]
+    return parse_model(text, str(path), declared[0] if declared else MODEL_NAME)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -426,14 +463,14 @@ def read_model(path: Path = MO_FILE) -> Model:
 
 def c_name(name: str) -> str:
     """The C identifier part of a variable name: tab_y[3] -> tab_y_3."""
-    return name.replace("[", "_").replace("]", "").replace(",", "_")
+    return name.replace("[", "_").replace("]", "").replace(",", "_").replace("(", "_").replace(")", "")
 
 
 def contract_text(model: Model) -> str:
     """The contract as CSV text, one row per variable: what the GUID is a hash of."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(["model", MODEL_NAME, model.description])
+    writer.writerow(["model", model.name, model.description])
     fields = ["name", "type", "causality", "variability", "initial", "start", "unit", "description"]
     writer.writerow(fields)
     for v in model.variables:
@@ -447,7 +484,7 @@ def guid(model: Model) -> str:
     return str(uuid.uuid5(uuid.NAMESPACE_URL, contract_text(model)))
 
 
-def xml_scalar(v: Variable) -> str:
+def xml_scalar(v: Variable, derivative_of: int | None = None) -> str:
     attrs = [f"name={quoteattr(v.name)}", f"valueReference=\"{v.vr}\"",
              f"description={quoteattr(v.description)}", f"causality=\"{v.causality}\"",
              f"variability=\"{v.variability}\""]
@@ -458,6 +495,8 @@ def xml_scalar(v: Variable) -> str:
         inner.append(f"unit=\"{v.unit}\"")
     if v.causality in ("parameter", "input"):
         inner.append(f"start=\"{v.start}\"")
+    if derivative_of is not None:
+        inner.append(f"derivative=\"{derivative_of}\"")
     return (f"    <ScalarVariable {' '.join(attrs)}>\n"
             f"      <{v.type} {' '.join(inner)}/>\n    </ScalarVariable>")
 
@@ -470,16 +509,38 @@ def model_description(model: Model, guid: str) -> str:
     for u in units:
         exps = " ".join(f"{k}=\"{v}\"" for k, v in UNITS[u].items())
         unit_xml.append(f"    <Unit name=\"{u}\"><BaseUnit {exps}/></Unit>")
+    facts = FMUS[model.name]
+    name = model.name
     outputs = [r for r in rows if r.causality == "output"]
-    initial = [r for r in rows if r.causality in ("output", "calculatedParameter")]
-    sources = "\n".join(f"        <File name=\"{s}\"/>" for s in SOURCES)
+    derivatives = [r for r in rows if r.name.startswith("der(")]
+    initial = [r for r in rows if r.causality in ("output", "calculatedParameter")] + derivatives
+    sources = "\n".join(f"        <File name=\"{s}\"/>" for s in facts["sources"])
+    state = "true" if facts["fmu_state"] else "false"
+    me = ""
+    if facts["model_exchange"]:
+        me = f"""
+  <ModelExchange modelIdentifier="{name}" completedIntegratorStepNotNeeded="true"
+    canBeInstantiatedOnlyOncePerProcess="false" canNotUseMemoryManagementFunctions="true"
+    canGetAndSetFMUstate="{state}" canSerializeFMUstate="false">
+    <SourceFiles>
+{sources}
+    </SourceFiles>
+  </ModelExchange>"""
+    by_name = {r.name: r.vr for r in rows}
+    derivative = {r.name: by_name[r.name[4:-1]] for r in derivatives}
+    structure = ""
+    if derivatives:
+        structure = ("\n    <Derivatives>\n"
+                     + "\n".join(f'      <Unknown index="{r.vr}"/>' for r in derivatives)
+                     + "\n    </Derivatives>")
+    start, stop, step = facts["experiment"]
     return f"""<?xml version="1.0" encoding="UTF-8"?>
-<fmiModelDescription fmiVersion="2.0" modelName="{MODEL_NAME}" guid="{{{guid}}}"
+<fmiModelDescription fmiVersion="2.0" modelName="{name}" guid="{{{guid}}}"
   description={quoteattr(model.description)}
-  generationTool="fmusa fmu/generate.py" variableNamingConvention="structured" numberOfEventIndicators="0">
-  <CoSimulation modelIdentifier="{MODEL_NAME}" canHandleVariableCommunicationStepSize="true"
+  generationTool="fmusa fmu/generate.py" variableNamingConvention="structured" numberOfEventIndicators="0">{me}
+  <CoSimulation modelIdentifier="{name}" canHandleVariableCommunicationStepSize="true"
     canInterpolateInputs="true" maxOutputDerivativeOrder="0" canBeInstantiatedOnlyOncePerProcess="false"
-    canNotUseMemoryManagementFunctions="true" canGetAndSetFMUstate="false" canSerializeFMUstate="false">
+    canNotUseMemoryManagementFunctions="true" canGetAndSetFMUstate="{state}" canSerializeFMUstate="false">
     <SourceFiles>
 {sources}
     </SourceFiles>
@@ -492,14 +553,14 @@ def model_description(model: Model, guid: str) -> str:
     <Category name="logStatusWarning" description="Warnings"/>
     <Category name="logAll" description="Everything, including solver statistics"/>
   </LogCategories>
-  <DefaultExperiment startTime="0" stopTime="12" stepSize="0.01"/>
+  <DefaultExperiment startTime="{start}" stopTime="{stop}" stepSize="{step}"/>
   <ModelVariables>
-{chr(10).join(xml_scalar(r) for r in rows)}
+{chr(10).join(xml_scalar(r, derivative.get(r.name)) for r in rows)}
   </ModelVariables>
   <ModelStructure>
     <Outputs>
 {chr(10).join(f'      <Unknown index="{r.vr}"/>' for r in outputs)}
-    </Outputs>
+    </Outputs>{structure}
     <InitialUnknowns>
 {chr(10).join(f'      <Unknown index="{r.vr}"/>' for r in initial)}
     </InitialUnknowns>
@@ -511,14 +572,14 @@ def model_description(model: Model, guid: str) -> str:
 def c_header(model: Model, guid: str) -> str:
     """variables.h: the value references and the variable table the C code is compiled with."""
     rows = model.variables
-    lines = ["/* Generated by fmu/generate.py from modelica/ScrewVertebra.mo: do not edit. */",
+    lines = [f"/* Generated by fmu/generate.py from modelica/{model.name}.mo: do not edit. */",
              "#ifndef VARIABLES_H", "#define VARIABLES_H", "",
              f"#define MODEL_GUID \"{{{guid}}}\"", f"#define N_VR {len(rows) + 1}", ""]
     for r in rows:
         lines.append(f"#define VR_{c_name(r.name)} {r.vr}")
     lines += ["", "/* X(name, vr, type, causality, start) for every variable */", "#define VARIABLES(X) \\"]
     kinds = {"parameter": "CAUS_PARAMETER", "calculatedParameter": "CAUS_CALCULATED",
-             "input": "CAUS_INPUT", "output": "CAUS_OUTPUT"}
+             "input": "CAUS_INPUT", "output": "CAUS_OUTPUT", "local": "CAUS_LOCAL"}
     for r in rows:
         start = r.start or "0"
         if r.type == "Boolean":

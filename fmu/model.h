@@ -6,11 +6,20 @@
 #include <stddef.h>
 
 typedef enum { TYPE_REAL, TYPE_INTEGER, TYPE_BOOLEAN } VarType;
-typedef enum { CAUS_PARAMETER, CAUS_CALCULATED, CAUS_INPUT, CAUS_OUTPUT } Causality;
+typedef enum { CAUS_PARAMETER, CAUS_CALCULATED, CAUS_INPUT, CAUS_OUTPUT, CAUS_LOCAL } Causality;
 
 #include "variables.h"
 #include "solver.h"
 #include "sv_model.h"
+
+#define MODEL_NAME "ScrewVertebra"
+/* Co-simulation only (its own solver), without getting and setting the FMU state. A build with
+ * -DMODEL_FMU_STATE=1 (the split-body tests) gets and sets it as a copy of the instance: the one pointer in
+ * it, the solver's workspace, is scratch that no state depends on. */
+#define MODEL_ME 0
+#ifndef MODEL_FMU_STATE
+#define MODEL_FMU_STATE 0
+#endif
 
 typedef struct {
     const char *name;
@@ -59,5 +68,13 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t msglen);
 
 /* Advance from mi->time to t_end and update the outputs. */
 int model_do_step(ModelInstance *mi, double t_end, char *msg, size_t msglen);
+
+/* The outputs are computed by each step: nothing to refresh when inputs change between steps. */
+static inline void model_refresh(ModelInstance *mi) { (void)mi; }
+#define MODEL_TOUCH(mi) ((void)(mi))
+/* The solver's statistics, for the log at fmi2Terminate */
+#define MODEL_N_STEPS(mi) ((mi)->solver.n_steps)
+#define MODEL_N_REJECTED(mi) ((mi)->solver.n_rejected)
+#define MODEL_N_RHS(mi) ((mi)->solver.n_rhs)
 
 #endif

@@ -191,3 +191,24 @@ def test_inspect_of_a_missing_fmu_exits_1(tmp_path):
                        capture_output=True, text=True, timeout=120, env={**os.environ})
     assert r.returncode == 1 and r.stderr.startswith("fmusa inspect: FMU not found")
     assert "Traceback" not in r.stderr
+
+
+def test_a_stray_warning_is_one_line_without_a_source_path(capsys, monkeypatch):
+    """A library's warning while a command runs (a SALib or numpy RuntimeWarning) reads as one line naming the
+    library, not a source path and line number."""
+    import warnings
+
+    import fmusa.cli as cli
+
+    def warn(args):
+        warnings.warn_explicit("invalid value encountered in divide", RuntimeWarning,
+                               "/some/venv/lib/python3.11/site-packages/SALib/analyze/morris.py", 345)
+        return 0
+    parser = cli.build_parser("inspect")
+    parser._subparsers._group_actions[0].choices["inspect"].set_defaults(func=warn)
+    monkeypatch.setattr(cli, "build_parser", lambda command=None: parser)
+    assert cli.main(["inspect", "x.fmu"]) == 0
+    err = capsys.readouterr().err
+    assert err.strip() == ("fmusa inspect: warning: invalid value encountered in divide (RuntimeWarning from "
+                           "SALib)"), err
+    assert "site-packages" not in err and "morris.py" not in err

@@ -281,3 +281,47 @@ def test_the_search_in_rounds_on_dask(cluster, fmu, tmp_path):
     assert dask["failed"] == 0
     print(f"paper study in rounds on Dask (2 threads): {dask['rounds']} rounds, {dask['runs']} runs, "
           f"{dask['wall']:.1f} s; locally at 1 point per round {one['rounds']}, sequential {seq['rounds']}")
+
+
+@pytest.mark.slow
+def test_a_lost_scheduler_is_an_interruption_and_resume_gives_the_local_numbers(fmu, tmp_path):
+    """The Dask scheduler killed mid-study: no run is stored as failed, the study stops with exit 1 and says
+    to resume; ``--resume`` on a new cluster completes it with the numbers of a local run, exactly."""
+    study = tmp_path / "lost.yaml"
+    study.write_text(KILLED)
+    out = tmp_path / "out"
+    c = Cluster(tmp_path / "cluster")
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "fmusa.cli", "sweep", str(study), "--out", str(out),
+                                 "--quiet", "--no-figures", "--scheduler", c.address],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                                env={**os.environ, "FMUSA_FMU": str(fmu)})
+        try:
+            t_end = time.monotonic() + 60
+            while len(_lines(out / "runs.csv")) < 4:       # mid-study: results on disk
+                assert proc.poll() is None, f"the study ended before the scheduler was killed: {proc.stderr.read()}"
+                assert time.monotonic() < t_end, "no results within 60 s"
+                time.sleep(0.02)
+            c.remember()
+            c.procs[0].kill()                               # the scheduler
+            stdout, stderr = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    finally:
+        c.close()
+    assert proc.returncode == 1, (stdout, stderr)
+    assert "connection to the Dask scheduler" in stderr and "--resume" in stderr, stderr
+    kept = _lines(out / "runs.csv")
+    assert 4 <= len(kept) < 40 and all(",ok,," in ln for ln in kept), kept      # nothing stored as failed
+    c2 = Cluster(tmp_path / "cluster2")
+    try:
+        r = sweep(fmu, str(study), "--out", str(out), "--resume", "--scheduler", c2.address)
+    finally:
+        c2.close()
+    assert r.returncode == 0, r.stderr
+    local = sweep(fmu, str(study), "--out", str(tmp_path / "local"))
+    assert local.returncode == 0, local.stderr
+    import pandas as pd
+    pd.testing.assert_frame_equal(_rows(out), _rows(tmp_path / "local"))

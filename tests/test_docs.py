@@ -44,6 +44,8 @@ SKIPPED = {
     ("clusters.md", ".venv/bin/dask scheduler --port 8786                                     # on host1"),
     ("clusters.md", "# cluster.py: python cluster.py, then fmusa sweep ... --scheduler <the address it prints>"),
     ("other-tools.md", "unzip -o dist/ScrewVertebra.fmu -d out/sv"),
+    ("element-fmu.md", "from pathlib import Path"),
+    ("element-fmu.md", "from fmusa.cosim.ssp import write_ssp"),
 }
 
 DIRECTIVE = re.compile(r"<!--\s*docs-test:\s*(\S+)\s*(.*?)\s*-->")
@@ -263,3 +265,157 @@ def test_generated_reference_agrees_with_the_code() -> None:
     model = model_page.render()
     for row in model_page.variable_rows():
         assert f"| `{row.name}` | {row.vr} |" in model
+
+
+# ---------------------------------------------------------------------- the pages as a user's manual
+
+#: every page a user reads: the README, the hand-written pages, their partials and the committed generated ones
+MANUAL = PAGES + sorted((ROOT / "docs" / "reference").glob("*.md"))
+#: development history, which belongs in CHANGELOG.md and the git log, not in the manual
+HISTORY = re.compile(r"(?i)\bissues? #?\d+|\bthis branch\b|\bon the branch\b|\bbranch `|docs/notes|\bnotes?/"
+                     r"|folded notes|\bhelpers?'s? notes|\bmeasured on this\b|\bbusy machine\b|\bshared machine\b")
+#: a timing stated as measured ("about 35 s", "took 3 min"): it must be a key of `make bench` instead
+MEASURED_TIME = re.compile(r"(?i)\b(?:about|approximately|roughly|takes?|took|~)\s*~?\d[\d.,–-]*\s?"
+                           r"(?:s|ms|µs|min|minutes|hours?)\b")
+
+
+def _prose(text: str) -> str:
+    """A page without its fenced blocks and inline code (commands and messages are checked by running them)."""
+    text = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+    return re.sub(r"`[^`\n]*`", "", text)
+
+
+def test_no_page_holds_development_history() -> None:
+    """The manual says what fmusa does; no page names an issue, a branch or a development note, and the
+    folder of notes is gone. The checker is checked too (a test that cannot fail is a defect)."""
+    assert not (ROOT / "docs" / "notes").exists(), "docs/notes/ is development history: CHANGELOG.md and git log"
+    for bad in ("as issue 22 asked", "numbers measured on this branch", "see docs/notes/x.md", "<!-- folded notes"):
+        assert HISTORY.search(bad), bad
+    for page in MANUAL:
+        for n, line in enumerate(page.read_text(encoding="utf-8").splitlines(), 1):
+            m = HISTORY.search(line)
+            assert not m, f"{page.relative_to(ROOT)}:{n}: {m.group(0)!r} is development history: {line.strip()}"
+
+
+def test_no_page_states_a_timing_that_no_run_wrote() -> None:
+    """Wall times depend on the machine: a page names the `make bench` key that measures one (the
+    Benchmarks page lists the last measurement and its machine), never "about 35 s"."""
+    for bad in ("about 35 s for this file", "it takes about 13 minutes", "took 3 min"):
+        assert MEASURED_TIME.search(bad), bad
+    for page in MANUAL:
+        for n, line in enumerate(_prose(page.read_text(encoding="utf-8")).splitlines(), 1):
+            m = MEASURED_TIME.search(line)
+            assert not m, f"{page.relative_to(ROOT)}: {m.group(0)!r}: name the `make bench` key instead: {line.strip()}"
+
+
+def test_generated_pages_are_current() -> None:
+    """The committed reference pages and the identifiability table equal what the code and the tests give
+    now (so the README's links show current pages on the repository page)."""
+    sys.path.insert(0, str(ROOT / "docs" / "_gen"))
+    try:
+        import reference
+    finally:
+        sys.path.pop(0)
+    assert not reference.stale(), f"stale generated pages {reference.stale()}: run `{reference.REWRITE}`"
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    for page in reference.PAGES:
+        assert page in readme, f"README.md does not link {page}"
+
+
+def test_pages_state_the_fmi_versions_fmusa_runs() -> None:
+    """No page or help text contradicts the FMI versions fmusa runs (fmusa.fmi.info.SUPPORTED_FMI_VERSIONS),
+    and those are what the reader does: an FMI 3.0 export is read, an FMI 1.0 one refused."""
+    from fmusa.cli import build_parser
+    from fmusa.fmi.info import SUPPORTED_FMI_VERSIONS, FMUError, read_fmu_info
+
+    supported = set(SUPPORTED_FMI_VERSIONS)
+    texts = {p.relative_to(ROOT).as_posix(): " ".join(p.read_text(encoding="utf-8").split()) for p in MANUAL}
+    texts["fmusa --help"] = " ".join(build_parser().format_help().split())
+    for where, text in texts.items():
+        for m in re.finditer(r"(?i)\bonly FMI (\d\.\d)", text):
+            assert {m.group(1)} == supported, f"{where}: {m.group(0)!r}, but fmusa runs FMI {supported}"
+        for m in re.finditer(r"(?i)\bFMI (\d\.\d)(?: or (\d\.\d))? FMUs? (?:is|are) refused", text):
+            said = {v for v in m.groups() if v}
+            assert not said & supported, f"{where}: {m.group(0)!r}, but fmusa runs FMI {sorted(supported)}"
+        for m in re.finditer(r"(?i)\b(?:another|any) FMI (\d\.\d)(?: or (\d\.\d))? FMU", text):
+            said = {v for v in m.groups() if v}
+            assert said == supported, f"{where}: {m.group(0)!r}, but fmusa runs FMI {sorted(supported)}"
+    assert " or ".join(SUPPORTED_FMI_VERSIONS) in texts["fmusa --help"]
+    fmi3 = ROOT.parent / "shared" / "vendor-fmus" / "MapleSim2024_CoupledClutches_FMI3.fmu"
+    if fmi3.is_file():
+        assert read_fmu_info(fmi3).fmi_version == "3.0"
+    if FMU.is_file():
+        fake = Path(os.environ.get("TMPDIR", "/tmp")) / f"fmusa-docs-fmi1-{os.getpid()}.fmu"
+        import zipfile
+        try:
+            with zipfile.ZipFile(FMU) as zin, zipfile.ZipFile(fake, "w") as zout:
+                for item in zin.infolist():
+                    data = zin.read(item.filename)
+                    if item.filename == "modelDescription.xml":
+                        data = data.replace(b'fmiVersion="2.0"', b'fmiVersion="1.0"', 1)
+                    zout.writestr(item, data)
+            with pytest.raises(FMUError, match="FMI 1.0"):
+                read_fmu_info(fake)
+        finally:
+            fake.unlink(missing_ok=True)
+
+
+def test_help_texts_state_the_parsers_defaults() -> None:
+    """Every "(default X)" in `fmusa … --help` is the option's real default, and no help text states a
+    timing (which depends on the machine)."""
+    from fmusa.cli import COMMANDS, build_parser
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, type(parser._subparsers._group_actions[0])))
+    checked = 0
+    for name in COMMANDS:
+        for action in subs.choices[name]._actions:
+            text = action.help or ""
+            assert not MEASURED_TIME.search(text) and "minutes" not in text, f"fmusa {name} {action.dest}: {text}"
+            m = re.search(r"\(default:? ([^,;)]+)", text)
+            if m and re.fullmatch(r"-?\d+(?:\.\d+)?(?:e-?\d+)?", m.group(1).strip()):
+                assert float(m.group(1)) == float(action.default), f"fmusa {name} {action.dest}: {text}"
+                checked += 1
+    assert checked >= 5
+
+
+def test_readme_states_the_optimum_the_paper_study_prints() -> None:
+    """The README's optimum is fmusa's, the one `make sweep` prints (the paper-study page's example, which
+    test_examples_of_page_run runs and compares), and the paper's own is named as the paper's."""
+    readme = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    page = next(b for b in blocks(ROOT / "docs" / "paper-study.md") if b.directive == "output-of-previous")
+    printed = re.search(r"c = (\d+) N/m, d = ([\d.]+) N·s/m", page.text)
+    assert printed, page.text
+    assert f"c = {printed.group(1)} N/m, d = {printed.group(2)} N·s/m" in readme
+    assert not re.search(r"reproduces the paper's search \(optimum c = 823224", readme)
+    runs = re.search(r"^(\d+) FMU runs$", page.text, re.M).group(1)
+    paper = " ".join((ROOT / "docs" / "paper-study.md").read_text(encoding="utf-8").split())
+    clusters = " ".join((ROOT / "docs" / "clusters.md").read_text(encoding="utf-8").split())
+    assert f"finds c = {printed.group(1)} N/m, d = {printed.group(2)} N·s/m in {runs} FMU runs" in paper
+    assert f"c = {printed.group(1)}" in clusters and f"d = {printed.group(2)} N·s/m, {runs} runs" in clusters
+
+
+def test_the_benchmarks_page_lists_a_measurement_with_its_machine(tmp_path) -> None:
+    """The Benchmarks page gets out/bench/bench.json's numbers with the machine, the load and the time they
+    were measured at (docs/_gen/bench_page.py, run by the docs build); without the file it says how to get one."""
+    import json as _json
+    sys.path.insert(0, str(ROOT / "docs" / "_gen"))
+    try:
+        import bench_page
+    finally:
+        sys.path.pop(0)
+    assert "No measurement" in bench_page.render(tmp_path / "missing.json")
+    data = {"fmu_run_ms_median": 0.912, "paper_study_wall_s": 0.31, "diagnose_shear_unit_wall_s": 211.0,
+            "timestamp": "2026-12-02T17:00:00+00:00", "limits_note": "fmu 0.9 ms (limit 2 ms)",
+            "machine": {"cpu_count": 2, "platform": "Linux-6.1", "processor": "x86_64", "python": "3.11.7",
+                        "fmpy": "0.3.32", "loadavg_1min": 9.5}}
+    (tmp_path / "bench.json").write_text(_json.dumps(data), encoding="utf-8")
+    page = bench_page.render(tmp_path / "bench.json")
+    assert "2026-12-02T17:00:00+00:00 on Linux-6.1, x86_64, 2 logical CPUs" in page and "load average 9.50" in page
+    assert "| `diagnose_shear_unit_wall_s` | 211 |" in page and "| `fmu_run_ms_median` | 0.912 |" in page
+    for page_file in MANUAL:        # every bench key a page names is one `make bench` writes
+        for key in re.findall(r"`((?:fmu|paper|sobol|six_dof|diagnose|pipeline|bench)_[a-z0-9_]+)`",
+                              page_file.read_text(encoding="utf-8")):
+            if key.endswith(("_s", "_ms", "_per_s", "_median")) or key.startswith("bench_"):
+                src = (ROOT / "src" / "fmusa" / "bench.py").read_text(encoding="utf-8")
+                assert key in src or key.removeprefix("bench_") in src, f"{page_file.name}: `{key}` is no bench key"

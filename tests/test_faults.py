@@ -153,20 +153,50 @@ def test_unpacking_is_bounded(tmp_path, monkeypatch):
         extract_fmu(fmu)
 
 
-def test_extraction_folders_of_killed_processes_are_removed(tmp_path):
+#: A process that claims an extraction folder (argv[1]) and then writes into its owner file a process id that
+#: means nothing here: what a fmusa in another container, or on another host sharing the temporary folder,
+#: leaves. It prints "ready" and sleeps until killed.
+CLAIMER = ("import sys, time; from fmusa.fmi.archive import claim_folder, OWNER_FILE, _HELD\n"
+           "claim_folder(sys.argv[1]); fh = _HELD[sys.argv[1]]; fh.seek(0); fh.truncate(); fh.write(sys.argv[2])\n"
+           "fh.flush(); print('ready', flush=True); time.sleep(600)")
+
+
+def test_extraction_folders_are_owned_by_a_lock_not_a_process_id(tmp_path, monkeypatch):
+    """A folder whose owner is alive is kept although its recorded process id is dead here (another PID
+    namespace); once the owner is killed, its folder is removed; a folder of this process is never judged."""
+    from fmusa.fmi import archive
+    monkeypatch.setattr(archive, "GRACE_S", 0.0)
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                           text=True).stdout.strip()
-    orphan = Path(tempfile.mkdtemp(prefix=PREFIX))
-    (orphan / OWNER_FILE).write_text(dead)
-    mine = Path(tempfile.mkdtemp(prefix=PREFIX))
-    (mine / OWNER_FILE).write_text(str(os.getpid()))
+    live = tmp_path / f"{PREFIX}live"
+    live.mkdir()
+    owner = subprocess.Popen([sys.executable, "-c", CLAIMER, str(live), dead], stdout=subprocess.PIPE, text=True)
     try:
-        removed = remove_orphans()
-        assert orphan in removed and not orphan.exists()
-        assert mine.exists()
+        assert owner.stdout.readline().strip() == "ready"
+        assert (live / OWNER_FILE).read_text() == dead                 # the id says: dead
+        mine = tmp_path / f"{PREFIX}mine"
+        mine.mkdir()
+        archive.claim_folder(mine)
+        stale = tmp_path / f"{PREFIX}stale"                            # an owner file nobody holds
+        stale.mkdir()
+        (stale / OWNER_FILE).write_text(str(os.getpid()))              # ... with a live id
+        assert remove_orphans(tmp_path) == [stale]
+        assert live.exists() and mine.exists() and not stale.exists()
     finally:
-        shutil.rmtree(orphan, ignore_errors=True)
-        shutil.rmtree(mine, ignore_errors=True)
+        owner.kill()
+        owner.wait()
+    assert remove_orphans(tmp_path) == [live]                          # killed: its lock is free
+    assert mine.exists()
+    archive.remove_folder(mine)
+    assert not mine.exists()
+
+
+def test_a_new_extraction_folder_is_not_judged_while_it_is_made(tmp_path):
+    from fmusa.fmi import archive
+    young = tmp_path / f"{PREFIX}young"
+    young.mkdir()
+    (young / OWNER_FILE).write_text("")          # created, not yet locked by its maker
+    assert archive.remove_orphans(tmp_path) == [] and young.exists()
 
 
 # ----------------------------------------------------------------------------------------------- outputs

@@ -70,8 +70,9 @@ def test_inspect_our_fmu(capsys, fmu_path, monkeypatch, contract):
     assert head["FMI version"] == "2.0"
     assert head["model name"] == "ScrewVertebra"
     assert head["interfaces"] == "co-simulation (CS), model identifier ScrewVertebra"
-    assert head["binaries"].startswith("linux64") and "this machine, linux64: yes" in head["binaries"]
-    assert head["sources"] == "yes: fmi2.c, model.c, solver.c, sv_generated.c"
+    assert head["binaries"].startswith("linux64")
+    assert head["runs here"] == "yes: FMI 2.0, co-simulation; the linux64 binary loads"
+    assert head["sources"] == "4 files listed under <SourceFiles> (fmi2.c, model.c, solver.c, sv_generated.c)"
     assert head["default experiment"] == "start 0 s, stop 12 s, step 0.01 s"
     counts = {c: _count(contract, c) for c in ("parameter", "calculatedParameter", "input", "output")}
     assert counts["calculatedParameter"] == 3 and counts["input"] == 7
@@ -132,7 +133,7 @@ def test_inspect_model_exchange_fmu(capsys, spring):
     head = _header(out)
     assert head["interfaces"] == "model exchange (ME), model identifier spring"
     assert head["ME states / events"] == "2 continuous states, 0 event indicators"
-    assert head["sources"] == "no"
+    assert head["sources"] == "none"
     assert head["default experiment"] == "start 0 s, stop 3 s, tolerance 1e-06"
     rows = {r[0]: r for r in _table(out)}
     assert rows["F_max"][:6] == ["F_max", "parameter", "tunable", "Real", "N", "10"]
@@ -148,7 +149,8 @@ def test_inspect_sources_only_fmu(capsys, spring):
     code, out, _ = _inspect(capsys, spring["sources"])
     head = _header(out)
     assert head["binaries"] == "none"
-    assert head["sources"] == "yes: spring.c  (fmusa builds the linux64 binary from them before a study)"
+    assert head["sources"] == "1 file listed under <SourceFiles> (spring.c)"
+    assert head["runs here"].startswith("once built: no linux64 binary; fmusa builds one from the C sources")
 
 
 def test_inspect_full_and_narrow_terminal(capsys, fmu_path, monkeypatch):
@@ -183,3 +185,77 @@ def test_inspect_command_line(fmu_path):
                           text=True)
     assert proc.stdout.splitlines()[1].split() == ["FMI", "version", "2.0"]
     assert "Traceback" not in proc.stderr
+
+
+def _rewritten(fmu: Path, target: Path, edit) -> Path:
+    """A copy of ``fmu`` whose modelDescription.xml is passed through ``edit`` (bytes -> bytes)."""
+    with zipfile.ZipFile(fmu) as zin, zipfile.ZipFile(target, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            zout.writestr(item, edit(data) if item.filename == "modelDescription.xml" else data)
+    return target
+
+
+def test_inspect_says_a_binary_that_cannot_load_cannot_run(capsys, fmu_path, tmp_path):
+    """A binary that is there but does not load (here: the linux64 directory holds a file that is no shared
+    library, as a damaged export would) is "runs here: no", with the loader's reason and the fix; the real
+    JModelica export, whose binary needs libgfortran.so.3, says that library."""
+    bad = tmp_path / "Damaged.fmu"
+    with zipfile.ZipFile(fmu_path) as zin, zipfile.ZipFile(bad, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename.startswith("binaries/linux64/"):
+                data = b"not an ELF file"
+            zout.writestr(item, data)
+    code, out, _ = _inspect(capsys, bad)
+    assert code == 0
+    runs = _header(out)["runs here"]
+    assert runs.startswith("no: the linux64 binary does not load: ") and "Fix:" in runs, runs
+    jm = Path(__file__).resolve().parents[2] / "shared" / "vendor-fmus" / "JModelica115_ControlledTemperature.fmu"
+    if jm.is_file():
+        code, out, _ = _inspect(capsys, jm)
+        runs = _header(out)["runs here"]
+        assert runs.startswith("no: the linux64 binary does not load") and "libgfortran.so.3" in runs, runs
+
+
+def test_inspect_sources_are_summarised(capsys, tmp_path, monkeypatch):
+    """An export with many sources (OpenModelica lists about 65) gets a count and three names, not a line of
+    every file; --full lists them all."""
+    om = Path(__file__).resolve().parents[2] / "shared" / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
+    if not om.is_file():
+        pytest.skip(f"{om} is not there")
+    monkeypatch.setenv("COLUMNS", "300")
+    code, out, _ = _inspect(capsys, om)
+    line = _header(out)["sources"]
+    n = int(line.split()[0])
+    assert n > 20 and line.count(",") == 3 and "…" in line and "--full lists them" in line   # 3 names, then …
+    code, out, _ = _inspect(capsys, om, "--full")
+    assert _header(out)["sources"].count(",") == n - 1
+
+
+def test_inspect_says_no_parameters_and_a_study_says_why(capsys, fmu_path, tmp_path):
+    """An FMU without parameters: inspect says so, and a study that varies one is refused saying the FMU has
+    none (not only "no variable 'c_y'" with the closest names of other variables)."""
+    from fmusa.fmi.info import read_fmu_info, variable_problem
+
+    none = _rewritten(fmu_path, tmp_path / "NoParameters.fmu",
+                      lambda d: d.replace(b'causality="parameter"', b'causality="local"'))
+    code, out, _ = _inspect(capsys, none, "--full")
+    assert code == 0 and "; no parameters: a study can set only its inputs" in _header(out)["variables"]
+    info = read_fmu_info(none)
+    msg = variable_problem(info, "c_y", "parameter")
+    assert "ScrewVertebra has no settable parameters at all" in msg, msg
+    msg = variable_problem(info, "k_missing", "parameter")
+    assert "has no variable 'k_missing'; ScrewVertebra has no parameters at all" in msg, msg
+    # varied: the inputs count (the FMU has seven), so no such sentence there
+    assert "at all" not in (variable_problem(info, "c_y", "varied") or "")
+
+
+def test_inspect_says_an_fmi1_fmu_cannot_run(capsys, fmu_path, tmp_path):
+    """An FMI 1.0 FMU fmpy can read is shown, with "runs here: no" and why, not a note at the end."""
+    import fmusa.cli as cli
+
+    class Info:          # what the reader gives for an FMI 1.0 export: the version is all that matters here
+        fmi_version = "1.0"
+    runs = cli._runs_here(Info(), "X.fmu: X is an FMI 1.0 FMU")
+    assert runs.startswith("no: FMI 1.0; fmusa runs FMI 2.0 and 3.0 FMUs"), runs

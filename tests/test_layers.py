@@ -19,19 +19,21 @@ ROOT = "fmusa"
 #: (layer, its modules, the layers it may import besides itself). A module entry covers the module and,
 #: for a package, everything under it; the root package ``fmusa`` (its __init__) covers itself only.
 #: The stack base → fmi → runs → study → analysis → pipeline → report → applications → top, and
-#: diagnose: a vertical on base, fmi and runs that only applications and the top use.
+#: diagnose: a vertical on base, fmi, runs and cosim (the coupling master, on base and fmi) that only
+#: applications and the top use.
 _STACK = ("base", "fmi", "runs", "study", "analysis", "pipeline", "report")
 LAYERS: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
-    ("base", ("fmusa.errors", "fmusa.format", "fmusa.files"), ()),
+    ("base", ("fmusa.errors", "fmusa.format", "fmusa.files", "fmusa.figure_check"), ()),
     ("fmi", ("fmusa.fmi",), _STACK[:1]),
     ("runs", ("fmusa.runs",), _STACK[:2]),
     ("study", ("fmusa.study",), _STACK[:3]),
     ("analysis", ("fmusa.analysis",), _STACK[:4]),
     ("pipeline", ("fmusa.pipeline",), _STACK[:5]),
     ("report", ("fmusa.report",), _STACK[:6]),
-    ("diagnose", ("fmusa.diagnose",), ("base", "fmi", "runs")),
-    ("applications", ("fmusa.applications",), _STACK + ("diagnose",)),
-    ("top", ("fmusa", "fmusa.api", "fmusa.cli", "fmusa.bench"), _STACK + ("diagnose", "applications")),
+    ("cosim", ("fmusa.cosim",), ("base", "fmi")),
+    ("diagnose", ("fmusa.diagnose",), ("base", "fmi", "runs", "cosim")),
+    ("applications", ("fmusa.applications",), _STACK + ("cosim", "diagnose")),
+    ("top", ("fmusa", "fmusa.api", "fmusa.cli", "fmusa.bench"), _STACK + ("cosim", "diagnose", "applications")),
 )
 
 

@@ -72,8 +72,10 @@ def test_missing_column_lists_columns_and_option(tmp_path):
 
 
 def test_semicolon_file_hint(tmp_path):
+    """Detected, it reads; read with the comma asked for, the message names --delimiter."""
     p = write(tmp_path, table().replace(",", ";"))
-    raises(p, "delimiter")
+    assert load_experiment(p, "displacement").meta["delimiter"] == ";"
+    raises(p, "another delimiter than ','", "--delimiter", spec=ColumnSpec(delimiter=","))
 
 
 def test_header_only(tmp_path):

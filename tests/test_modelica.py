@@ -50,7 +50,7 @@ BINARY = {"+": lambda a, b: a + b, "-": lambda a, b: a - b, "*": lambda a, b: a 
           "<": lambda a, b: a < b, "<=": lambda a, b: a <= b, ">": lambda a, b: a > b, ">=": lambda a, b: a >= b,
           "==": lambda a, b: a == b, "<>": lambda a, b: a != b}
 CAUSALITY_KINDS = {"parameter": "CAUS_PARAMETER", "calculatedParameter": "CAUS_CALCULATED",
-                   "input": "CAUS_INPUT", "output": "CAUS_OUTPUT"}
+                   "input": "CAUS_INPUT", "output": "CAUS_OUTPUT", "local": "CAUS_LOCAL"}
 
 
 @dataclass(frozen=True)
@@ -119,10 +119,10 @@ def _entries(value, dims: list[int]) -> list:
     return [v for item in value for v in _entries(item, dims[1:])]
 
 
-def pymoca_model(text: str) -> tuple[str, list[Var]]:
+def pymoca_model(text: str, model: str = MODEL) -> tuple[str, list[Var]]:
     """(the model's description, its public scalar variables in declaration order), read by pymoca."""
-    flat = tree.flatten(parser.parse(text), ast.ComponentRef(name=MODEL))
-    cls = flat.classes[MODEL]
+    flat = tree.flatten(parser.parse(text), ast.ComponentRef(name=model))
+    cls = flat.classes[model]
     env: dict[str, object] = {}
     out: list[Var] = []
     for symbol in cls.symbols.values():             # declaration order
@@ -477,3 +477,57 @@ def test_pymoca_reading_keeps_the_declared_output_start():
     xml, header = generate(text)
     assert agreement(text, xml, header) == []
     assert '    X("t", 1, TYPE_REAL, CAUS_OUTPUT, -1) \\' in header and "start=" not in xml.split("<ModelVariables>")[1]
+
+
+# --------------------------------------------------------------------------------------------------
+# The interface element: the same generator on modelica/InterfaceElement.mo, with model exchange
+
+ELEMENT_MO = ROOT / "modelica" / "InterfaceElement.mo"
+
+
+def test_element_generated_files_agree_with_pymocas_reading(tmp_path):
+    """The element's modelDescription.xml and variables.h against pymoca's reading of its Modelica file; the
+    model exchange part: one der(x) variable per state (the public outputs whose der() the equations use, in
+    declaration order), each with derivative= pointing at its state, listed under <Derivatives> in that order."""
+    subprocess.run([sys.executable, str(ROOT / "fmu" / "generate.py"), str(tmp_path), str(ELEMENT_MO)], check=True)
+    xml = (tmp_path / "modelDescription.xml").read_text(encoding="utf-8")
+    header = (tmp_path / "sources" / "variables.h").read_text(encoding="utf-8")
+    text = ELEMENT_MO.read_text(encoding="utf-8")
+    description, modelica = pymoca_model(text, "InterfaceElement")
+    root, variables = xml_model(xml)
+    assert root.get("modelName") == "InterfaceElement" and root.get("description") == description
+    public = [v for v in variables if not v.name.startswith("der(")]
+    assert compare(modelica, public) == []
+    states = [n for n in ("z_y", "z_f", "F_ve", "kappa")]
+    flat = tree.flatten(parser.parse(text), ast.ComponentRef(name="InterfaceElement")).classes["InterfaceElement"]
+    der_used: set[str] = set()
+
+    def walk(node) -> None:
+        if isinstance(node, ast.Expression) and getattr(node.operator, "name", node.operator) == "der":
+            der_used.add(node.operands[0].name)
+        if isinstance(node, ast.Node):
+            for k, v in vars(node).items():
+                if k not in ("parent", "scope"):
+                    walk(v)
+        elif isinstance(node, (list, tuple)):
+            for v in node:
+                walk(v)
+
+    walk(flat.equations)
+    assert der_used == set(states)
+    by_name = {v.name: v.vr for v in variables}
+    der_rows = [sv for sv in root.iter("ScalarVariable") if sv.get("name").startswith("der(")]
+    assert [sv.get("name") for sv in der_rows] == [f"der({s})" for s in states]
+    for sv, s in zip(der_rows, states):
+        assert next(iter(sv)).get("derivative") == str(by_name[s]) and sv.get("causality") == "local"
+    derivs = [int(u.get("index")) for u in root.find("ModelStructure/Derivatives")]
+    assert derivs == [by_name[f"der({s})"] for s in states]
+    assert root.find("ModelExchange") is not None and root.find("CoSimulation") is not None
+    assert root.find("CoSimulation").get("canGetAndSetFMUstate") == "true"
+    guid = root.get("guid")
+    header_vars = [v for v in modelica]
+    problems = compare_header(header_vars + [Var(vr=len(modelica) + i + 1, name=f"der({s})", type="Real",
+                                                 causality="local", variability="continuous", initial=None,
+                                                 unit=None, start=None, description="", declared_start=None)
+                                             for i, s in enumerate(states)], header, guid)
+    assert problems == []

@@ -186,17 +186,23 @@ def test_a_file_system_that_cannot_lock_is_named_not_blamed_on_another_study(tmp
     assert "local disk" in msg
 
 
-def test_stale_extraction_folders_are_judged_by_psutil(tmp_path):
-    from fmusa.fmi import archive
-    dead = subprocess.Popen([sys.executable, "-c", "pass"])
-    dead.wait()
-    assert archive._pid_alive(os.getpid()) and not archive._pid_alive(dead.pid)
-    stale, live = tmp_path / f"{archive.PREFIX}stale", tmp_path / f"{archive.PREFIX}live"
-    for d, pid in ((stale, dead.pid), (live, os.getppid())):
-        d.mkdir()
-        (d / archive.OWNER_FILE).write_text(str(pid), encoding="utf-8")
-    assert archive.remove_orphans(tmp_path) == [stale]
-    assert live.exists() and not stale.exists()
+def test_extraction_folders_are_claimed_and_judged_without_fcntl(tmp_path):
+    """The extraction folders' owner lock in a Windows-like interpreter (msvcrt.locking): a folder claimed by
+    a live process is kept, one whose owner file nobody holds is removed."""
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(WINDOWS_LIKE, encoding="utf-8")
+    code = ("import os, sys; from pathlib import Path; import fmusa.fmi.archive as a; a.GRACE_S = 0\n"
+            "root = Path(sys.argv[1]); live, stale = root / 'fmusa-fmu-live', root / 'fmusa-fmu-stale'\n"
+            "live.mkdir(); stale.mkdir(); (stale / a.OWNER_FILE).write_text('1')\n"
+            "import subprocess; c = subprocess.Popen([sys.executable, '-c', 'import sys, time; import "
+            "fmusa.fmi.archive as a; a.claim_folder(sys.argv[1]); print(1, flush=True); time.sleep(60)', "
+            "str(live)], stdout=subprocess.PIPE)\n"
+            "c.stdout.readline(); print(sorted(p.name for p in a.remove_orphans(root)), live.exists()); c.kill()")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True,
+                       encoding="utf-8", timeout=120, env=_env(PYTHONPATH=f"{site}{os.pathsep}{SRC}"))
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["['fmusa-fmu-stale']", "True"]
 
 
 def test_no_fork_hook_or_fcntl_is_needed_to_import_and_lock(tmp_path):

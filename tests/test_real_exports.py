@@ -192,7 +192,9 @@ def test_an_accurate_fmu_is_not_flagged(tmp_path):
     steps = res.summary["fmu_steps"]
     assert steps["flagged"] == [] and steps["advice"] == []
     assert len(steps["checks"]) >= 3 * 3 and "implausible" not in res.summary
-    assert max(steps["largest_relative"].values()) < 1e-3       # CVode at rtol 1e-6 against RK4
+    # CVode at rtol 1e-6 against RK4 (the halved step, read at every halved step, also moves the sampled peak
+    # v_max, within its sampling bound)
+    assert max(c["relative"] for c in steps["checks"] if not c["variant"].startswith("communication")) < 1e-3
 
 
 def test_a_binary_that_cannot_load_stops_the_study_at_once(tmp_path):

@@ -3,6 +3,8 @@
 monitors of our own FMU (max |y|, max |v|) and against much finer sampling (settling time)."""
 from __future__ import annotations
 
+import re
+
 import json
 import sys
 from pathlib import Path
@@ -180,8 +182,10 @@ def test_refine_peaks_is_validated_at_load(tmp_path):
         parse_study(no_peak, "bad.yaml")
     with pytest.raises(StudyError, match=r"refine_factor' in 'scenario' must be ≥ 2"):
         parse_study(base.replace("  refine_peaks: true\n", "  refine_peaks: true\n  refine_factor: 1\n"), "bad.yaml")
-    with pytest.raises(StudyError, match=r"'settle' .* needs the band; add settle_tol"):
+    with pytest.raises(StudyError, match=r"'settle' .* needs the band; add settle_tol") as err:
         parse_study(base.replace(", settle_tol: 1.0", ""), "bad.yaml")
+    # no number whatever the output's unit (the paper's velocity threshold is no band for a displacement in mm)
+    assert "FMU's unit of der(screw.y_mm)" in str(err.value) and not re.search(r"settle_tol: \d", str(err.value))
     with pytest.raises(StudyError, match=r"settle_tol' in 'metrics.max_y' applies to reduce: settle only"):
         parse_study(base.replace("reduce: max_abs, scale: 1.0e-3, unit: m}", "reduce: max_abs, settle_tol: 1, unit: m}"),
                     "bad.yaml")

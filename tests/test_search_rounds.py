@@ -186,9 +186,9 @@ def test_one_parameter_study_in_rounds(tmp_path):
             res = run_with_report(study, tmp_path / f"out{par}", progress=False)
             text = (tmp_path / f"out{par}" / "report.md").read_text(encoding="utf-8")
             par_s = res.summary["search"]["parallel"]
-            assert (f"The search ran in rounds of up to 4 points: {par_s['rounds']} rounds, {par_s['runs']} runs"
+            assert (f"The search asked for {par_s['runs']} points in {par_s['rounds']} rounds of up to 4"
                     in text), text
-            assert f"takes {par_s['sequential_rounds']} rounds of one run" in text
+            assert f"the sequential search asks for {par_s['sequential_rounds']} points, one per round" in text
         else:
             res = run_study(study, tmp_path / f"out{par}", progress=False)
         found.append(res.search.optimum["d"])

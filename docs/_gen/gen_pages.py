@@ -3,13 +3,12 @@
 Run by ``mkdocs build`` (``make docs``); nothing it writes is committed. It needs the built FMU
 (``make docs`` builds it first).
 
-- reference/study-keys.md: the study file's keys, from ``fmusa.study.schema`` (checked against the loader);
-- reference/model.md: the ScrewVertebra model, from fmu/MODEL.md and the Modelica source (its equations and
-  public declarations);
-- reference/troubleshooting.md: every FmusaError subclass, found by introspection, with its fix;
+- the committed generated pages (study keys, model, troubleshooting, the identifiability table; see
+  reference.py) are checked: a stale one stops the build with the command that rewrites it;
 - reference/api.md: the public Python API, from the docstrings (mkdocstrings);
-- figures/: the paper's study run through the FMU (studies/paper.yaml, about 8 s) and a pullout, drawn by
-  the same code as ``fmusa sweep`` and ``fmusa pullout``.
+- bench.md gets the last measurement of ``make bench`` (out/bench/bench.json), with the machine it ran on;
+- figures/: the paper's study run through the FMU (studies/paper.yaml) and a pullout, drawn by the same code
+  as ``fmusa sweep`` and ``fmusa pullout``.
 """
 from __future__ import annotations
 
@@ -24,9 +23,8 @@ ROOT = HERE.parents[1]
 sys.path.insert(0, str(HERE))
 
 import api_page  # noqa: E402
-import errors_page  # noqa: E402
-import model_page  # noqa: E402
-import study_keys  # noqa: E402
+import bench_page  # noqa: E402
+import reference  # noqa: E402
 
 #: The paper study's figures the pages show (a missing one fails the build: the link checker sees it).
 PAPER_FIGURES = ("grid_max_y.png", "grid_t_eq.png", "search_path.png", "search_max_y.png", "ramp_time.png",
@@ -68,8 +66,10 @@ def paper_report(report: str) -> str:
     return "\n".join(lines[:1] + ["", note, ""] + lines[1:]) + "\n"
 
 
-write("reference/study-keys.md", study_keys.render())
-write("reference/model.md", model_page.render())
-write("reference/troubleshooting.md", errors_page.render())
+_stale = reference.stale()
+if _stale:
+    raise RuntimeError(f"generated pages out of date: {', '.join(_stale)}; run `{reference.REWRITE}`")
 write("reference/api.md", api_page.render())
+with mkdocs_gen_files.open("bench.md", "a", encoding="utf-8") as _f:
+    _f.write("\n" + bench_page.render(ROOT / "out" / "bench" / "bench.json"))
 figures()

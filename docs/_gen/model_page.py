@@ -52,7 +52,9 @@ def model_md() -> str:
 
 
 def _cell(text: str) -> str:
-    return text.replace("|", "\\|")
+    """A model text as literal Markdown in a table cell (no markup, link or HTML, no cell break)."""
+    from fmusa.format import md_text
+    return md_text(text)
 
 
 def variables_tables(rows: list) -> str:

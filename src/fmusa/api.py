@@ -41,14 +41,19 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     """Every stage of ``study`` into ``out``: runs.csv and summary.json first, then (``figures``) the
     figures and report.md, drawn from the result without running the FMU again."""
     t0 = time.perf_counter()
+    # the folder stays locked until the report is written: another study on the same out waits its turn
     result = run_stages(study, out, resume=resume, workers=workers, scheduler=scheduler, progress=progress,
-                        extensions=extensions_for(study, report=figures), retry_failed=retry_failed)
-    if figures:     # runs.csv and summary.json are on disk already: a report that fails loses neither
-        try:
-            write_report(result)
-        except OutputError as exc:
-            raise type(exc)(f"{exc}. runs.csv and summary.json in {result.out} are complete; rerun with "
-                            f"--resume once the folder is writable, or with --no-figures") from None
-        result.summary["wall_s_with_report"] = time.perf_counter() - t0
-        write_summary(result)
+                        extensions=extensions_for(study, report=figures), retry_failed=retry_failed,
+                        hold_lock=True)
+    try:
+        if figures:     # runs.csv and summary.json are on disk already: a report that fails loses neither
+            try:
+                write_report(result)
+            except OutputError as exc:
+                raise type(exc)(f"{exc}. runs.csv and summary.json in {result.out} are complete; rerun with "
+                                f"--resume once the folder is writable, or with --no-figures") from None
+            result.summary["wall_s_with_report"] = time.perf_counter() - t0
+            write_summary(result)
+    finally:
+        result.release()
     return result

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from fmusa import __version__
 from fmusa.errors import FmusaError, UsageError
+from fmusa.fmi.info import SUPPORTED_FMI_VERSIONS
 
 #: Table 2 of the paper: thresholds of the parameter search.
 EPS_Y = 5e-4        # m, max |y|
@@ -49,6 +50,15 @@ def _int_at_least(low: int):
             raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
         return value
     return parse
+
+
+def _delimiter(text: str) -> str:
+    """--delimiter: one of the CSV delimiters, ``tab`` (or ``\\t``) for a tab."""
+    from fmusa.diagnose.measured import DELIMITERS
+    value = {"tab": "\t", "\\t": "\t"}.get(text.lower(), text)
+    if value not in DELIMITERS:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a delimiter fmusa reads; use one of , ; | tab")
+    return value
 
 
 def _positive_float(text: str) -> float:
@@ -136,7 +146,7 @@ def plot_pullout(df, params: dict, path: Path) -> None:
 
     t = df["time"].to_numpy()
     t_eq = float(df["t_eq"].iloc[-1])
-    fig, axes = plt.subplots(3, 1, figsize=(8, 9.5), sharex=True, constrained_layout=True)
+    fig, axes = plt.subplots(3, 1, figsize=(7.0, 8.0), sharex=True, constrained_layout=True)
     fig.suptitle(f"{_load_case(params)}\n"
                  f"c = c_y = {_fmt(params.get('c_y', float('nan')))} N/m,  "
                  f"d = d_y = {_fmt(params.get('d_y', float('nan')))} N·s/m", fontsize=12)
@@ -179,13 +189,9 @@ def plot_pullout(df, params: dict, path: Path) -> None:
                    title=f"max |y| = {df['y_max'].iloc[-1] * 1e3:.4g} mm")
     axes[2].legend(loc="best", fontsize=9, title_fontsize=9,
                    title=f"max |$\\dot y$| = {df['v_y_max'].iloc[-1] * 1e3:.4g} mm/s{rest}")
-    from fmusa.files import atomic_path
+    from fmusa.files import save_figure
 
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=120)
-    finally:
-        plt.close(fig)
+    save_figure(fig, path, tight=False, dpi=120)
 
 
 # ---------------------------------------------------------------------------- sweep
@@ -215,41 +221,66 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed reruns the failed runs of a study in --out: give it with --resume")
+    from fmusa.study.loader import files_outside
+
     study = load_study(args.study)
+    for note in files_outside(study):    # the study file may come from someone else: say what it reads
+        print(f"note: {note}", file=sys.stderr)
 
     def kept() -> set[Path]:
-        return set(args.out.glob("runs.previous-*.csv")) if args.out.is_dir() else set()
+        """The run files an earlier study left aside: runs.csv and the sensitivity stage's alike (a study with a
+        sensitivity stage only has no runs.csv)."""
+        return set(args.out.glob("*runs.previous-*.csv")) if args.out.is_dir() else set()
 
     before = kept()
     try:
         result = run_study(study, args.out, resume=args.resume, workers=args.workers, scheduler=args.scheduler,
                            figures=not args.no_figures, progress=not args.quiet, retry_failed=args.retry_failed)
-    finally:   # said once it has happened (a study that fails to start moves nothing)
-        for path in sorted(kept() - before):
-            tag = path.stem.rpartition(".")[2]
-            aside = sorted(p.name for p in args.out.glob(f"*.{tag}*") if not p.name.startswith("runs.")
-                           and p.name.partition(f".{tag}")[2][:1] in ("", "."))     # not previous-10 for -1
-            also = f" (and its {', '.join(aside)})" if aside else ""
-            print(f"note: this study started afresh; the earlier runs are kept in {path}{also} (use --resume "
-                  f"to continue a study instead)", file=sys.stderr)
+    finally:   # said once it has happened (a study that fails to start moves nothing), --quiet or not
+        _note_kept(args.out, sorted(kept() - before))
     s = result.summary
-    # runs.csv's runs and the sensitivity stage's (sensitivity_runs.csv)
-    sens = s.get("sensitivity") or {}
-    runs = s.get("runs", 0) + int(sens.get("runs", 0) or 0)
-    failed = s.get("failed", 0) + int(sens.get("failed", 0) or 0)
-    print(f"{study.name}: {runs} runs ({s.get('simulated_this_session', 0)} simulated now, "
-          f"{failed} failed) in {s.get('wall_s', 0.0):.2f} s")
+    counts = s.get("run_counts") or {}          # the one count of runs (docs: runs and how they are counted)
+    print(f"{study.name}: {counts.get('runs', 0)} runs ({counts.get('simulated_now', 0)} simulated now, "
+          f"{counts.get('failed', 0)} failed) in {s.get('wall_s', 0.0):.2f} s")
     if s.get("optimum"):
         opt = ", ".join(f"{k} = {v:.6g}" for k, v in s["optimum"].items())
-        print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}")
+        print(f"optimum: {opt}; binding: {', '.join(s.get('binding_constraint') or []) or 'none'}"
+              + ("" if s.get("optimum_reliable", True) else " (unreliable: see the warnings)"))
+    for note in s.get("optimum_at_edge") or []:
+        print(f"note: {note}")
+    for note in (s.get("optimum_free") or {}).values():
+        print(f"note: {note}")
+    acc = s.get("accuracy")
+    if acc:      # a check after the stages moved a metric a constraint reads
+        print(f"warning: the accuracy checks moved the constrained metric{'s' if len(acc['metrics']) > 1 else ''} "
+              f"{', '.join(acc['metrics'])}: every run's feasibility"
+              f"{' and the optimum' if s.get('optimum') else ''} may be wrong", file=sys.stderr)
+        for w in acc["warnings"][:3]:
+            print(f"  {w}", file=sys.stderr)
+        if len(acc["warnings"]) > 3:
+            print(f"  ({len(acc['warnings']) - 3} more in summary.json, key accuracy)", file=sys.stderr)
     par = (s.get("search") or {}).get("parallel")
     if par:      # the search in rounds (search.parallel): its rounds against the sequential search's
-        print(f"search: {par['rounds']} rounds of up to {par['workers']} runs ({par['runs']} runs); the "
-              f"sequential search: {par['sequential_rounds']} rounds")
+        print(f"search: {par['runs']} points asked in {par['rounds']} rounds of up to {par['workers']}; the "
+              f"sequential search asks for {par['sequential_rounds']}, one per round")
     for name in ("runs.csv", "summary.json", "report.md"):
         if (args.out / name).exists():
             print(f"wrote {args.out / name}")
     return 0
+
+
+def _note_kept(out: Path, paths: list[Path]) -> None:
+    """One note per earlier study moved aside: its run files and the outputs that went with them."""
+    by_tag: dict[str, list[Path]] = {}
+    for path in paths:
+        by_tag.setdefault(path.stem.rpartition(".")[2], []).append(path)        # previous-<n>
+    for tag, runs in sorted(by_tag.items()):
+        names = {p.name for p in runs} | {p.name + ".study.json" for p in runs}
+        aside = sorted(p.name for p in out.glob(f"*.{tag}*") if p.name not in names
+                       and p.name.partition(f".{tag}")[2][:1] in ("", "."))     # not previous-10 for -1
+        also = f" (and its {', '.join(aside)})" if aside else ""
+        print(f"note: this study started afresh; the earlier runs are kept in {', '.join(map(str, runs))}{also} "
+              f"(use --resume to continue a study instead)", file=sys.stderr)
 
 
 # ---------------------------------------------------------------------------- inspect
@@ -361,6 +392,56 @@ def _fmt_num(x) -> str:
     return f"{x:g}" if isinstance(x, float) else str(x)
 
 
+def _sources_line(info, full: bool) -> str:
+    """The C sources in one line: how many, a few names (all with --full), and whether fmusa can build them."""
+    if info.can_compile:
+        files = list(info.source_files)
+        shown = files if full or len(files) <= 4 else files[:3] + ["…"]
+        text = f"{len(files)} file{'s' * (len(files) != 1)} listed under <SourceFiles> ({', '.join(shown)})"
+        if not full and len(files) > 4:
+            text += "; --full lists them"
+        return text
+    if info.has_sources:
+        if info.is_fmi3:
+            return "sources/ present (fmusa builds binaries from sources for FMI 2.0 only)"
+        return "sources/ present, but not listed under <SourceFiles> (fmusa cannot build them)"
+    return "none"
+
+
+def _runs_here(info, note: str | None) -> str:
+    """Whether fmusa can run the FMU on this machine, and why not: its FMI version, and whether the binary
+    for this machine is there and loads (asked of a child process), or can be built from its sources."""
+    from fmusa.fmi.loadable import binary_loads
+    from fmusa.runs.preflight import load_problem
+
+    if note:           # an FMI version fmusa does not run (FMI 1.0): the reader's message says which and why
+        return (f"no: FMI {info.fmi_version}; fmusa runs FMI {' and '.join(SUPPORTED_FMI_VERSIONS)} FMUs: export "
+                f"the model again as one")
+    plat = info.host_platform
+    with_binary = [i for i in info.interfaces if info.has_binary(i)]
+    if not info.interfaces:
+        return "no: the model description declares no co-simulation or model exchange interface"
+    if not with_binary:
+        if info.can_compile:
+            return (f"once built: no {plat} binary; fmusa builds one from the C sources before the first run "
+                    f"(this needs a C compiler)")
+        return (f"no: no {plat} binary (it has {', '.join(info.platforms) or 'none'}) and no C sources to build "
+                f"one from: export it again for this platform, or with its C sources")
+    answers = {}
+    for iface in with_binary:
+        name = info.binary_name(iface)
+        answers.setdefault(name, (iface, binary_loads(info, iface)))
+    bad = [(i, a) for i, a in answers.values() if a is not None and not a.loads]
+    label = {"co-simulation": "co-simulation", "model-exchange": "model exchange"}
+    modes = " and ".join(label.get(i, i) for i in with_binary)
+    if not bad:
+        return f"yes: FMI {info.fmi_version}, {modes}; the {plat} binary loads"
+    iface, answer = bad[0]
+    reason = load_problem(str(info.path), Exception(answer.reason)).split(": the FMU cannot be loaded on this "
+                                                                          "machine: ", 1)[-1]
+    return f"no: the {plat} binary does not load: {reason}"
+
+
 def cmd_inspect(args: argparse.Namespace) -> int:
     import shutil as _shutil
 
@@ -390,23 +471,15 @@ def cmd_inspect(args: argparse.Namespace) -> int:
             _quiet_stdout()
         if note:
             print(f"fmusa inspect: {note}", file=sys.stderr)
+        if info.unsafe:
+            print(f"fmusa inspect: UNSAFE: {'; '.join(info.unsafe)}: fmusa refuses to build or run this FMU",
+                  file=sys.stderr)
         return 0
     plat = info.host_platform
     names = {"co-simulation": "co-simulation (CS)", "model-exchange": "model exchange (ME)"}
     ifaces = ", ".join(f"{names.get(k, k)}, model identifier {v}" for k, v in info.interfaces.items()) or "none"
-    if info.platforms:
-        here = ("yes" if any(info.has_binary(i) for i in info.interfaces) else "no")
-        binaries = f"{', '.join(info.platforms)}  (this machine, {plat}: {here})"
-    else:
-        binaries = "none"
-    if info.can_compile:
-        sources = f"yes: {', '.join(info.source_files)}"
-        if not any(info.has_binary(i) for i in info.interfaces):
-            sources += f"  (fmusa builds the {plat} binary from them before a study)"
-    elif info.has_sources:
-        sources = "sources/ present, but not listed under <SourceFiles> (cannot be built)"
-    else:
-        sources = "no"
+    binaries = ", ".join(info.platforms) if info.platforms else "none"
+    sources = _sources_line(info, args.full)
     de = info.default_experiment
     if de:
         parts = [f"{label} {_fmt_num(de[key])}{unit}" for key, label, unit in
@@ -420,9 +493,13 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         c = v.causality or "local"
         counts[c] = counts.get(c, 0) + 1
     summary = ", ".join(f"{counts[c]} {c}" for c in CAUSALITIES if c in counts)
+    if not counts.get("parameter"):
+        summary += ("; no parameters: a study can set only its inputs" if counts.get("input") else
+                    "; no parameters and no inputs: a study can set nothing")
     head = [
         ("file", str(args.fmu)),
         ("FMI version", info.fmi_version),
+        ("runs here", _runs_here(info, note)),
         ("model name", info.model_name),
         ("description", info.description or "-"),
         ("generated by", info.generation_tool or "-"),
@@ -445,6 +522,12 @@ def cmd_inspect(args: argparse.Namespace) -> int:
                 for v in arrays) + "  (elements 1-based, as a study names them)"))
     else:
         head.append(("variables", f"{len(info.variables)} ({summary})"))
+    if info.unsafe:      # names that lead outside the folder: said here, refused by sweep, diagnose, pullout
+        head.append(("UNSAFE", "; ".join(info.unsafe) + ": fmusa refuses to build or run this FMU"))
+    # an FMU's text may hold terminal control sequences: shown, not obeyed
+    from fmusa.format import printable
+    head = [(k, printable(v)) for k, v in head]
+    rows = [{k: printable(v) for k, v in r.items()} for r in rows]
     width = _shutil.get_terminal_size((120, 24)).columns
     try:
         _print_inspect(head, info, note, rows, causality, args, width)
@@ -471,8 +554,6 @@ def _print_inspect(head, info, note, rows, causality, args, width) -> None:
                                 subsequent_indent=" " * (key_w + 2)))
     for w in info.warnings:
         print(f"{'warning'.ljust(key_w)}  {' '.join(w.split())}")
-    if note:
-        print(f"{'note'.ljust(key_w)}  {note}")
     print()
     if not rows:
         filt = []
@@ -516,6 +597,10 @@ def _add_diagnose(sub: argparse._SubParsersAction, full: bool = True) -> None:
     g.add_argument("--force-unit", default="N", metavar="UNIT", help="N, kN, mN, lbf")
     g.add_argument("--rate", default=None, metavar="RATE",
                    help="constant drive rate, e.g. '10 mm/s', to derive time for files without a time column")
+    g.add_argument("--delimiter", default=None, type=_delimiter, metavar="CHAR",
+                   help="field delimiter: ',' ';' '|' or tab (default: detected from each file)")
+    g.add_argument("--decimal", default=None, choices=(".", ","),
+                   help="decimal mark: '.' or ',' (default: detected from each file)")
     g.add_argument("--no-zero-drive", action="store_true",
                    help="keep the drive as measured (default: shift it to start at 0, where the model is at rest)")
     p.add_argument("--max-points", type=_int_at_least(10), default=300,
@@ -538,9 +623,13 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     cands = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
     spec = ColumnSpec(time=args.time_column, displacement=args.displacement_column, force=args.force_column,
                       time_unit=args.time_unit, displacement_unit=args.displacement_unit,
-                      force_unit=args.force_unit, rate=args.rate)
+                      force_unit=args.force_unit, rate=args.rate, delimiter=getattr(args, "delimiter", None),
+                      decimal=getattr(args, "decimal", None))
     exps = load_experiments(args.files, args.drive, spec, zero_drive=not args.no_zero_drive,
                             max_points=args.max_points)
+    for e in exps:        # what was detected, so that a wrong guess is seen
+        if e.meta.get("detected"):
+            print(f"read {e.path}: {', '.join(e.meta['detected'])} (detected; set with --delimiter, --decimal)")
     diag = run_diagnosis(exps, args.drive, args.out, fmu_path=args.fmu, candidates=cands,
                          workers=args.workers, max_starts=args.starts)
     g = diag["gain"]
@@ -587,8 +676,9 @@ def _add_diagnose_shear(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-points", type=_int_at_least(10), default=300,
                    help="samples per test after block averaging")
     p.add_argument("--diagnosed", type=_int_at_least(1), default=3, metavar="N",
-                   help="diagnose the first N specimens through the FMU (default 3, about 10 minutes on two "
-                        "cores); the two-line comparison with the authors always covers every test")
+                   help="diagnose the first N specimens through the FMU (default 3; a specimen is two units, "
+                        "and `make bench` times one: diagnose_shear_unit_wall_s); the two-line comparison with "
+                        "the authors always covers every test")
     p.add_argument("--all", action="store_true", help="diagnose every specimen through the FMU (slow)")
     p.add_argument("--starts", type=_int_at_least(1), default=6, help="least-squares starts per model (default 6)")
     p.add_argument("--workers", type=_int_at_least(1), default=None, help="processes (default: all cores)")
@@ -619,8 +709,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The ``fmusa`` parser. ``command``: the subcommand about to run, when known; a subcommand whose
     options need a heavy import (diagnose) defines them only when it is that one or ``command`` is None."""
     parser = argparse.ArgumentParser(
-        prog="fmusa", description="Run the ScrewVertebra FMU (or another FMI 2.0 FMU, co-simulation or "
-                                  "model exchange) for parameter studies.")
+        prog="fmusa", description="Run the ScrewVertebra FMU (or another FMI "
+                                  f"{' or '.join(SUPPORTED_FMI_VERSIONS)} FMU, co-simulation or model exchange) "
+                                  "for parameter studies.")
     parser.add_argument("--version", action="version", version=f"fmusa {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
@@ -713,6 +804,23 @@ def interrupted_message(args: argparse.Namespace) -> str:
     return "interrupted"
 
 
+def _one_line_warning(command: str):
+    """A warning a library raises while a command runs (numpy, SALib, pandas…) as one line a user can read:
+    what it says and which library said it, not the library's source path and line (the stages turn the
+    warnings they expect into the study's own messages; this is for any other)."""
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        parts = Path(str(filename)).parts
+        lib = next((p for p in reversed(parts[:-1]) if p in ("SALib", "numpy", "scipy", "pandas", "matplotlib",
+                                                              "fmpy", "dask", "distributed", "fmusa")),
+                   Path(str(filename)).stem)
+        text = " ".join(str(message).split())
+        try:
+            print(f"fmusa {command}: warning: {text} ({category.__name__} from {lib})", file=file or sys.stderr)
+        except (OSError, ValueError):
+            pass
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand. A :class:`~fmusa.errors.FmusaError` is the user's to fix: one line on stderr
     and its ``exit_code`` (2, or 1 when an FMU could not be found, built or run); any other exception
@@ -724,6 +832,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser(_command_word(argv))
     args = parser.parse_args(argv)
     previous = _stop_on_signals()
+    import warnings
+    shown = warnings.showwarning
+    warnings.showwarning = _one_line_warning(args.command)
     try:
         return int(args.func(args) or 0)
     except FmusaError as exc:
@@ -749,6 +860,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         import signal
 
+        warnings.showwarning = shown
         for s, old in previous.items():
             try:
                 signal.signal(s, old)

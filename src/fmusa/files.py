@@ -9,6 +9,7 @@ import contextlib
 import errno
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -16,7 +17,23 @@ from typing import Iterator
 from fmusa.errors import FmusaError
 
 __all__ = ["OutputError", "DiskFullError", "writable_folder", "atomic_path", "atomic_write", "write_error",
-           "free_space", "move_aside"]
+           "free_space", "move_aside", "cache_dir", "ENV_CACHE"]
+
+#: Environment variable naming the folder of fmusa's caches (default: the platform's user cache folder).
+ENV_CACHE = "FMUSA_CACHE_DIR"
+
+
+def cache_dir() -> Path:
+    """fmusa's cache folder: ``$FMUSA_CACHE_DIR``, else the platform's user cache folder."""
+    env = os.environ.get(ENV_CACHE)
+    if env:
+        return Path(env).expanduser()
+    if sys.platform == "win32":
+        base = Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local")
+        return base / "fmusa" / "cache"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Caches" / "fmusa"
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fmusa"
 
 
 class OutputError(FmusaError, OSError):
@@ -123,6 +140,23 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             tmp.unlink()
 
 
+def save_figure(fig, path: str | os.PathLike, tight: bool = True, **savefig) -> Path:
+    """Write a matplotlib figure whole (see :func:`atomic_path`) and close it; every figure fmusa makes goes
+    through here, so that the tests can check each one (:mod:`fmusa.figure_check`, ``$FMUSA_CHECK_FIGURES``)."""
+    import matplotlib.pyplot as plt
+
+    from fmusa.figure_check import record
+
+    path = Path(path)
+    try:
+        record(fig, path, tight)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, **({"bbox_inches": "tight"} if tight else {}), **savefig)
+    finally:
+        plt.close(fig)
+    return path
+
+
 def atomic_write(path: str | os.PathLike, data: str | bytes, encoding: str = "utf-8",
                  errors: str = "strict") -> Path:
     """Write ``data`` to ``path`` whole or not at all (see :func:`atomic_path`). Returns ``path``.
@@ -166,3 +200,23 @@ def move_aside(folder: str | os.PathLike, names: tuple[str, ...], tag: str) -> l
             raise write_error(target, exc) from None
         moved.append(target)
     return moved
+
+
+def try_lock(fh) -> None:
+    """Lock the open file ``fh`` for this process alone, without waiting: ``fcntl.flock`` on POSIX,
+    ``msvcrt.locking`` (its first byte) on Windows. BlockingIOError when another process holds it; any
+    other OSError when the file system cannot lock files at all. The system releases it when the process
+    dies, however it dies."""
+    try:
+        import fcntl
+    except ImportError:
+        fcntl = None
+    if fcntl is not None:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return
+    import msvcrt
+    fh.seek(0)
+    try:
+        msvcrt.locking(fh.fileno(), msvcrt.LK_NBLCK, 1)
+    except PermissionError as exc:     # Windows: the region is locked by another process
+        raise BlockingIOError(exc.errno, str(exc)) from None

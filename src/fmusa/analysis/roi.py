@@ -73,9 +73,18 @@ def automatic_region(grid: pd.DataFrame, inner: str, outer: str | None = None,
     not vary; None: every run); ``outer`` None gives the inner range alone (rule 1). ``constraints`` and
     ``params`` (the study's) make the error of a grid without a feasible point say which constraints fail,
     by how much, and along which parameter widening could help (:func:`infeasible_message`)."""
+    whole = grid
     grid = _at_point(grid, at)
     axes = [n for n in (inner, outer) if n]
-    why = (lambda: infeasible_message(grid, constraints, list(params or axes))) if constraints else None
+    if at and not len(grid):
+        raise StudyError(f"no grid run at {_where(at)}, where the region is found: set stages.roi.at to grid "
+                         f"values of {', '.join(at)}")
+
+    def why() -> str:
+        text = (infeasible_message(grid, constraints, list(params or axes)) if constraints else
+                f"no grid point meets every constraint: widen the grid of {' and '.join(axes)} or relax the "
+                f"constraints (see runs.csv, columns ok_*)")
+        return text + _feasible_elsewhere(whole, grid, at)
     if len(grid) and "status" in grid and (grid["status"] != "ok").all():
         first = grid["message"].iloc[0] if "message" in grid else ""
         raise StudyError(f"all {len(grid)} grid runs failed, so there is no region of interest; the first "
@@ -84,9 +93,7 @@ def automatic_region(grid: pd.DataFrame, inner: str, outer: str | None = None,
         return _inner_only(grid, inner, why)
     xs, zs, feas = feasibility_matrix(grid, inner, outer)
     if not feas.any():
-        raise StudyError(why() if why else
-                         f"no grid point meets every constraint: widen the grid of {inner} and {outer} "
-                         f"or relax the constraints (see runs.csv, columns ok_*)")
+        raise StudyError(why())
     notes = []
     x_min = np.array([xs[np.argmax(row)] if row.any() else np.inf for row in feas])
     best = x_min.min()
@@ -105,15 +112,37 @@ def automatic_region(grid: pd.DataFrame, inner: str, outer: str | None = None,
     return Region(inner, outer, (x_lo, float(best)), (z_lo, z_hi), "automatic", tuple(notes))
 
 
+def _where(at: Mapping[str, float]) -> str:
+    return ", ".join(f"{k} = {_num(v)}" for k, v in at.items())
+
+
+def _feasible_elsewhere(whole: pd.DataFrame, here: pd.DataFrame, at: Mapping[str, float] | None) -> str:
+    """The grid's feasible points at other values of the parameters held at ``at`` (the region is found
+    at ``at`` only), and how to find the region there: "" when there are none."""
+    if not at or "feasible" not in whole:
+        return ""
+    ok = whole[whole["feasible"].astype(bool) & ((whole["status"] == "ok") if "status" in whole else True)]
+    if not len(ok) or len(ok) == int((here["feasible"].astype(bool)).sum()):
+        return ""
+    names = list(at)
+    combos = ok.groupby(names, sort=True).size()
+    listed = "; ".join(f"{_where(dict(zip(names, key if isinstance(key, tuple) else (key,))))}: {n}"
+                       for key, n in combos.items())
+    first = combos.index[0]
+    first = dict(zip(names, first if isinstance(first, tuple) else (first,)))
+    return (f". The region is found at {_where(at)} (stages.roi.at, else the first grid values of the "
+            f"parameters the search does not vary), but {len(ok)} of the {len(whole)} grid points meet every constraint at other values "
+            f"({listed}): set stages.roi.at to one of them, e.g. roi: {{at: {{"
+            + ", ".join(f"{k}: {_num(v)}" for k, v in first.items()) + "}}")
+
+
 def _inner_only(grid: pd.DataFrame, inner: str, why=None) -> Region:
     """Rule 1 in one dimension: the grid neighbours that bracket the smallest feasible grid value."""
     xs = np.sort(grid[inner].unique())
     ok = (grid["feasible"].astype(bool) & (grid["status"] == "ok")).to_numpy()
     feasible_xs = np.sort(grid.loc[ok, inner].unique())
     if not len(feasible_xs):
-        raise StudyError(why() if why else
-                         f"no grid point meets every constraint: widen the grid of {inner} or relax the "
-                         f"constraints (see runs.csv, columns ok_*)")
+        raise StudyError(why())
     best = float(feasible_xs[0])
     j_best = int(np.searchsorted(xs, best))
     notes = []
@@ -305,3 +334,17 @@ def _widen_advice(ok: pd.DataFrame, c, params: Sequence[str]) -> str:
     if not tips:
         return ""
     return f"For '{c.name}': " + ", or ".join(tips)
+
+
+def floor_region(region: Region, rtol: float) -> Region:
+    """``region`` with an inner lower bound of 0 (the smallest grid value already feasible, or a manual 0)
+    raised to an absolute floor, ``rtol`` × its upper bound: a relative stop rule never holds near 0, and
+    many FMUs refuse a stiffness or area of 0. A boundary below the floor is reported as lying below it."""
+    lo, hi = region.inner_range
+    if not (lo <= 0 < hi):
+        return region
+    floor = rtol * hi
+    note = (f"the search starts at {region.inner} = {floor:.6g} (inner_rtol × the region's top), not at "
+            f"{lo:g}: a bound found below it is reported as lying below it")
+    from dataclasses import replace
+    return replace(region, inner_range=(floor, hi), notes=region.notes + (note,))

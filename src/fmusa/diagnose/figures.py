@@ -23,7 +23,7 @@ from fmusa.diagnose import residuals as rs  # noqa: E402
 from fmusa.diagnose.views import (by_loading_direction, experiment_motion, extended_name, final_label, final_name, fit_predictions,  # noqa: E402
                                   p_text, residual_series, response_channel)
 from fmusa.format import fmt  # noqa: E402
-from fmusa.files import atomic_path  # noqa: E402
+from fmusa.files import save_figure  # noqa: E402
 
 __all__ = ["write_figures", "fig_fit_time", "fig_loops", "fig_residuals", "fig_ranking", "MAX_PANELS"]
 
@@ -82,13 +82,7 @@ def _rmse(a: np.ndarray, b: np.ndarray) -> float:
 
 # ============================================================================ figures
 def _save(fig, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:    # written whole or not at all
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=DPI, bbox_inches="tight")
-    finally:
-        plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=DPI)     # written whole or not at all, checked in the tests
 
 
 def _grid(n_panels: int, width: float = 5.2, height: float = 3.3):

@@ -39,7 +39,7 @@ from fmusa.errors import FmusaError
 __all__ = [
     "MeasuredDataError", "ColumnSpec", "Experiment", "load_experiment", "load_experiments",
     "downsample", "parse_rate", "DRIVES", "ROLES", "LENGTH_UNITS", "FORCE_UNITS", "TIME_UNITS",
-    "RATE_UNITS", "MIN_ROWS", "OPTIONS",
+    "RATE_UNITS", "MIN_ROWS", "OPTIONS", "DELIMITERS", "DECIMALS", "sniff_dialect",
 ]
 
 #: What a test may impose.
@@ -67,8 +67,12 @@ _SI = {"time": "s", "displacement": "m", "force": "N"}
 OPTIONS = {
     "time": "--time-column", "displacement": "--displacement-column", "force": "--force-column",
     "time_unit": "--time-unit", "displacement_unit": "--displacement-unit",
-    "force_unit": "--force-unit", "rate": "--rate",
+    "force_unit": "--force-unit", "rate": "--rate", "delimiter": "--delimiter", "decimal": "--decimal",
 }
+#: Field delimiters a file may use (detected when none is given): the spreadsheet exports' four.
+DELIMITERS = {",": "comma", ";": "semicolon", "\t": "tab", "|": "bar"}
+#: Decimal marks: the point, or the comma of European spreadsheets (detected when none is given).
+DECIMALS = (".", ",")
 
 
 class MeasuredDataError(FmusaError, ValueError):
@@ -150,9 +154,22 @@ class ColumnSpec:
     flip_displacement: bool = False
     flip_force: bool = False
     rate: str | None = None
-    delimiter: str = ","
+    #: the field delimiter (one of :data:`DELIMITERS`); None: detected from the file
+    delimiter: str | None = None
+    #: the decimal mark, "." or ","; None: detected from the file
+    decimal: str | None = None
 
     def __post_init__(self) -> None:
+        if self.delimiter is not None and self.delimiter not in DELIMITERS:
+            raise MeasuredDataError(f"ColumnSpec: delimiter {self.delimiter!r} is not one of "
+                                    f"{', '.join(map(repr, DELIMITERS))} ({OPTIONS['delimiter']}, "
+                                    f"ColumnSpec.delimiter; leave it out to detect it)")
+        if self.decimal is not None and self.decimal not in DECIMALS:
+            raise MeasuredDataError(f"ColumnSpec: decimal mark {self.decimal!r} is not '.' or ',' "
+                                    f"({OPTIONS['decimal']}, ColumnSpec.decimal; leave it out to detect it)")
+        if self.delimiter is not None and self.delimiter == self.decimal:
+            raise MeasuredDataError(f"ColumnSpec: the delimiter and the decimal mark are both "
+                                    f"{self.delimiter!r}; a file with decimal commas separates fields with ';'")
         for role in ROLES:
             _scale(role, getattr(self, role + "_unit"), "ColumnSpec: ")
             name = getattr(self, role)
@@ -263,9 +280,62 @@ def _label(spec: ColumnSpec, role: str, drive: str) -> str:
     return f"column '{spec.column(role)}' ({tag})"
 
 
+_DECIMAL_COMMA = re.compile(r"^[-+]?\d*,\d+(?:[eE][-+]?\d+)?$")
+_DECIMAL_POINT = re.compile(r"^[-+]?\d*\.\d+(?:[eE][-+]?\d+)?$")
+
+
+def _first_lines(path: Path, n: int = 50) -> list[str]:
+    """Up to ``n`` non-blank lines from the start of the file (at most 1 MB read)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 20)
+    except OSError:
+        return []
+    text = head.decode("utf-8-sig", errors="replace")
+    lines = text.splitlines()
+    if len(head) == 1 << 20 and lines:
+        lines = lines[:-1]          # the last may be cut
+    return [ln for ln in lines if ln.strip()][:n]
+
+
+def sniff_dialect(path: Path, spec: ColumnSpec) -> tuple[str, str, list[str]]:
+    """(delimiter, decimal mark, what was detected) of CSV file ``path``: those of ``spec`` when given, else
+    detected from its first lines: the delimiter that splits the header and every line into the same
+    number (> 1) of fields, the most fields winning; the decimal comma when cells read like ``1,5`` and none
+    like ``1.5``. A file that fits neither is read with ',' and '.', and the checks after say what fails."""
+    lines = _first_lines(path)
+    found = []
+    delim = spec.delimiter
+    if delim is None:
+        best = (1, ",")
+        for cand in DELIMITERS:
+            counts = {ln.count(cand) for ln in lines}
+            if lines and len(counts) == 1 and counts.pop() + 1 > best[0]:
+                best = (lines[0].count(cand) + 1, cand)
+        delim = best[1]
+        found.append(f"delimiter {delim!r} ({DELIMITERS[delim]})")
+    dec = spec.decimal
+    if dec is None:
+        cells = [c.strip().strip('"') for ln in lines[1:] for c in ln.split(delim)]
+        comma = delim != "," and any(_DECIMAL_COMMA.match(c) for c in cells)
+        dec = "," if comma and not any(_DECIMAL_POINT.match(c) for c in cells) else "."
+        found.append(f"decimal mark {dec!r}")
+    return delim, dec, found
+
+
+def _duplicate_headers(path: Path, header: list[str]) -> None:
+    """Two columns of one name: refused, naming both (which one is meant cannot be known)."""
+    first: dict[str, int] = {}
+    for i, name in enumerate(header, start=1):
+        if name in first:
+            raise MeasuredDataError(f"{path}:1: columns {first[name]} and {i} are both headed '{name}'; rename "
+                                    f"one of them (fmusa cannot know which one is meant)")
+        first[name] = i
+
+
 def _read_table(path: Path, spec: ColumnSpec) -> pd.DataFrame:
     """The file as strings, one DataFrame row per line after the header (blank lines kept, so the
-    row index maps to line = index + 2); trailing blank lines dropped."""
+    row index maps to line = index + 2); trailing blank lines dropped. ``spec`` has its dialect."""
     if not path.exists():
         raise MeasuredDataError(f"{path}: file not found; check the path")
     if not path.is_file():
@@ -291,6 +361,10 @@ def _read_table(path: Path, spec: ColumnSpec) -> pd.DataFrame:
     except OSError as exc:
         raise MeasuredDataError(f"{path}: cannot be read ({exc.strerror or exc}); check the "
                                 f"file's permissions") from None
+    import csv
+    lines = _first_lines(path, 1)
+    header = next(csv.reader(lines, delimiter=spec.delimiter), []) if lines else []
+    _duplicate_headers(path, [h.strip() for h in header])
     df.columns = [str(c).strip() for c in df.columns]
     blank = df.apply(lambda col: col.isna() | (col.astype(str).str.strip() == "")).all(axis=1)
     keep = len(df)
@@ -309,7 +383,7 @@ def _missing_columns(path: Path, df: pd.DataFrame, spec: ColumnSpec, roles: list
     hint = ""
     if len(df.columns) == 1 and any(d in df.columns[0] for d in ";\t|"):
         hint = (" The header is one field: the file seems to use another delimiter than "
-                f"'{spec.delimiter}' (ColumnSpec.delimiter).")
+                f"'{spec.delimiter}'; give it with {OPTIONS['delimiter']} (ColumnSpec.delimiter).")
     if "time" in missing and spec.rate is None:
         how += (f"; or, for a file without time at a constant drive rate, {OPTIONS['rate']} "
                 f"'10 mm/s' (ColumnSpec.rate)")
@@ -326,6 +400,8 @@ def _numeric(path: Path, df: pd.DataFrame, spec: ColumnSpec, roles: list[str],
     for role in roles:
         raw = df[spec.column(role)]
         text = raw.fillna("").astype(str).str.strip()
+        if spec.decimal == ",":
+            text = text.str.replace(",", ".", regex=False)
         num = pd.to_numeric(text, errors="coerce").to_numpy(dtype=float)
         bad = np.flatnonzero(~np.isfinite(num))
         values[role] = num
@@ -346,7 +422,8 @@ def _numeric(path: Path, df: pd.DataFrame, spec: ColumnSpec, roles: list[str],
     else:
         what, fix = f"'{cell}' is not a number", "fix or delete the row"
         if re.fullmatch(r"[-+]?\d+,\d+", cell):
-            fix = "write decimals with '.', not ','"
+            fix = (f"write decimals with '.', not ','; if the file writes decimal commas throughout, give "
+                   f"{OPTIONS['decimal']} ',' (ColumnSpec.decimal), with another delimiter than ','")
     more = f" ({count - 1} more bad cell{'s' if count > 2 else ''} in this column)" if count > 1 else ""
     raise MeasuredDataError(f"{_where(path, row + 2)}: {_label(spec, role, drive)}: {what}; "
                             f"{fix}{more}")
@@ -393,6 +470,8 @@ def load_experiment(path, drive: str, spec: ColumnSpec = ColumnSpec(), zero_driv
     if drive not in DRIVES:
         raise MeasuredDataError(f"{path}: drive {drive!r} must be one of {', '.join(DRIVES)} "
                                 f"(--drive): the channel the test imposed")
+    delimiter, decimal, detected = sniff_dialect(path, spec) if path.is_file() else (",", ".", [])
+    spec = replace(spec, delimiter=delimiter, decimal=decimal)
     df = _read_table(path, spec)
     derived = spec.rate is not None
     roles = [r for r in ROLES if not (derived and r == "time")]
@@ -450,6 +529,7 @@ def load_experiment(path, drive: str, spec: ColumnSpec = ColumnSpec(), zero_driv
         "zero_drive": zero_drive, "zero_shift": zero_shift,
         "zero_time": zero_time, "time_shift": time_shift,
         "downsampled_from": None, "block": None,
+        "delimiter": delimiter, "decimal": decimal, "detected": detected,
     }
     return Experiment(name=_text_name(path.stem), path=path, drive=drive, t=t - time_shift,
                       displacement=si["displacement"], force=si["force"], meta=meta)

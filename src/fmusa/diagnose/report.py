@@ -25,7 +25,7 @@ import numpy as np
 from fmusa.diagnose.views import (by_loading_direction, delta_text, experiment_motion, final_label, final_name,
                                   final_residuals, natural, p_text, ratio_text, residual_series, response_channel,
                                   structure_text)
-from fmusa.format import fmt
+from fmusa.format import fmt, md_code, md_text
 from fmusa.files import atomic_write
 
 __all__ = ["write_report", "EFFECT_MEANING", "PARAM_MEANING", "CAPTIONS"]
@@ -111,7 +111,12 @@ def _data_section(diag: Mapping, experiments: Sequence) -> str:
         v = np.gradient(np.asarray(e.displacement, float), t) if len(t) > 1 else np.zeros(1)
         src = e.meta.get("downsampled_from") if isinstance(e.meta, Mapping) else None
         pts = f"{e.n}" + (f" (block means of {src} rows)" if src else "")
-        rows.append([e.name, f"`{e.path}`", pts, fmt(e.duration, 4),
+        meta = e.meta if isinstance(e.meta, Mapping) else {}
+        cols = ", ".join(md_text(c) for c in (meta.get("columns") or {}).values() if c)   # the file's text
+        dialect = (f"; delimiter {md_code(meta['delimiter'])}, decimal {md_code(meta['decimal'])}"
+                   if meta.get("delimiter") else "")
+        rows.append([md_text(e.name), md_code(e.path) + (f" (columns {cols}{dialect})" if cols else ""), pts,
+                     fmt(e.duration, 4),
                      fmt(float(np.max(np.abs(e.displacement))) * 1e3), fmt(float(np.max(np.abs(e.force)))),
                      fmt(float(np.max(np.abs(v))) * 1e3)])
     out = "## Data\n\n"

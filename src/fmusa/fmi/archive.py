@@ -1,85 +1,105 @@
-"""Unpacking an FMU archive safely: bounded in size, kept inside its folder, and cleaned up even after a kill.
+"""Unpacking an FMU archive safely: bounded in size and member count, kept inside its folder, and cleaned
+up even after a kill.
 
 An FMU is a ZIP file from someone else. ``fmpy.extract`` trusts it: a member of a gigabyte lands in /tmp
 whatever the model needs, and a damaged member fails with a bare ``zlib.error``. Here every member is
 checked before anything is written (no absolute path, no ``..``, no backslash or drive letter), the bytes
 actually written are counted against a limit (the sizes in the ZIP's directory can lie), and a damaged
-archive is reported with the member's name. Each extraction folder is named ``fmusa-fmu-*`` and holds
-the PID of the process that made it, so that a later extraction removes the folders of processes that
-were killed before they could clean up.
+archive is reported with the member's name. Each extraction folder is named ``fmusa-fmu-*`` and holds a
+lock file that its process keeps locked while it lives (the system releases the lock however the process
+dies): a later extraction removes the folders whose lock nobody holds. A process id alone would not do:
+another container, or another host sharing the temporary folder, sees other processes under the same ids.
 """
 from __future__ import annotations
 
 import os
 import shutil
 import tempfile
+import time
 import zipfile
 import zlib
 from pathlib import Path
 
-from fmusa.fmi.info import FMUError, host_platforms, member_problem
+from fmusa.files import try_lock
+from fmusa.fmi.info import (ENV_MAX_BYTES, MAX_FMU_BYTES, FMUError, host_platforms, max_fmu_bytes,  # noqa: F401
+                            inside, member_problem, open_fmu_zip)
 
-#: Largest total of unpacked bytes (FMUSA_MAX_FMU_BYTES overrides it): models with large tables or
-#: resources stay far below it, and a runaway archive cannot fill the disk.
-MAX_FMU_BYTES = 2 * 1024 ** 3
-ENV_MAX_BYTES = "FMUSA_MAX_FMU_BYTES"
 PREFIX = "fmusa-fmu-"
+#: The lock file of an extraction folder (it also names the owner's process id, for people).
 OWNER_FILE = ".fmusa-owner"
+#: A lock file younger than this is not judged: its folder may be being made right now.
+GRACE_S = 2.0
 _CHUNK = 1 << 20
+#: folder -> the open, locked owner file of each extraction folder this process made
+_HELD: dict[str, object] = {}
 
 
-def max_fmu_bytes() -> int:
-    """The unpacking limit in bytes: ``$FMUSA_MAX_FMU_BYTES`` or :data:`MAX_FMU_BYTES`."""
-    text = os.environ.get(ENV_MAX_BYTES, "").strip()
-    if not text:
-        return MAX_FMU_BYTES
+def claim_folder(folder: str | os.PathLike) -> None:
+    """Make ``folder`` this process's: lock its owner file for as long as the process lives (or until
+    :func:`remove_folder`). A file system that cannot lock leaves the folder unclaimed, so never removed
+    by another process (harmless: a folder kept)."""
+    fh = open(Path(folder) / OWNER_FILE, "a+", encoding="utf-8")
     try:
-        value = int(float(text))
-    except ValueError:
-        raise FMUError(f"{ENV_MAX_BYTES}={text!r} is not a number of bytes; set e.g. "
-                       f"{ENV_MAX_BYTES}=4e9 or unset it") from None
-    if value <= 0:
-        raise FMUError(f"{ENV_MAX_BYTES}={text!r} must be positive; unset it for the default "
-                       f"({MAX_FMU_BYTES} bytes)")
-    return value
+        try_lock(fh)
+    except OSError:
+        fh.close()
+        return
+    fh.seek(0)
+    fh.truncate()
+    fh.write(str(os.getpid()))
+    fh.flush()
+    _HELD[str(Path(folder))] = fh
 
 
-def _pid_alive(pid: int) -> bool:
-    """Whether process ``pid`` still runs, through psutil on every platform (``os.kill(pid, 0)`` would send
-    Ctrl+C on Windows, and a dead pid there raises an error instead of saying so). Without psutil: on POSIX
-    the signal-0 probe, elsewhere "alive" (a folder kept is harmless, one removed under a live study is not)."""
+def new_folder() -> Path:
+    """A new, claimed ``fmusa-fmu-*`` folder in the temporary folder."""
+    remove_orphans()
+    folder = Path(tempfile.mkdtemp(prefix=PREFIX))
+    claim_folder(folder)
+    return folder
+
+
+def remove_folder(folder: str | os.PathLike | None) -> None:
+    """Release and delete an extraction folder of this process (Windows cannot delete a file held open)."""
+    if folder is None:
+        return
+    fh = _HELD.pop(str(Path(folder)), None)
+    if fh is not None:
+        fh.close()
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def _owner_gone(lock: Path) -> bool:
+    """Whether nobody holds the lock of ``lock`` (an owner file): the process that made its folder ended.
+    A lock that cannot be taken for another reason (a file system without locks) means "keep"."""
     try:
-        import psutil
-    except ImportError:
-        psutil = None
-    if psutil is not None:
-        try:
-            return psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
-        except psutil.NoSuchProcess:
+        if time.time() - lock.stat().st_mtime < GRACE_S:
             return False
-        except Exception:  # noqa: BLE001 - access denied and the like: it exists
-            return True
-    if os.name != "posix":
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        fh = open(lock, "r+", encoding="utf-8")
+    except OSError:
         return False
-    except PermissionError:
-        return True
+    try:
+        try_lock(fh)
+    except OSError:
+        return False
+    finally:
+        fh.close()          # releases the lock just taken
     return True
 
 
 def remove_orphans(root: str | os.PathLike | None = None) -> list[Path]:
-    """Remove the extraction folders under ``root`` (the temp folder) whose owning process has died."""
+    """Remove the extraction folders under ``root`` (the temp folder) whose owner's lock is free: their
+    process has ended, wherever it ran. Folders without an owner file are not judged."""
+    for name, fh in list(_HELD.items()):       # folders of this process deleted without remove_folder
+        if not Path(name).exists():
+            _HELD.pop(name, None)
+            fh.close()
     removed = []
     base = Path(root or tempfile.gettempdir())
     for d in base.glob(PREFIX + "*"):
-        try:
-            pid = int((d / OWNER_FILE).read_text(encoding="utf-8").strip())
-        except (OSError, ValueError):
-            continue       # not (yet) ours to judge: a folder being created has no owner file for a moment
-        if pid != os.getpid() and not _pid_alive(pid):
+        if str(d) in _HELD:
+            continue
+        if _owner_gone(d / OWNER_FILE):
             shutil.rmtree(d, ignore_errors=True)
             removed.append(d)
     return removed
@@ -101,9 +121,7 @@ def extract_fmu(fmu: str | os.PathLike, dest: str | os.PathLike | None = None,
     limit = max_fmu_bytes() if max_bytes is None else int(max_bytes)
     made_here = dest is None
     if made_here:
-        remove_orphans()
-        folder = Path(tempfile.mkdtemp(prefix=PREFIX))
-        (folder / OWNER_FILE).write_text(str(os.getpid()), encoding="utf-8")
+        folder = new_folder()
     else:
         folder = Path(dest)
         folder.mkdir(parents=True, exist_ok=True)
@@ -111,7 +129,7 @@ def extract_fmu(fmu: str | os.PathLike, dest: str | os.PathLike | None = None,
         _unpack(path, folder, limit, to_run)
     except BaseException:
         if made_here:
-            shutil.rmtree(folder, ignore_errors=True)
+            remove_folder(folder)
         raise
     return folder
 
@@ -125,12 +143,7 @@ def _needed_to_run(names: list[str]) -> set[str]:
 
 
 def _unpack(path: Path, folder: Path, limit: int, to_run: bool = False) -> None:
-    try:
-        zf = zipfile.ZipFile(path)
-    except zipfile.BadZipFile:
-        raise FMUError(f"{path}: not an FMU (not a ZIP archive); export the FMU again") from None
-    except FileNotFoundError:
-        raise FMUError(f"{path}: FMU file not found; check the path") from None
+    zf = open_fmu_zip(path)     # a regular file, not too many members
     with zf:
         infos = zf.infolist()
         for info in infos:
@@ -147,6 +160,9 @@ def _unpack(path: Path, folder: Path, limit: int, to_run: bool = False) -> None:
                            f"FMU really needs it, raise the limit with {ENV_MAX_BYTES}")
         written = 0
         for info in infos:
+            if not inside(folder, info.filename):     # a link already in ``dest`` that leads away
+                raise FMUError(f"{path}: member '{info.filename}' would be written outside {folder}; unpack "
+                               f"into an empty folder")
             target = folder / info.filename
             if info.is_dir():
                 target.mkdir(parents=True, exist_ok=True)

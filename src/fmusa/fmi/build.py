@@ -5,9 +5,9 @@ import os
 import shutil
 from pathlib import Path
 
-from fmusa.fmi.archive import extract_fmu
-from fmusa.fmi.info import (FMUCompileError, FMUError, FMUInfo, binary_problem, host_platform, read_fmu_info,
-                            select_interface)
+from fmusa.fmi.archive import extract_fmu, new_folder
+from fmusa.fmi.info import (FMUCompileError, FMUError, FMUInfo, binary_problem, host_platform, identifier_problem,
+                            inside, read_fmu_info, select_interface)
 
 
 def _tail(text: str, n: int = 4000) -> str:
@@ -36,6 +36,15 @@ def compile_sources(unzipdir: str | os.PathLike, info: FMUInfo | None = None,
     label = f"{info.model_name} ({info.path})"
     if not info.can_compile:
         raise FMUCompileError(f"{label}: no {plat} binary and no C sources listed under <SourceFiles>")
+    # every name the FMU supplies stays inside the folder: the library written, the sources compiled
+    why = identifier_problem(info.interfaces[interface])
+    outside = [f for f in info.source_files if not inside(unzipdir / "sources", f)]
+    if why or outside or not inside(unzipdir, target.relative_to(unzipdir).as_posix()):
+        raise FMUError(f"{label}: refused to build: "
+                       + (f"modelIdentifier {info.interfaces[interface]!r} {why}" if why else
+                          f"source files outside sources/ ({', '.join(map(repr, outside))})" if outside else
+                          f"binaries/{plat} leads outside {unzipdir}")
+                       + "; the FMU is broken or hostile")
     log: list[str] = []
 
     def run(cmd: list[str], cwd=None) -> bool:
@@ -114,7 +123,7 @@ def prepare_fmu(fmu_path: str | os.PathLike, interface: str = "auto",
     problem = binary_problem(info, iface)
     if problem:
         raise FMUError(f"{fmu_path}: {problem}")
-    root = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="fmusa-fmu-"))
+    root = Path(workdir) if workdir is not None else new_folder()
     root.mkdir(parents=True, exist_ok=True)
     dest = root / f"{fmu_path.stem}-{file_digest(fmu_path)}"
     if (dest / "binaries" / host_platform() / info.binary_name(iface)).is_file():

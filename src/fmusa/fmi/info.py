@@ -5,12 +5,15 @@ import difflib
 import hashlib
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Iterable
 
 from fmusa.errors import FmusaError
 
+#: The FMI versions fmusa runs (an FMI 1.0 FMU is refused with how to export it again).
+SUPPORTED_FMI_VERSIONS = ("2.0", "3.0")
 FMU_NAME = "ScrewVertebra.fmu"
 ENV_FMU = "FMUSA_FMU"
 Value = float | int | bool
@@ -30,6 +33,7 @@ def default_fmu_path() -> Path:
         if not path.exists():
             raise FMUNotFoundError(f"${ENV_FMU} is set to {env}, which does not exist; point it at an FMU, "
                                    f"or unset it to use dist/{FMU_NAME} (built with `make fmu`)")
+        check_fmu_path(path, f"${ENV_FMU} ({env})")
         return path
     local = Path.cwd() / "dist" / FMU_NAME
     if local.is_file():
@@ -129,6 +133,8 @@ def member_problem(name: str) -> str | None:
     """Why a member name cannot be unpacked inside the extraction folder, or None."""
     if "\\" in name:
         return "contains a backslash (FMI requires forward slashes)"
+    if "\0" in name:
+        return "contains a NUL character"
     if name.startswith("/") or (len(name) > 1 and name[1] == ":"):
         return "is an absolute path"
     if ".." in PurePosixPath(name).parts:
@@ -136,16 +142,143 @@ def member_problem(name: str) -> str | None:
     return None
 
 
+def identifier_problem(identifier: str) -> str | None:
+    """Why a ``modelIdentifier`` cannot name the FMU's library file inside ``binaries/<platform>/``, or None:
+    it is a file name (FMI: a C identifier), never a path."""
+    if not identifier or identifier.strip() != identifier:
+        return "is empty or has leading or trailing blanks"
+    if any(ch in identifier for ch in "/\\:\0") or identifier in (".", ".."):
+        return "is a path, not a file name (FMI requires a C identifier such as My_Model)"
+    return None
+
+
+def inside(root: str | os.PathLike, name: str) -> bool:
+    """Whether ``root/name`` resolves (symbolic links followed) to ``root`` or below: the check of every name
+    that an FMU supplies before fmusa reads, writes, compiles or loads a file by it."""
+    if member_problem(name):
+        return False
+    base = Path(root).resolve()
+    try:
+        (base / name).resolve().relative_to(base)
+    except (ValueError, OSError, RuntimeError):
+        return False
+    return True
+
+
+#: Largest total of unpacked bytes (FMUSA_MAX_FMU_BYTES overrides it), applied to every member read, the
+#: model description first: models with large tables or resources stay far below it, and a runaway
+#: archive cannot fill the disk or the memory.
+MAX_FMU_BYTES = 2 * 1024 ** 3
+ENV_MAX_BYTES = "FMUSA_MAX_FMU_BYTES"
+#: Most members (files and folders) an FMU may have (FMUSA_MAX_FMU_MEMBERS overrides it): exports hold a
+#: few hundred; reading the archive's directory costs memory and time per member.
+MAX_FMU_MEMBERS = 100_000
+ENV_MAX_MEMBERS = "FMUSA_MAX_FMU_MEMBERS"
+_CHUNK = 1 << 20
+
+
+def _env_limit(name: str, default: int, example: str, what: str) -> int:
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return default
+    try:
+        value = int(float(text))
+    except (ValueError, OverflowError):
+        raise FMUError(f"{name}={text!r} is not {what}; set e.g. {name}={example} or unset it") from None
+    if value <= 0:
+        raise FMUError(f"{name}={text!r} must be positive; unset it for the default ({default})")
+    return value
+
+
+def max_fmu_bytes() -> int:
+    """The unpacking limit in bytes: ``$FMUSA_MAX_FMU_BYTES`` or :data:`MAX_FMU_BYTES`."""
+    return _env_limit(ENV_MAX_BYTES, MAX_FMU_BYTES, "4e9", "a number of bytes")
+
+
+def max_fmu_members() -> int:
+    """The most members an FMU may have: ``$FMUSA_MAX_FMU_MEMBERS`` or :data:`MAX_FMU_MEMBERS`."""
+    return _env_limit(ENV_MAX_MEMBERS, MAX_FMU_MEMBERS, "200000", "a number of members")
+
+
+def check_fmu_path(path: Path, label: str | None = None) -> None:
+    """Refuse, before anything opens it, a path that is neither a regular file nor an FMU folder: a device
+    (``/dev/zero`` reads forever), a FIFO (blocks), a socket, or a folder without a model description."""
+    what = label or str(path)
+    if not path.exists():
+        raise FMUNotFoundError(f"FMU not found: {what}")
+    if path.is_dir():
+        if not (path / "modelDescription.xml").is_file():
+            raise FMUError(f"{what}: a folder without a modelDescription.xml file, so not an extracted FMU; "
+                           f"give the .fmu file or the folder an FMU was unpacked into")
+        return
+    if not path.is_file():
+        raise FMUError(f"{what}: not a regular file (a device, a FIFO or a socket); give the .fmu file")
+
+
+def _zip_member_count(path: Path) -> int | None:
+    """The number of members the ZIP file's end-of-directory record declares (read before zipfile builds
+    an object per member), or None when the record is not found (zipfile then says why)."""
+    import struct
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - (1 << 16) - 22))
+            tail = f.read()
+            at = tail.rfind(b"PK\x05\x06")
+            if at < 0 or len(tail) < at + 22:
+                return None
+            count = struct.unpack("<H", tail[at + 10:at + 12])[0]
+            loc = tail.rfind(b"PK\x06\x07", 0, at)            # ZIP64: the count is in its own record
+            if count == 0xFFFF and loc >= 0 and len(tail) >= loc + 20:
+                f.seek(struct.unpack("<Q", tail[loc + 8:loc + 16])[0])
+                rec = f.read(56)
+                if rec[:4] == b"PK\x06\x06" and len(rec) >= 40:
+                    count = struct.unpack("<Q", rec[32:40])[0]
+            return count
+    except OSError:
+        return None
+
+
+def _too_many(path: Path, count: int, limit: int) -> FMUError:
+    return FMUError(f"{path}: has {count} members, more than the limit of {limit} (FMUs hold a few hundred); "
+                    f"if this FMU really needs them, raise the limit with {ENV_MAX_MEMBERS}")
+
+
+def open_fmu_zip(path: Path) -> zipfile.ZipFile:
+    """The FMU file ``path`` as an open ZipFile, its member count checked against :func:`max_fmu_members`
+    before its directory is read. Raises :class:`FMUError`."""
+    check_fmu_path(path)
+    limit = max_fmu_members()
+    count = _zip_member_count(path)
+    if count is not None and count > limit:
+        raise _too_many(path, count, limit)
+    try:
+        zf = zipfile.ZipFile(path)
+    except zipfile.BadZipFile:
+        raise FMUError(f"{path}: not an FMU (not a ZIP archive); export the FMU again") from None
+    except OSError as exc:
+        raise FMUError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if len(zf.infolist()) > limit:
+        zf.close()
+        raise _too_many(path, count or 0, limit)
+    return zf
+
+
 def _archive_names(path: Path) -> list[str]:
     """The files of an FMU folder or archive; a member that would unpack outside its folder is refused
     here, when the FMU is first read, not halfway through a study."""
+    limit = max_fmu_members()
     if path.is_dir():
-        return [p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file()]
-    try:
-        with zipfile.ZipFile(path) as zf:
-            names = zf.namelist()
-    except zipfile.BadZipFile:
-        raise FMUError(f"{path}: not an FMU (not a ZIP archive)") from None
+        names = []
+        for p in path.rglob("*"):
+            if len(names) >= limit:
+                raise _too_many(path, len(names) + 1, limit)
+            if p.is_file():
+                names.append(p.relative_to(path).as_posix())
+        return names
+    with open_fmu_zip(path) as zf:
+        names = zf.namelist()
     for n in names:
         problem = member_problem(n)
         if problem:
@@ -153,15 +286,49 @@ def _archive_names(path: Path) -> list[str]:
     return [n for n in names if not n.endswith("/")]
 
 
+def read_member(path: Path, name: str, limit: int | None = None) -> bytes | None:
+    """The bytes of member ``name`` of the FMU file or folder ``path`` (None when it has none), read in
+    bounded memory: more than ``limit`` bytes (default :func:`max_fmu_bytes`) is an FMUError, found from
+    the archive's directory before a byte is unpacked, and counted while reading (directories can lie)."""
+    limit = max_fmu_bytes() if limit is None else limit
+    too_big = (f"{path}: {name} is larger than the limit of {limit} bytes; if the FMU really needs it, "
+               f"raise the limit with {ENV_MAX_BYTES}")
+    if path.is_dir():
+        f = path / name
+        if not f.exists():
+            return None
+        if not f.is_file() or not inside(path, name):
+            raise FMUError(f"{path}: {name} is not a regular file inside the FMU folder")
+        if f.stat().st_size > limit:
+            raise FMUError(too_big)
+        with open(f, "rb") as fh:
+            data = fh.read(limit + 1)
+    else:
+        with open_fmu_zip(path) as zf:
+            try:
+                info = zf.getinfo(name)
+            except KeyError:
+                return None
+            if info.file_size > limit:
+                raise FMUError(too_big + f" (it unpacks to {info.file_size} bytes)")
+            try:
+                with zf.open(info) as src:
+                    data = src.read(limit + 1)
+            except (zlib.error, zipfile.BadZipFile, EOFError) as exc:
+                raise FMUError(f"{path}: member '{name}' is damaged ({type(exc).__name__}: {exc}); the "
+                               f"archive is corrupt: export or download the FMU again") from None
+    if len(data) > limit:
+        raise FMUError(too_big)
+    return data
+
+
 def _description_bytes(path: Path) -> bytes:
-    """The bytes of the FMU's modelDescription.xml (read once: the root check and the parse both use them)."""
-    try:
-        if path.is_dir():
-            return (path / "modelDescription.xml").read_bytes()
-        with zipfile.ZipFile(path) as zf:
-            return zf.read("modelDescription.xml")
-    except (OSError, KeyError):
-        raise FMUError(f"{path}: not an FMU (no modelDescription.xml)") from None
+    """The bytes of the FMU's modelDescription.xml (read once, bounded: the root check and the parse both
+    use them)."""
+    data = read_member(path, "modelDescription.xml")
+    if data is None:
+        raise FMUError(f"{path}: not an FMU (no modelDescription.xml)")
+    return data
 
 
 def _root_attributes(path: Path, data: bytes) -> dict[str, str]:
@@ -198,6 +365,9 @@ class FMUInfo:
     #: The variables as declared (FMI 3.0: fmpy's, arrays whole); ``variables`` holds what a study can
     #: address, an FMI 3.0 array as one element variable per element (``name[i]``, ``name[i,j]``).
     declared: tuple = ()
+    #: Names from the archive that would lead outside its folder (a modelIdentifier that is a path, a source
+    #: file with '..'): such an FMU is shown by ``inspect`` and refused by everything that runs or builds it.
+    unsafe: tuple = ()
 
     @property
     def is_fmi3(self) -> bool:
@@ -258,8 +428,7 @@ def read_fmu_info(path: str | os.PathLike, require_fmi2: bool = True) -> FMUInfo
     before is not parsed again while its size and modification time are the same.
     """
     path = Path(path)
-    if not path.exists():
-        raise FMUNotFoundError(f"FMU not found: {path}")
+    check_fmu_path(path)          # a device, a FIFO: refused before anything opens it
     key = None
     if _ADOPTED and path.is_dir():
         adopted = _adopted(path)
@@ -310,6 +479,20 @@ def _adopted(folder: Path) -> "FMUInfo | None":
 _DESCRIPTIONS: dict[bytes, tuple] = {}
 
 
+def _bounded_copy(path: Path, raw: bytes) -> "io.BytesIO":
+    """An in-memory FMU of the description bytes ``raw`` already read (bounded) and, for FMI 3.0, the
+    bounded ``sources/buildDescription.xml``: what fmpy parses, so that it never reads the archive itself."""
+    import io
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
+        zf.writestr("modelDescription.xml", raw)
+        build = read_member(path, "sources/buildDescription.xml")
+        if build is not None:
+            zf.writestr("sources/buildDescription.xml", build)
+    buf.seek(0)
+    return buf
+
+
 def _parse_description(path: Path, raw: bytes) -> tuple:
     """(fmpy's model description of ``path``, the problems its validation found), parsed once per content
     ``raw`` (the bytes of its modelDescription.xml)."""
@@ -320,10 +503,12 @@ def _parse_description(path: Path, raw: bytes) -> tuple:
         return _DESCRIPTIONS[digest]
     warnings: list[str] = []
     try:
-        md = fmpy.read_model_description(str(path), validate=True)
+        md = fmpy.read_model_description(_bounded_copy(path, raw), validate=True)
+    except FMUError:
+        raise
     except Exception as exc:  # schema or consistency problems: read it anyway, keep the problems
         try:
-            md = fmpy.read_model_description(str(path), validate=False)
+            md = fmpy.read_model_description(_bounded_copy(path, raw), validate=False)
         except Exception as exc2:
             raise FMUError(f"{path}: cannot read modelDescription.xml: {exc2}") from None
         warnings.append(f"fmpy's validation of modelDescription.xml failed: {str(exc).strip()}")
@@ -363,6 +548,12 @@ def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
     for bc in getattr(md, "buildConfigurations", None) or []:
         for sfs in bc.sourceFileSets:
             source_files += [f for f in sfs.sourceFiles if f not in source_files]
+    unsafe = [f"modelIdentifier {ident!r} of {iface} {why}" for iface, ident in interfaces.items()
+              for why in [identifier_problem(ident)] if why]
+    unsafe += [f"source file {f!r} (under <SourceFiles>) leads outside sources/" for f in source_files
+               if member_problem(f) or (path.is_dir() and not inside(path / "sources", f))]
+    if path.is_dir():     # an FMU folder: a link in it that leads away
+        unsafe += [f"file {n!r} is a link that leads outside the FMU folder" for n in names if not inside(path, n)]
     de = md.defaultExperiment
     experiment = {}
     if de is not None:
@@ -385,7 +576,7 @@ def _read_fmu_info(path: Path, require_fmi2: bool) -> FMUInfo:
                    default_experiment=experiment, variables=variables, declared=declared,
                    n_states=int(md.numberOfContinuousStates or 0),
                    n_event_indicators=int(md.numberOfEventIndicators or 0),
-                   model_description=md, warnings=tuple(warnings))
+                   model_description=md, warnings=tuple(warnings), unsafe=tuple(unsafe))
 
 
 # ---------------------------------------------------------------------- FMI 3.0 variables, element-wise
@@ -481,6 +672,10 @@ def select_interface(info: FMUInfo, requested: str = "auto") -> str:
     """The interface a study runs: co-simulation when the FMU has it (``auto``), else model exchange;
     or the one ``requested``. Raises :class:`FMUError` when the FMU does not implement it."""
     have = list(info.interfaces)
+    if info.unsafe:
+        raise FMUError(f"{info.path}: refused: {'; '.join(info.unsafe)}; fmusa uses no name from an FMU that "
+                       f"leads outside the folder it is unpacked into. The FMU is broken or hostile: export it "
+                       f"again (or ask its author)")
     if not have:
         raise FMUError(f"{info.path}: {info.model_name} declares neither <CoSimulation> nor "
                        f"<ModelExchange> in its modelDescription.xml")
@@ -560,6 +755,11 @@ def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
 
     def hint(prefix: str = "closest") -> str:
         others = [n for n in pool if n != name]
+        if not others:     # an FMU without any: said first, whether or not the name exists
+            kinds = f"{what}s or inputs" if role == "varied" else f"{what}s"
+            text = f"; {info.model_name} has no {prefix + ' ' if prefix == 'settable' else ''}{kinds} at all"
+            close = closest_names(name, [n for n in wider if n != name]) if v is None else []
+            return text + (f" (closest names among its other variables: {', '.join(close)})" if close else "")
         close = closest_names(name, others)
         if not close and v is None:
             close = closest_names(name, [n for n in wider if n != name])
@@ -569,10 +769,8 @@ def variable_problem(info: FMUInfo, name: str, role: str) -> str | None:
             return f"; {prefix} {what} names: {', '.join(close)}"
         if v is not None:
             return ""
-        if others:
-            more = f" … ({len(others)} in all)" if len(others) > 12 else ""
-            return f"; its {what}s are: {', '.join(others[:12])}{more}"
-        return f"; it has no {what}s"
+        more = f" … ({len(others)} in all)" if len(others) > 12 else ""
+        return f"; its {what}s are: {', '.join(others[:12])}{more}"
 
     if v is None:
         return f"{info.model_name} has no variable {name!r}{hint()}"

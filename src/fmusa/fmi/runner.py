@@ -11,6 +11,13 @@ an FMU needs is found by :mod:`fmusa.runs.preflight`, since real exports break `
 ways. Reusing the instance avoids the unzip/load/instantiate cost that ``fmpy.simulate_fmu`` pays on
 every call, which matters for studies of thousands of runs.
 
+A runner used directly (:meth:`FMURunner.run`, :meth:`FMURunner.run_final`) checks the way it brings the
+instance back the first time it reuses it, as a study's pre-flight check does: its first run (on a fresh
+instance) is made again after the second run on the same instance, and must give the same numbers. Where it
+does not, the runner moves on to a state snapshot, else to a new instance per run, warns
+(:class:`FMUReuseWarning`), and makes the second run again that way. The verdict is cached per FMU digest and
+set-up (in :func:`fmusa.files.cache_dir`), so the check costs one run once.
+
 Co-simulation FMUs integrate themselves. Model exchange FMUs are integrated by fmpy's solver (CVode or
 Euler, ``fmpy.simulate_fmu`` on the reused instance). What an FMU declares and the load-time checks are
 in :mod:`fmusa.fmi.info`; building a binary from an FMU's sources in :mod:`fmusa.fmi.build`; prepared
@@ -42,8 +49,9 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 from fmusa.errors import UsageError
-from fmusa.fmi.archive import extract_fmu
-from fmusa.fmi.build import compile_sources
+from fmusa.files import atomic_write, cache_dir
+from fmusa.fmi.archive import extract_fmu, new_folder, remove_folder
+from fmusa.fmi.build import compile_sources, file_digest
 from fmusa.fmi.lean import failure_head, failure_text, status_label
 from fmusa.fmi.info import (SOLVERS, FMUError, FMUNotFoundError, FMURunError, Value, binary_problem,
                             default_fmu_path, read_fmu_info, select_interface)
@@ -54,6 +62,19 @@ READABLE = ("output", "parameter", "calculatedParameter", "local", "input")
 
 #: How a runner brings its instance back to the state right after instantiation between two runs.
 REUSE_MODES = ("reset", "snapshot", "fresh")
+
+#: Bumped when the runner's reuse check changes what it decides, so that older cached verdicts are not used.
+_REUSE_CHECK_VERSION = 1
+
+#: Verdicts of the reuse check this process has made or read: cache key -> (mode, why).
+_REUSE_VERDICTS: dict[str, tuple[str, str]] = {}
+
+
+class FMUReuseWarning(UserWarning):
+    """The FMU does not come back to its state after instantiation the way asked (``fmi2Reset`` leaves a
+    state or outputs behind): the runner now brings it back another way (a state snapshot, or a new
+    instance per run), which is always right and may cost more per run."""
+
 
 #: The range of an fmi2Integer (a C int).
 INT_MIN, INT_MAX = -2**31, 2**31 - 1
@@ -97,15 +118,23 @@ class FMURunner:
         when it declares none); ``solver`` and ``step_size`` are errors.
     reuse:
         How the instance returns to its state right after instantiation between runs (:data:`REUSE_MODES`).
+    check_reuse:
+        Check ``reuse`` the first time the instance is reused by :meth:`run` or :meth:`run_final` (the first
+        run made again after the second must give the same numbers; see the module's docstring) and move on
+        to a way that works when it does not. Off only where the caller has checked it (a study's runs).
     """
 
     def __init__(self, fmu_path: str | os.PathLike | None = None, instance_name: str = "fmusa",
                  debug_logging: Iterable[str] | None = None, *, interface: str = "auto",
                  solver: str | None = None, relative_tolerance: float | None = None,
-                 step_size: float | None = None, reuse: str = "reset") -> None:
+                 step_size: float | None = None, reuse: str = "reset", check_reuse: bool = True) -> None:
         if reuse not in REUSE_MODES:
             raise UsageError(f"unknown reuse mode {reuse!r}; use one of {', '.join(REUSE_MODES)}")
         self.reuse = reuse
+        #: Why runs are brought back as :attr:`reuse` says: "" before the check, else its verdict.
+        self.reuse_why = ""
+        self._check_reuse = check_reuse and reuse != "fresh"
+        self._first_run: tuple | None = None      # (how, args, result) of the first run on a fresh instance
         self._snapshot = None
         self.fmu_path = Path(fmu_path) if fmu_path is not None else default_fmu_path()
         if not self.fmu_path.exists():
@@ -136,9 +165,8 @@ class FMURunner:
             self._owns_unzipdir = True
             self.unzipdir = extract_fmu(self.fmu_path, to_run=True)
         elif needs_build:   # never write into the user's directory: build in a copy
-            import tempfile
             self._owns_unzipdir = True
-            self.unzipdir = Path(tempfile.mkdtemp(prefix="fmusa-fmu-"))
+            self.unzipdir = new_folder()
             shutil.copytree(self.fmu_path, self.unzipdir, dirs_exist_ok=True)
         else:
             self.unzipdir = self.fmu_path
@@ -162,6 +190,8 @@ class FMURunner:
             debug_logging = [c for c in cats if c in ("logStatusError", "logStatusWarning")]
         self._debug_logging = list(debug_logging)
         self._state = "closed"
+        if self._check_reuse:
+            self._apply_cached_verdict()
         #: Where the current run is (e.g. "during initialisation"): named by :meth:`fail`'s message.
         self.phase = ""
         #: ``time.monotonic()`` after which a co-simulation RunPlan run stops at its next communication point
@@ -258,7 +288,7 @@ class FMURunner:
 
     def _cleanup_dir(self) -> None:
         if self._owns_unzipdir and self.unzipdir is not None:
-            shutil.rmtree(self.unzipdir, ignore_errors=True)
+            remove_folder(self.unzipdir)   # releases its lock first (Windows)
             self.unzipdir = None
 
     def __enter__(self) -> "FMURunner":
@@ -534,11 +564,16 @@ class FMURunner:
             outputs: list[str], inputs: Mapping[str, float] | None = None) -> pd.DataFrame:
         """Simulate from 0 to ``stop_time`` and return the outputs at the communication points.
 
-        ``params`` are set after ``fmi2Reset`` (all others keep their start values), ``inputs`` are
-        held constant. ``step`` is the communication step (the last step is shortened to end at
-        ``stop_time``); ``None`` makes one single ``doStep`` and returns the start and end rows.
-        The result has a ``time`` column followed by ``outputs``.
+        ``params`` are set on an instance in its state right after instantiation (all others keep their
+        start values; the way back there is checked, see :attr:`reuse`), ``inputs`` are held constant.
+        ``step`` is the communication step (the last step is shortened to end at ``stop_time``); ``None``
+        makes one single ``doStep`` and returns the start and end rows. The result has a ``time`` column
+        followed by ``outputs``.
         """
+        return self._checked(self._run, (params, stop_time, step, outputs, inputs))
+
+    def _run(self, params: Mapping[str, Value], stop_time: float, step: float | None,
+             outputs: list[str], inputs: Mapping[str, float] | None = None) -> pd.DataFrame:
         import pandas as pd   # here: a pool worker (RunPlan runs) never needs pandas, ~0.4 s of its start-up
         self.check_time(stop_time, step)
         self.validate(params, outputs, inputs)
@@ -577,11 +612,15 @@ class FMURunner:
     def run_final(self, params: Mapping[str, Value], stop_time: float, outputs: list[str],
                   inputs: Mapping[str, float] | None = None) -> dict[str, float]:
         """One ``doStep`` from 0 to ``stop_time``; the final values of ``outputs``."""
+        return self._checked(self._run_final, (params, stop_time, outputs, inputs))
+
+    def _run_final(self, params: Mapping[str, Value], stop_time: float, outputs: list[str],
+                   inputs: Mapping[str, float] | None = None) -> dict[str, float]:
         self.check_time(stop_time, None)
         self.validate(params, outputs, inputs)
         outputs = list(outputs)
         if self.is_model_exchange:
-            df = self.run(params, stop_time, None, outputs, inputs)
+            df = self._run(params, stop_time, None, outputs, inputs)
             return {name: float(df[name].iloc[-1]) for name in outputs}
         try:
             self._start(params, stop_time, inputs)
@@ -595,6 +634,135 @@ class FMURunner:
             raise self.fail(exc, params) from exc
         self._state = "done"
         return dict(zip(outputs, row))
+
+    # ------------------------------------------------------------------ the reuse check
+    def _reuse_key(self) -> str:
+        import hashlib
+        import json
+        what = [_REUSE_CHECK_VERSION, file_digest(self.fmu_path), self.interface, self.solver,
+                self.relative_tolerance, self.step_size, self.reuse]
+        return hashlib.sha256(json.dumps(what).encode("utf-8")).hexdigest()[:32]
+
+    def _apply_cached_verdict(self) -> None:
+        """Take the verdict of an earlier check of this FMU and set-up (this process's, else the cache's)."""
+        import json
+        key = self._reuse_key()
+        self._key = key
+        hit = _REUSE_VERDICTS.get(key)
+        if hit is None:
+            try:
+                data = json.loads((cache_dir() / f"runner-reuse-{key}.json").read_text(encoding="utf-8"))
+                hit = (str(data["mode"]), str(data["why"]))
+            except (OSError, ValueError, KeyError, TypeError):
+                return
+            if hit[0] not in REUSE_MODES:
+                return
+            _REUSE_VERDICTS[key] = hit
+        self.reuse, self.reuse_why = hit
+        self._check_reuse = False
+
+    def _store_verdict(self, mode: str, why: str) -> None:
+        import json
+        self.reuse, self.reuse_why, self._check_reuse = mode, why, False
+        _REUSE_VERDICTS[self._key] = (mode, why)
+        try:
+            atomic_write(cache_dir() / f"runner-reuse-{self._key}.json", json.dumps({"mode": mode, "why": why}))
+        except OSError:     # a cache that cannot be written costs the check next time, nothing else
+            pass
+
+    def _checked(self, how, args: tuple):
+        """``how(*args)`` (a run), with the way the instance is brought back checked the first time it is
+        reused: the first run, made on a fresh instance, is made again after this one and must be equal."""
+        if not self._check_reuse:
+            return how(*args)
+        if self._first_run is None:
+            if not (self.is_fresh or self._instance is None):
+                self._free()        # the first run failed: the check needs a run on a fresh instance
+            result = how(*args)
+            self._first_run = (how, args, result)
+            return result
+        result = how(*args)
+        problem = self._rerun_differs(self.reuse)
+        if problem is None:
+            self._store_verdict(self.reuse, f"the first run made again on the reused instance ({self.reuse}) "
+                                f"equals its run on a fresh instance")
+            return result
+        problem = f"after {_REUSE_CALLS[self.reuse]} {problem}"
+        asked = self.reuse
+        if asked == "reset" and self._can_snapshot():
+            self._start_over("snapshot")
+            result = how(*args)                 # the second run, then the first again, as before
+            snap = self._rerun_differs("snapshot")
+            if snap is None:
+                self._moved_on("snapshot", asked, problem)
+                return result
+            problem += f"; after fmi2SetFMUstate to a snapshot {snap}"
+        self._start_over("fresh")
+        result = how(*args)
+        fresh = self._rerun_differs("fresh")
+        if fresh is not None:
+            raise FMURunError(f"{self.model_description.modelName}: runs of this FMU are not reproducible: "
+                              f"{problem}; and even on a new instance {fresh}. Its results depend on something "
+                              f"that cannot be reset (state kept in its process, a nondeterministic solver)")
+        self._moved_on("fresh", asked, problem)
+        return result
+
+    def _rerun_differs(self, mode: str) -> str | None:
+        """None when the first run, made again now on the instance brought back by ``mode``, equals its run on
+        a fresh instance; else what differs."""
+        how, args, first = self._first_run
+        try:
+            again = how(*args)
+        except Exception as exc:
+            return f"the first run, which worked on a fresh instance, failed: {' '.join(str(exc).split())[:300]}"
+        a, b = _as_array(first), _as_array(again)
+        if a.shape == b.shape and np.array_equal(a, b, equal_nan=True):
+            return None
+        if a.shape != b.shape:
+            return f"the first run made again has {b.shape[0]} samples instead of {a.shape[0]}"
+        diff = np.abs(a - b)
+        diff[np.isnan(diff)] = np.inf
+        i = int(np.argmax(diff))
+        names = _result_names(first)
+        where = np.unravel_index(i, a.shape)
+        name = names[where[-1]] if names else "an output"
+        return (f"the first run made again gives {name} = {b.flat[i]:.10g} instead of {a.flat[i]:.10g} "
+                f"on a fresh instance")
+
+    def _can_snapshot(self) -> bool:
+        md = self.model_description
+        part = md.coSimulation if self.interface == "co-simulation" else md.modelExchange
+        return bool(getattr(part, "canGetAndSetFMUstate", False)) and not self.info.is_fmi3
+
+    def _start_over(self, mode: str) -> None:
+        """A new instance brought back by ``mode`` from now on, its first run made again on it (fresh)."""
+        self._free()
+        self.reuse = mode
+        how, args, _ = self._first_run
+        how(*args)
+
+    def _moved_on(self, mode: str, asked: str, problem: str) -> None:
+        """Record that runs are now brought back by ``mode`` and warn."""
+        import warnings
+        why = (f"{problem}: every run {'gets a new instance' if mode == 'fresh' else 'starts from a state snapshot taken right after instantiation'} "
+               f"instead of {_REUSE_CALLS[asked]}")
+        self._store_verdict(mode, why)
+        warnings.warn(f"{self.fmu_path}: {why}. This run was made again that way; the runner's first run "
+                      f"was on a fresh instance.", FMUReuseWarning, stacklevel=4)
+
+
+#: How each reuse mode brings the instance back, in words.
+_REUSE_CALLS = {"reset": "fmi2Reset", "snapshot": "fmi2SetFMUstate to a snapshot", "fresh": "a new instance"}
+
+
+def _as_array(result) -> np.ndarray:
+    if isinstance(result, dict):
+        return np.asarray(list(result.values()), dtype=float)
+    return np.asarray(result.to_numpy(), dtype=float)
+
+
+def _result_names(result) -> list[str]:
+    return list(result) if isinstance(result, dict) else list(result.columns)
 
 
 def experiment_tolerance(md) -> float | None:

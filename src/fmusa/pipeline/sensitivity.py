@@ -346,14 +346,16 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
     fingerprint = stage_fingerprint(runner, spec, names)
     store = RunStore(out / RUNS_FILE, names, metrics, resume=resume, fingerprint=fingerprint,
                      retry_failed=bool(getattr(runner, "retry_failed", False)))
-    simulated = 0
+    simulated = batches = 0      # batches: rounds of new runs (the study's count of rounds)
     try:
         t_eval = time.perf_counter()
         with _evaluator(spec, runner, study) as evaluator:
             recovered = track_in_flight(store, evaluator, resume)    # runs a crashed session left under way
             try:
                 for method in stage.methods:
-                    simulated += evaluate_keys(store, evaluator, keys[method], method, progress)
+                    made = evaluate_keys(store, evaluator, keys[method], method, progress)
+                    simulated += made
+                    batches += made > 0
             finally:
                 evaluator.marker.close()
         eval_wall = time.perf_counter() - t_eval
@@ -410,6 +412,8 @@ def run_sensitivity(study, stage, out: str | Path, runner, progress: bool = True
         store.close()
     if hasattr(runner, "simulated"):
         runner.simulated += simulated + acc_sim
+    if hasattr(runner, "rounds"):
+        runner.rounds += batches + (acc_sim > 0)
     if hasattr(runner, "asked"):    # every sample point (repeated ones count again) and the reference runs
         runner.asked += sum(len(keys[m]) for m in stage.methods) + acc_sim
 

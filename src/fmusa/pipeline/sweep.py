@@ -12,7 +12,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol, Sequence
+from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import numpy as np
 import pandas as pd
@@ -21,16 +21,16 @@ from fmusa.runs.evaluator import Evaluator
 from fmusa.fmi.info import FMUCompileError, default_fmu_path
 from fmusa.fmi.build import prepare_fmu
 from fmusa.analysis.regression import fit_by_level
-from fmusa.analysis.roi import grid_findings, Region, automatic_region, manual_region
+from fmusa.analysis.roi import Region, automatic_region, floor_region, grid_findings, inert_parameters, manual_region
 from fmusa.runs.inflight import track_in_flight
 from fmusa.runs.store import RunStore
 from fmusa.runs.timelimit import own_fmu
-from fmusa.analysis.search import SearchResult, nested_binary_search, search_in_rounds
+from fmusa.analysis.search import SearchResult, edge_notes, nested_binary_search, search_in_rounds
 from fmusa.files import atomic_write, move_aside, writable_folder
 from fmusa.study.schema import Study, StudyError
 from fmusa.runs.progress import progress_bar
 from fmusa.pipeline.sampling_check import sampling_summary
-from fmusa.pipeline.solver_check import implausible_runs, solver_summary
+from fmusa.pipeline.solver_check import accuracy_verdict, implausible_runs, solver_summary
 from fmusa.study.plan import check_fmu, grid_points, reset_check_points, run_fingerprint, study_plan_spec
 from fmusa.runs.preflight import preflight
 
@@ -50,6 +50,8 @@ class SweepResult:
     sensitivity: dict | None = None
     #: results of study extensions, by extension name (plain data the report renders)
     extra: dict = field(default_factory=dict)
+    #: releases the lock on ``out`` held for the report (run_study's ``hold_lock``); a no-op otherwise
+    release: Callable[[], None] = field(default=lambda: None, repr=False)
 
 
 class StudyExtension(Protocol):
@@ -120,11 +122,13 @@ class StudyRunner:
         #: values of the study parameters a stage does not vary (the first grid point)
         self.defaults: dict[str, float] = {}
 
-    def close(self) -> None:
+    def close(self, keep_lock: bool = False) -> None:
+        """Stop the workers and close runs.csv; ``keep_lock``: the folder stays locked for this study until
+        ``self.store.release()`` (its report is still to be written)."""
         self.evaluator.close()
         if self.evaluator.marker is not None:
             self.evaluator.marker.close()
-        self.store.close()
+        self.store.close(keep_lock=keep_lock)
 
     def evaluate(self, points: list[dict[str, float]], stage: str) -> list[dict]:
         """Rows for ``points`` (study parameter name → value), simulating only the new ones."""
@@ -183,10 +187,12 @@ class StudyRunner:
 
 def run_study(study: Study, out: str | Path, resume: bool = False, workers: int | None = None,
               scheduler: str | None = None, progress: bool = True,
-              extensions: Sequence[StudyExtension] = (), retry_failed: bool = False) -> SweepResult:
+              extensions: Sequence[StudyExtension] = (), retry_failed: bool = False,
+              hold_lock: bool = False) -> SweepResult:
     """Run every stage of ``study`` into ``out`` (runs.csv as runs finish, summary.json at the end) and
     then each extension's ``after_stages``. Draws nothing: :func:`fmusa.report.markdown.write_report`
-    renders the result."""
+    renders the result. ``hold_lock``: a study that ends well keeps ``out`` locked against another study
+    until ``result.release()`` (called once its report is written)."""
 
 
     out = writable_folder(out, "output folder (--out)")
@@ -195,6 +201,7 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
     summary: dict[str, Any] = {"study": study.name, "study_file": str(study.path),
                                "fmu_runs": runner.reuse.as_dict()}
     result = SweepResult(study, out, pd.DataFrame(), summary)
+    ended_well = False
     try:
         stage_times: dict[str, float] = {}
         stage_runs: dict[str, dict[str, int]] = {}     # FMU runs each stage asked for / simulated
@@ -223,13 +230,15 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
                 if search_stage is None:
                     raise StudyError(f"{study.path}: stages.roi needs stages.search (the region spans its inner and outer parameters)")
                 inner, outer = search_stage.inner, search_stage.outer      # outer None: an inner range
+                runner.defaults.update(stage.at or {})     # where the search holds the other parameters
                 if stage.manual:
                     result.region = manual_region(stage.manual, inner, outer)
                 else:
                     if grid_df is None:
                         raise StudyError(f"{study.path}: an automatic region of interest needs stages.grid "
                                          f"before stages.roi (or give roi.manual)")
-                    # the grid runs where the search will run: the other parameters at their defaults
+                    # the grid runs where the search will run: the other parameters at roi.at, else at
+                    # their first grid values
                     at = {k: v for k, v in runner.defaults.items() if k not in (inner, outer)}
                     result.region = automatic_region(grid_df, inner, outer, at, study.constraints,
                                                      list(study.parameters))
@@ -237,14 +246,29 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
             elif name == "search":
                 if result.region is None:
                     raise StudyError(f"{study.path}: stages.search needs stages.roi before it")
+                result.region = floor_region(result.region, stage.inner_rtol)
+                summary["roi"] = result.region.as_dict()
                 result.search = runner.search(result.region, stage, "search")
                 summary["optimum"] = result.search.optimum      # {inner: x} when the search has no outer
                 summary["binding_constraint"] = result.search.binding
                 summary["search"] = search_summary(result.search)
+                if result.search.optimum:
+                    notes = edge_notes(result.search, result.region, stage.inner_rtol)
+                    free = _free_in_optimum(study, grid_df, result.search.optimum)
+                    if notes:
+                        summary["optimum_at_edge"] = notes
+                    if free:
+                        summary["optimum_free"] = free
             elif name == "regression":
                 # the search's runs, or the grid's in a study without search (the loader decides: source)
                 runs = runner.store.frame()
                 pts = runs[runs["stage"] == stage.source]
+                if stage.source == "search" and result.search is not None and stage.by is not None \
+                        and stage.by == result.search.outer:
+                    # the levels on the search's path only: a search in rounds also asks for levels past
+                    # its stop (speculative points), which are no level of its answer
+                    path = [lv.outer for lv in result.search.levels]
+                    pts = pts[np.isin(pts[stage.by].to_numpy(dtype=float), np.asarray(path, dtype=float))]
                 if not len(pts):
                     raise StudyError(f"{study.path}: stages.regression fits the {stage.source} runs, but there "
                                      f"are none; run the {stage.source} stage before the regression")
@@ -275,10 +299,15 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
             ts = time.perf_counter()
             steps = solver_summary(study, runs, summary.get("optimum"), runner.evaluator.local_spec(),
                                    isolate=runner.evaluator.isolate, workers=runner.evaluator.workers,
-                                   scheduler=runner.evaluator.scheduler)
+                                   scheduler=runner.evaluator.scheduler, sampling=summary.get("sampling"))
             if steps is not None:
                 steps["wall_s"] = time.perf_counter() - ts
                 summary["fmu_steps"] = steps
+        accuracy = accuracy_verdict(study, summary.get("sampling"), summary.get("fmu_steps"))
+        if accuracy is not None:     # a constrained metric moved when checked finer: the optimum rests on it
+            summary["accuracy"] = accuracy
+        if summary.get("optimum"):
+            summary["optimum_reliable"] = accuracy is None
         implausible = implausible_runs(runs, runner.metrics)
         if implausible:
             summary["implausible"] = implausible
@@ -289,11 +318,45 @@ def run_study(study: Study, out: str | Path, resume: bool = False, workers: int 
         summary["stage_wall_s"] = stage_times
         summary["stage_runs"] = stage_runs
         summary["rounds"] = int(runner.rounds)
+        summary["run_counts"] = run_counts(summary)
         summary["wall_s"] = time.perf_counter() - t0
+        runner.store.check_present()      # runs.csv still where it was written (its folder not removed)
+        write_summary(result)
+        ended_well = True
     finally:
-        runner.close()
-    write_summary(result)
+        runner.close(keep_lock=hold_lock and ended_well)
+    result.release = runner.store.release if hold_lock else _nothing
     return result
+
+
+def _nothing() -> None:
+    """No lock to release."""
+
+
+def _free_in_optimum(study: Study, grid: pd.DataFrame | None, optimum: Mapping[str, float]) -> dict[str, str]:
+    """The parameters of ``optimum`` that move none of the constrained metrics across the grid: their
+    value there is only where the search held them or stopped (any other value does as well)."""
+    constrained = sorted({c.metric for c in study.constraints})
+    if grid is None or not constrained:
+        return {}
+    inert = inert_parameters(grid, list(study.parameters), constrained)
+    return {p: (f"{p} moves none of the constrained metrics ({', '.join(constrained)}) across its grid: its "
+                f"value in the optimum ({optimum[p]:.6g}) is only where the search held or stopped it, and any "
+                f"value in its range meets the constraints as well")
+            for p in optimum if p in inert}
+
+
+def run_counts(summary: Mapping) -> dict[str, int]:
+    """The study's one count of runs (docs: "Runs and how they are counted"): ``runs``, every distinct
+    parameter set the FMU was run at and stored (runs.csv, sensitivity_runs.csv and the sensitivity stage's
+    reference runs); of them ``simulated_now`` in this session and ``failed``; and the parts. The checks
+    after the stages (reset, sampling, FMU steps) are not runs of the study and are not counted."""
+    sens = summary.get("sensitivity") or {}
+    reference = int(((sens.get("accuracy_check") or {}).get("samples")) or 0)
+    parts = {"runs_csv": int(summary.get("runs", 0)), "sensitivity": int(sens.get("runs", 0) or 0),
+             "sensitivity_reference": reference}
+    return {"runs": sum(parts.values()), "simulated_now": int(summary.get("simulated_this_session", 0)),
+            "failed": int(summary.get("failed", 0)) + int(sens.get("failed", 0) or 0), **parts}
 
 
 def _stage_runs(runner: StudyRunner, asked0: int, simulated0: int, rounds0: int) -> dict[str, int]:

@@ -154,11 +154,16 @@ class ReportContext:
         item = st.parameters.get(name) or st.metrics.get(name)
         return (getattr(item, "description", "") or "").strip() or name
 
+    def named(self, name: str) -> str:
+        """Description and name, ``Spring stiffness (c)``; the name alone when it has no description (never
+        ``Q (Q)``)."""
+        desc = self.describe(name)
+        return name if desc.strip().lower() == name.lower() else f"{desc} ({name})"
+
     def label(self, name: str) -> str:
         """Axis label: description, name and unit, e.g. ``Spring stiffness (c) [N/m]``."""
-        desc = self.describe(name)
         unit = self.u(name)
-        text = name if desc == name else f"{desc} ({name})"
+        text = self.named(name)
         return f"{text} [{unit}]" if unit else text
 
     # ---------------------------------------------------------------- constraints

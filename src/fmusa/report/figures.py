@@ -27,15 +27,18 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Rectangle  # noqa: E402
 
 from fmusa.format import fmt
-from fmusa.files import atomic_path
+from fmusa.files import save_figure
 
 __all__ = [
     "fmt", "RegionFrame", "Threshold", "grid_heatmap", "line_plot", "scatter_panels", "search_metric",
     "search_path", "regression_plot", "sensitivity_figures", "index_tables", "level_colors", "spans_decades",
-    "log_ticks", "save", "unit_suffix", "lower_first", "search_points", "MARKERS", "AUTO_COLOR", "OTHER_COLOR", "OPT_COLOR", "THRESH_COLOR",
+    "log_ticks", "save", "unit_suffix", "lower_first", "search_points", "readable", "readable_formatter",
+    "series_styles", "SERIES_COLORS", "MARKERS", "PAGE_WIDTH", "AUTO_COLOR", "OTHER_COLOR", "OPT_COLOR", "THRESH_COLOR",
 ]
 
 DPI = 130
+#: a journal page's text width, in inches: a figure this wide prints at its own font sizes
+PAGE_WIDTH = 7.0
 AUTO_COLOR = "#d62728"      # the region the search used: solid red
 OTHER_COLOR = "#1f1fff"     # a second region (e.g. one chosen by hand): dashed blue
 OPT_COLOR = "#d62728"
@@ -79,14 +82,45 @@ def unit_suffix(u: str) -> str:
 
 
 def save(fig, path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:    # written whole or not at all (a full disk leaves the earlier figure, never half of one)
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=DPI, bbox_inches="tight")
-    finally:
-        plt.close(fig)
-    return path
+    """Written whole or not at all (a full disk leaves the earlier figure, never half of one), and checked in
+    the tests (:func:`fmusa.files.save_figure`)."""
+    return save_figure(fig, path, dpi=DPI)
+
+
+_SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+def readable(x: float, sig: int = 3, strip: bool = True) -> str:
+    """A number as a figure prints it: plain from 0.001 up to 100000 (``0.186``, ``1000``, ``15625``), else
+    ``1.86×10⁻⁵`` (never ``1.86e-5`` or ``1.00e3``); ``sig`` significant digits, ``strip`` drops the mantissa's
+    trailing zeros (tick labels) or keeps them (table cells, which then line up)."""
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if not math.isfinite(x):
+        return "–" if math.isnan(x) else ("∞" if x > 0 else "−∞")
+    if x == 0:
+        return "0"
+    e = int(math.floor(math.log10(abs(x))))
+    if 1e-3 <= abs(x) < 1e5:
+        text = f"{x:.{max(0, sig - 1 - e)}f}"
+        if strip and "." in text:
+            text = text.rstrip("0").rstrip(".")
+        return text.replace("-", "−")
+    m = x / 10 ** e
+    if round(abs(m), sig - 1) >= 10:
+        e, m = e + 1, m / 10
+    ms = f"{m:.{max(sig - 1, 0)}f}"
+    if strip and "." in ms:
+        ms = ms.rstrip("0").rstrip(".")
+    return f"{ms}×10{str(e).translate(_SUPERSCRIPT)}".replace("-", "−", 1) if x < 0 else \
+        f"{ms}×10{str(e).translate(_SUPERSCRIPT)}"
+
+
+def readable_formatter(sig: int = 3) -> matplotlib.ticker.Formatter:
+    """Tick labels through :func:`readable` (a linear axis; log axes keep matplotlib's 10ⁿ)."""
+    return matplotlib.ticker.FuncFormatter(lambda v, _pos: readable(v, sig))
 
 
 def spans_decades(values, decades: float = LOG_DECADES) -> bool:
@@ -97,6 +131,18 @@ def spans_decades(values, decades: float = LOG_DECADES) -> bool:
     if a.size < 2 or (a <= 0).any():
         return False
     return bool(a.max() / a.min() >= 10 ** decades)
+
+
+#: a qualitative palette (matplotlib's tab10) whose colours stay apart in print
+SERIES_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
+                 "#bcbd22", "#17becf")
+
+
+def series_styles(n: int) -> list[tuple[str, str]]:
+    """(colour, marker) for ``n`` series, every pair distinct for any ``n`` up to 60 (10 colours and 12
+    markers cycle together, so series 0 and 10 share a colour but not a marker); beyond that, pairs repeat
+    and the caller must add a line style."""
+    return [(SERIES_COLORS[i % len(SERIES_COLORS)], MARKERS[i % len(MARKERS)]) for i in range(n)]
 
 
 def level_colors(levels: Sequence[float], cmap: str = "viridis") -> dict[float, tuple]:
@@ -115,17 +161,17 @@ def log_ticks(ax, axis: str = "x") -> None:
     if lo <= 0 or hi / lo > 300:
         return
     ticks = [m * 10 ** k for k in range(int(math.floor(math.log10(lo))), int(math.ceil(math.log10(hi))) + 1)
-             for m in (1, 2, 4, 6, 8) if lo <= m * 10 ** k <= hi]
+             for m in (1, 2, 5) if lo <= m * 10 ** k <= hi]
     a = ax.xaxis if axis == "x" else ax.yaxis
     a.set_major_locator(matplotlib.ticker.FixedLocator(ticks))
-    a.set_major_formatter(matplotlib.ticker.FixedFormatter([fmt(t) for t in ticks]))
+    a.set_major_formatter(matplotlib.ticker.FixedFormatter([readable(t) for t in ticks]))
     a.set_minor_formatter(matplotlib.ticker.NullFormatter())
 
 
 def _range_text(frame: RegionFrame, inner: str, outer: str, inner_unit: str, outer_unit: str) -> str:
     r = frame.region
-    return (f"{frame.label}: {inner} ∈ [{fmt(r.inner_range[0])}, {fmt(r.inner_range[1])}] {inner_unit}, "
-            f"{outer} ∈ [{fmt(r.outer_range[0])}, {fmt(r.outer_range[1])}] {outer_unit}")
+    return (f"{frame.label}: {inner} ∈ [{readable(r.inner_range[0])}, {readable(r.inner_range[1])}] {inner_unit}, "
+            f"{outer} ∈ [{readable(r.outer_range[0])}, {readable(r.outer_range[1])}] {outer_unit}")
 
 
 # ============================================================================ 2-D grid: heat map
@@ -210,7 +256,7 @@ def _annotate_cells(ax, val, shown, failed, bad, cmap, norm, missing_label: str,
             elif not np.isfinite(v):
                 txt, color = missing_label, "#444444"
             else:
-                txt = fmt(v, sig, strip=False, plain_min=1.0)
+                txt = readable(v, sig, strip=False)
                 rgba = cmap(norm(shown[i, j]))
                 lum = 0.299 * rgba[0] + 0.587 * rgba[1] + 0.114 * rgba[2]
                 color = "black" if lum > 0.5 else "white"
@@ -232,13 +278,13 @@ def grid_heatmap(runs: pd.DataFrame, metric: str, path: str | Path, *, inner: st
     ``regions`` framed. With ``shift`` the cells show ``metric − shift``."""
     xs, zs, val, bad, failed = _grid_matrix(runs, metric, inner, outer, ok_column, shift)
     shown, norm, log, signed = _colour_norm(val)
-    fig, ax = plt.subplots(figsize=(8.6, 6.4))
+    fig, ax = plt.subplots(figsize=(PAGE_WIDTH, 5.6))
     cmap = plt.get_cmap("viridis").with_extremes(bad="#d9d9d9")
     ok = np.isfinite(shown) & ((shown > 0) if log else True)
     im = ax.imshow(np.ma.masked_where(~ok, shown), origin="lower", cmap=cmap, norm=norm, aspect="auto")
     _annotate_cells(ax, val, shown, failed, bad, cmap, norm, missing_label, cell_digits(val, log))
-    ax.set_xticks(range(len(xs)), [fmt(x, strip=False) for x in xs])
-    ax.set_yticks(range(len(zs)), [fmt(z, strip=False) for z in zs])
+    ax.set_xticks(range(len(xs)), [readable(x, 3) for x in xs])
+    ax.set_yticks(range(len(zs)), [readable(z, 3) for z in zs])
     ax.set_xlabel(f"{inner_label} (grid values)")
     ax.set_ylabel(f"{outer_label} (grid values)")
     ax.set_title(title or metric)
@@ -250,8 +296,10 @@ def grid_heatmap(runs: pd.DataFrame, metric: str, path: str | Path, *, inner: st
     for th in thresholds:
         if norm.vmin <= th.value <= norm.vmax:
             cb.ax.axhline(th.value, color=THRESH_COLOR, linewidth=2.5)
-        handles.append(Line2D([], [], color=THRESH_COLOR, linewidth=2.5,
-                              label=f"{th.label} (purple line on the colour bar)"))
+            where = "purple line on the colour bar"
+        else:
+            where = f"beyond the colour bar: every cell is {'below' if th.value > norm.vmax else 'above'} it"
+        handles.append(Line2D([], [], color=THRESH_COLOR, linewidth=2.5, label=f"{th.label} ({where})"))
     if ok_column is not None and bad.any():
         handles.append(Patch(facecolor="#777777", edgecolor="white", hatch="///",
                              label="hatched: this metric's constraint is violated"))
@@ -290,7 +338,7 @@ def line_plot(runs: pd.DataFrame, param: str, metric: str, path: str | Path, *, 
     ``thresholds`` as horizontal lines, ``shade`` (lo, hi, label) as a band, ``optimum`` (x, y, label)
     starred."""
     ok = runs[runs["status"] == "ok"].sort_values(param)
-    fig, ax = plt.subplots(figsize=(9.0, 5.4))
+    fig, ax = plt.subplots(figsize=(PAGE_WIDTH, 4.4))
     grid = ok[ok["stage"] == "grid"]
     ax.plot(grid[param], grid[metric], "-o", color="tab:blue", markersize=6, zorder=3, label="grid runs")
     other = ok[ok["stage"] != "grid"]
@@ -329,7 +377,7 @@ def scatter_panels(runs: pd.DataFrame, params: Sequence[str], metric: str, path:
     map would hide the other parameters)."""
     ok = runs[(runs["status"] == "ok") & (runs["stage"] == "grid")]
     n = len(params)
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.2), sharey=True, squeeze=False)
+    fig, axes = plt.subplots(1, n, figsize=(PAGE_WIDTH, min(3.4, PAGE_WIDTH / n + 0.8)), sharey=True, squeeze=False)
     for ax, p in zip(axes[0], params):
         ax.scatter(ok[p], ok[metric], s=18, alpha=0.7)
         _set_scales(ax, ok[p], ok[metric], None, None)
@@ -396,11 +444,13 @@ def _zoom_panel(az, pts, inner, metric, center, zoom, thresholds, reference, inn
     if ys:
         span = max(ys) - min(ys) or abs(max(ys)) * 0.1 or 1.0
         az.set_ylim(min(ys) - 0.08 * span, max(ys) + 0.08 * span)
-    az.set_xlabel(f"{inner_label} (linear, ±{zoom:.0%} of the optimum)")
+    az.set_xlabel(f"{inner_label}, ±{zoom:.0%} of the optimum")
     az.set_ylabel(metric_label)
-    az.set_title(f"zoom: {len(near)} search points near the boundary")
+    az.set_title(f"zoom: {len(near)} points near the boundary", fontsize=10)
     az.grid(True, alpha=0.25)
-    az.ticklabel_format(axis="both", style="sci", scilimits=(-3, 4), useMathText=True)
+    az.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(4))
+    az.xaxis.set_major_formatter(readable_formatter(4))
+    az.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
 
 
 def _optimum_row(pts, inner, outer, optimum):
@@ -433,7 +483,7 @@ def _main_axes(ax, values, thresholds: Sequence[Threshold], xlog: bool, inner_la
         log_ticks(ax, "x")
     ax.set_xlabel(f"{inner_label}{' (log)' if xlog else ''}")
     ax.set_ylabel(metric_label)
-    ax.set_title(title)
+    ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.25)
 
 
@@ -449,7 +499,7 @@ def search_metric(runs: pd.DataFrame, levels: Sequence[dict], fits: Mapping[str,
     regression ``fits`` per level (coefficients in increasing order), ``thresholds``, the optimum and
     vertical ``markers`` (x, label); right panel: the same within ±``zoom`` of the optimum."""
     pts = search_points(runs, levels, inner, outer, inner_range, stages)
-    fig, (ax, az) = plt.subplots(1, 2, figsize=(13.5, 5.6), gridspec_kw={"width_ratios": [1.35, 1]})
+    fig, (ax, az) = plt.subplots(1, 2, figsize=(PAGE_WIDTH, 3.9), gridspec_kw={"width_ratios": [1.35, 1]})
     xlog = spans_decades(pts[inner]) if xlog is None else xlog
     for z, g, color, mk in _level_groups(pts, levels, outer):
         g = g.sort_values(inner)
@@ -488,8 +538,8 @@ def search_metric(runs: pd.DataFrame, levels: Sequence[dict], fits: Mapping[str,
     fitted = f"; thin lines: {fit_label} per level" if fits else ""
     legend_title = (f"search levels of {outer}{unit_suffix(outer_unit)} (one colour and marker each{fitted})"
                     if outer is not None else None)
-    fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=4, frameon=False,
-               title=legend_title, title_fontsize=9)
+    fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, frameon=False,
+               title=legend_title, title_fontsize=8.5, fontsize=8)
     fig.tight_layout()
     return save(fig, path)
 
@@ -504,25 +554,45 @@ def search_path(searches: Sequence[tuple[str, Sequence[dict], Mapping[str, float
                 *, inner: str, outer: str, inner_label: str, outer_label: str, inner_unit: str = "",
                 outer_unit: str = "", markers: Sequence[tuple[float, float, str]] = (),
                 reference: tuple[float, str] | None = None,
-                annotations: Sequence[tuple[float, float, str]] = (), xlog: bool | None = None) -> Path:
+                annotations: Sequence[tuple[float, float, str]] = (), xlog: bool | None = None,
+                inner_range: tuple[float, float] | None = None) -> Path:
     """The outer levels of each search (``(label, levels, optimum, color)``) against the smallest
-    feasible inner value found there; the stop point starred, levels without a feasible value marked at
-    the bottom; ``markers`` (outer, inner, label) as crosses; ``annotations`` (outer, inner, text)."""
-    fig, ax = plt.subplots(figsize=(9.5, 5.8))
+    feasible inner value found there; the stop point starred; ``markers`` (outer, inner, label) as crosses;
+    ``annotations`` (outer, inner, text). ``inner_range``: the region the search bisected, drawn as two
+    dashed lines; a level without a feasible value is drawn above its top (nothing up to it was feasible),
+    and when every level found nearly the same value the axis shows the whole region, so the figure says
+    where in it they lie (at a bound, say)."""
+    fig, ax = plt.subplots(figsize=(PAGE_WIDTH, 4.6))
     lo_c, hi_c = _path_limits(searches)
+    none_found = any(lv.get("inner") is None for _, levels, _, _ in searches for lv in levels)
+    if inner_range is not None:
+        r_lo, r_hi = (float(v) for v in inner_range)
+        if none_found or (hi_c - lo_c) < 0.05 * (r_hi - r_lo):
+            lo_c, hi_c = min(lo_c, r_lo), max(hi_c, r_hi)
+        for k, v in enumerate((r_lo, r_hi)):
+            if lo_c <= v <= hi_c:
+                ax.axhline(v, color="gray", linestyle="--", linewidth=1.0, zorder=1,
+                           label=f"the region's bounds of {inner}: {fmt(r_lo, 4)}, {fmt(r_hi, 4)} {inner_unit}"
+                           if k == 0 or not lo_c <= r_lo <= hi_c else None)
+    if hi_c <= lo_c:           # one value: a band of ±10 % around it
+        lo_c, hi_c = lo_c - 0.1 * abs(lo_c or 1.0), hi_c + 0.1 * abs(hi_c or 1.0)
+    top = hi_c + 0.06 * (hi_c - lo_c)          # where "none feasible up to the top" is drawn
     all_z = []
     for n, (label, levels, opt, color) in enumerate(searches):
         zs = np.array([float(lv["outer"]) for lv in levels])
         all_z += list(zs)
         cs = np.array([float(lv["inner"]) if lv.get("inner") is not None else np.nan for lv in levels])
         ok = np.isfinite(cs)
-        ax.plot(zs[ok], cs[ok], "-o", color=color, alpha=0.8, markersize=7 - 2 * n, linewidth=1.8 - 0.6 * n,
+        ax.plot(zs[ok], cs[ok], "-" + MARKERS[n % len(MARKERS)], color=color, alpha=0.8, markersize=7 - 1.5 * n,
+                linewidth=1.8 - 0.6 * n,
                 label=f"{label}: {len(levels)} levels, {sum(int(lv.get('evaluations', 0)) for lv in levels)} runs")
         if (~ok).any():
-            ax.scatter(zs[~ok], np.full((~ok).sum(), lo_c - 0.05 * (hi_c - lo_c)), marker="v", s=60, color=color,
-                       label=f"{label}: no feasible {inner} in the region")
+            where = (f"up to the region's top {fmt(inner_range[1], 4)} {inner_unit}" if inner_range is not None
+                     else "in the region")
+            ax.scatter(zs[~ok], np.full((~ok).sum(), top), marker="^", s=70, color=color, edgecolors="black",
+                       zorder=6, label=f"{label}: no feasible {inner} {where} (drawn above it)")
         if len(zs):
-            ax.annotate(f"start ({label})", (zs[0], cs[0] if ok[0] else lo_c), textcoords="offset points",
+            ax.annotate(f"start ({label})", (zs[0], cs[0] if ok[0] else top), textcoords="offset points",
                         xytext=(0, 10 + 14 * n), ha="center", fontsize=8.5, color=color)
         if opt is not None:
             ax.scatter([opt[outer]], [opt[inner]], marker="*", s=380 - 120 * n, color=color, edgecolors="black",
@@ -538,14 +608,13 @@ def search_path(searches: Sequence[tuple[str, Sequence[dict], Mapping[str, float
     xlog = spans_decades(all_z) if xlog is None else xlog
     if xlog:
         ax.set_xscale("log")
-    ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
-    ax.set_ylim(lo_c - 0.12 * (hi_c - lo_c) - 0.02 * abs(lo_c), hi_c + 0.12 * (hi_c - lo_c) + 0.02 * abs(hi_c))
+    ax.yaxis.set_major_formatter(readable_formatter())
+    ax.set_ylim(lo_c - 0.12 * (hi_c - lo_c), hi_c + 0.16 * (hi_c - lo_c))
     ax.grid(True, which="both", alpha=0.25)
-    ax.set_xlabel(f"{outer_label} ({'log; ' if xlog else ''}the search halves it from the region's top, "
-                  f"right to left)")
+    ax.set_xlabel(f"{outer_label}{' (log)' if xlog else ''}; halved from the region's top, right to left")
     ax.set_ylabel(f"smallest feasible {lower_first(inner_label)}")
     ax.set_title(f"Nested binary search: the {outer} levels and the smallest feasible {inner} at each")
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=1, frameon=False)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=1, frameon=False)
     return save(fig, path)
 
 
@@ -554,7 +623,7 @@ def regression_plot(points: pd.DataFrame, fits: Mapping[str, dict], x: str, metr
                     path: str | Path, *, x_label: str, metric_label: str, by_unit: str = "", title: str = "",
                     degree: int = 3) -> Path:
     """The points a regression was fitted to (one colour per ``by`` level) and its fitted polynomials."""
-    fig, ax = plt.subplots(figsize=(9.0, 5.4))
+    fig, ax = plt.subplots(figsize=(PAGE_WIDTH, 4.4))
     ok = points[points["status"] == "ok"]
     xlog = spans_decades(ok[x])
     groups = [(None, ok)] if by is None else sorted(ok.groupby(by), key=lambda g: -float(g[0]))

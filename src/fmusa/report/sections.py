@@ -14,7 +14,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from fmusa.format import fmt
+from fmusa.format import fmt, md_code, md_text
 from fmusa.files import OutputError
 from fmusa.report import figures as F
 from fmusa.report.context import ReportContext, figure_markdown, get, ok_mark, table, yes
@@ -69,25 +69,34 @@ def _constraint_rows(ctx: ReportContext) -> list[tuple[str, str]]:
 
 
 def _fmu_text(ctx: ReportContext) -> str:
+    """The FMU's path, model name and description; the FMU's own text escaped (it is someone else's)."""
+    from fmusa.errors import FmusaError
+    from fmusa.fmi.info import default_fmu_path, read_fmu_info
     st = ctx.study
-    if st.fmu:
-        return f"`{st.fmu}`"
-    from fmusa.fmi.info import default_fmu_path
     try:
-        return f"`{default_fmu_path()}`"
-    except FileNotFoundError:
+        path = st.fmu or default_fmu_path()
+    except (FileNotFoundError, FmusaError):
         return "`(not found)`"
+    try:
+        info = read_fmu_info(path)
+    except (OSError, FmusaError):
+        return md_code(path)
+    about = md_text(info.model_name) + (f": {md_text(info.description)}" if info.description else "")
+    return f"{md_code(path)} ({about})"
 
 
 def _runs_rows(ctx: ReportContext) -> list[tuple[str, str]]:
     s, runs = ctx.summary, ctx.runs
     n = int(s.get("runs", len(runs)))
+    rc = s.get("run_counts") or {"runs": n, "simulated_now": s.get("simulated_this_session"), "failed": s.get("failed")}
     counts = ", ".join(f"{k}: {v}" for k, v in runs["stage"].value_counts().items()) if len(runs) else ""
-    rows = [("runs", f"{n} distinct runs in runs.csv ({counts})" if counts else f"{n} in runs.csv")]
-    sens_runs = get(s, "sensitivity", "runs")
-    if sens_runs is not None:
-        rows.append(("sensitivity runs", f"{sens_runs} (kept in sensitivity_runs.csv; see the sensitivity section)"))
-    rows.append(("failed runs", str(s.get("failed", "–"))))
+    rows = [("runs", f"{rc['runs']} ({rc.get('simulated_now', '–')} simulated in this session)"),
+            ("in runs.csv", f"{n} ({counts})" if counts else str(n))]
+    if rc.get("sensitivity"):
+        rows.append(("in sensitivity_runs.csv", f"{rc['sensitivity']} (see the sensitivity section)"))
+    if rc.get("sensitivity_reference"):
+        rows.append(("sensitivity reference runs", f"{rc['sensitivity_reference']} (its accuracy check)"))
+    rows.append(("failed runs", str(rc.get("failed", "–"))))
     return rows
 
 
@@ -108,8 +117,9 @@ def what_was_run_rows(ctx: ReportContext, fixed_units: Mapping[str, str] | None 
     """The rows of "What was run" (item, value); ``fixed_units`` gives units to fixed FMU values that the
     study writes without one."""
     st = ctx.study
-    rows = [("study file", f"`{st.path}`"), ("FMU", _fmu_text(ctx)),
-            ("study parameters", ", ".join(f"{n} → FMU `{p.variable}` [{p.unit}]" for n, p in st.parameters.items()))]
+    rows = [("study file", md_code(st.path)), ("FMU", _fmu_text(ctx)),
+            ("study parameters", ", ".join(f"{n} → FMU {md_code(p.variable)} [{md_text(p.unit)}]"
+                                           for n, p in st.parameters.items()))]
     if st.fixed:
         rows.append(("fixed parameters", _fixed_text(ctx, fixed_units or {})))
     sc = st.scenario
@@ -286,6 +296,16 @@ def optimum_section(ctx: ReportContext, label: str | None = None, sig: Sig = _si
         out += f"\nStop rule of {stop_label}: {res.search.stop_reason}.\n"
         for w in res.search.warnings:
             out += f"\n- warning: {w}\n"
+    if opt is not None:
+        for note in res.summary.get("optimum_at_edge") or []:
+            out += f"\n- note: {note}\n"
+        for note in (res.summary.get("optimum_free") or {}).values():
+            out += f"\n- note: {note}\n"
+    acc = res.summary.get("accuracy")
+    if opt is not None and acc:
+        out += (f"\n**This optimum is unreliable**: the accuracy checks (sections on sampling and on the FMU's "
+                f"steps) moved the constrained metric(s) {', '.join(acc['metrics'])}, on which every run's "
+                f"feasibility rests:\n\n" + "".join(f"- {w}\n" for w in acc["warnings"]))
     return out
 
 
@@ -387,12 +407,13 @@ def stage_runs_text(ctx: ReportContext) -> str:
             text = (f"{stage}: {asked} asked, {sim} simulated" if asked is not None else
                     f"{stage}: " + ", ".join(f"{k} {x}" for k, x in v.items() if k != "rounds"))
             if rounds is not None and sim:
-                text += f" in {rounds} round{'s' if rounds != 1 else ''}"
+                text += f" in {rounds} round{'s' if rounds != 1 else ''} of new runs"
             parts.append(text)
         else:
             parts.append(f"{stage}: {v}")
-    return ("\nFMU runs per stage (points asked for; simulated, the rest were already in runs.csv; rounds: "
-            "batches waited for one after another, the wall time of an FMU that costs seconds per run): "
+    return ("\nFMU runs per stage (points asked for, a point asked twice counted twice; simulated: the new "
+            "runs, the rest were already stored; rounds: batches of new runs waited for one after another, "
+            "the wall time of an FMU that costs seconds per run): "
             + "; ".join(parts) + ".\n" + rounds_text(ctx.summary))
 
 
@@ -403,9 +424,10 @@ def rounds_text(summary: Mapping) -> str:
         par = (summary.get(key) or {}).get("parallel") if isinstance(summary.get(key), Mapping) else None
         if not par:
             continue
-        out.append(f"{what} ran in rounds of up to {par['workers']} points: {par['rounds']} rounds, "
-                   f"{par['runs']} runs ({par['speculative_runs']} for levels past the stop); the sequential "
-                   f"search takes {par['sequential_rounds']} rounds of one run for the same answers.")
+        out.append(f"{what} asked for {par['runs']} points in {par['rounds']} rounds of up to {par['workers']} "
+                   f"({par['speculative_runs']} for levels past the stop; a point already stored is not run "
+                   f"again); the sequential search asks for {par['sequential_rounds']} points, one per round, "
+                   f"for the same answers.")
     return ("\n" + " ".join(out) + "\n") if out else ""
 
 
@@ -493,9 +515,9 @@ def failed_section(ctx: ReportContext, limit: int = 30) -> str:
     names = [n for n in ctx.study.parameters if n in bad]
     rows = []
     for _, r in bad.head(limit).iterrows():
-        msg = str(r.get("message", "") or "").replace("\n", " ").strip()
-        rows.append((r.get("stage", "–"), *(fmt(r[n], 6) for n in names), r["status"],
-                     (msg[:300] + "…") if len(msg) > 300 else (msg or "–")))
+        msg = str(r.get("message", "") or "").replace("\n", " ").strip()     # the FMU's log: escaped
+        rows.append((r.get("stage", "–"), *(fmt(r[n], 6) for n in names), md_text(r["status"]),
+                     md_text((msg[:300] + "…") if len(msg) > 300 else (msg or "–"))))
     out = (f"### Failed runs\n\n{len(bad)} run{'s' if len(bad) > 1 else ''} failed; "
            f"{'the first ' + str(limit) + ' are' if len(bad) > limit else 'each is'} listed with the reason "
            f"recorded in runs.csv (column `message`). The stages went on without them.\n\n")

@@ -54,13 +54,13 @@ def grid_figure(ctx: ReportContext, metric: str, title: Title = None) -> tuple[s
                        outer_label=ctx.label(ctx.outer), inner_unit=ctx.u(ctx.inner), outer_unit=ctx.u(ctx.outer),
                        metric_unit=ctx.u(metric), title=title(metric), regions=frames, thresholds=th,
                        ok_column=ctx.ok_column(metric) if th else None)
-        cap = (f"{ctx.describe(metric)} ({metric}) on the {ctx.inner} × {ctx.outer} grid"
+        cap = (f"{ctx.named(metric)} on the {ctx.inner} × {ctx.outer} grid"
                + ("; solid red frame: the region of interest the search used" if frames else "")
                + (f"; hatched cells violate {cons}" if th else "") + ".")
         return name, cap
     F.scatter_panels(ctx.runs, params, metric, path, param_labels={p: ctx.label(p) for p in params},
                      metric_label=ctx.label(metric), title=title(metric), thresholds=th)
-    return name, (f"{ctx.describe(metric)} ({metric}) of the grid runs against each parameter"
+    return name, (f"{ctx.named(metric)} of the grid runs against each parameter"
                   + (f"; dashed: {cons}" if th else "") + ".")
 
 
@@ -78,7 +78,7 @@ def _grid_line(ctx: ReportContext, metric: str, param: str, path, title: Title, 
     F.line_plot(ctx.runs, param, metric, path, param_label=ctx.label(param), metric_label=ctx.label(metric),
                 title=title(metric), thresholds=th, shade=shade, optimum=star,
                 ok_column=ctx.ok_column(metric) if th else None)
-    cap = (f"{ctx.describe(metric)} ({metric}) against {param}: the grid runs joined by a line"
+    cap = (f"{ctx.named(metric)} against {param}: the grid runs joined by a line"
            + ("; points: the runs of later stages" if (ctx.runs["stage"] != "grid").any() else "")
            + (f"; dashed: {cons}" if th else "") + ("; shaded: the region of interest" if shade else "")
            + ("; star: the optimum" if star else "") + ".")
@@ -110,7 +110,7 @@ def search_figure(ctx: ReportContext, metric: str, title: str = "", **extra) -> 
                     inner_range=res.region.inner_range if res.region is not None else None,
                     title=title or f"{ctx.describe(metric)} at the search's runs", **extra)
     per = f", one colour per {outer} level" if outer else ""
-    cap = (f"{ctx.describe(metric)} ({metric}) of every run of the search against {inner}{per}"
+    cap = (f"{ctx.named(metric)} of every run of the search against {inner}{per}"
            + (", with the regression's fits per level" if fits else "")
            + (", the constraint's bounds" if ctx.thresholds(metric) else "")
            + " and the optimum; right: zoom to ±5 % of the optimum.")
@@ -141,7 +141,8 @@ def search_path_figure(ctx: ReportContext) -> tuple[str, str] | None:
     name = "search_path.png"
     F.search_path([(f"{src} region", levels, res.search.optimum, F.AUTO_COLOR)], ctx.figdir / name, inner=inner,
                   outer=outer, inner_label=ctx.label(inner), outer_label=ctx.label(outer), inner_unit=ctx.u(inner),
-                  outer_unit=ctx.u(outer), annotations=path_annotations(ctx, levels))
+                  outer_unit=ctx.u(outer), annotations=path_annotations(ctx, levels),
+                  inner_range=res.region.inner_range if res.region is not None else None)
     return name, (f"Search path: each {outer} level visited by the nested binary search and the smallest "
                   f"feasible {inner} found there; star: where the search stopped; labelled levels: where "
                   f"another constraint than at the optimum decides.")
@@ -164,7 +165,7 @@ def regression_figures(ctx: ReportContext) -> list[tuple[str, str]]:
                           metric_label=ctx.label(m), by_unit=ctx.u(stage.by) if stage.by else "",
                           title=f"{ctx.describe(m)}: degree-{stage.degree} fit over {stage.x}", degree=stage.degree)
         per = f", one per {stage.by} level" if stage.by else ""
-        out.append((name, f"{ctx.describe(m)} ({m}) of the {src} runs against {stage.x} with the fitted "
+        out.append((name, f"{ctx.named(m)} of the {src} runs against {stage.x} with the fitted "
                           f"degree-{stage.degree} polynomials{per}."))
     return out
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Sequence
 
 from fmusa.errors import FmusaError
-from fmusa.fmi.archive import extract_fmu
+from fmusa.fmi.archive import extract_fmu, remove_folder
 from fmusa.fmi.build import compile_sources
 from fmusa.fmi.info import read_fmu_info, select_interface
 from fmusa.runs.pool import ENV_START_METHOD, PoolOptions, WorkerPool, resolve_start_method, run_chunk_supervised
@@ -16,6 +16,23 @@ from fmusa.runs.scheduler import connect_scheduler
 from fmusa.runs.spec import PlanSpec, RunBatch, RunResult, as_arrays, release_plan, run_batch
 from fmusa.runs.inflight import InFlight
 from fmusa.runs.timelimit import in_process_fixed, own_fmu
+
+class SchedulerLostError(FmusaError, RuntimeError):
+    """The connection to the Dask scheduler was lost mid-study (the scheduler stopped, or the network went):
+    an interruption, like Ctrl-C. The runs finished before are in runs.csv; the runs under way are not stored
+    as failed.
+
+    Fix: start the scheduler (and its workers) again and rerun the same command with ``--resume``: only the
+    runs not in runs.csv are made."""
+
+    exit_code = 1
+
+
+def _cancelled(exc: BaseException) -> bool:
+    from concurrent.futures import CancelledError
+    import asyncio
+    return isinstance(exc, (CancelledError, asyncio.CancelledError))
+
 
 class Evaluator:
     """Runs batches of parameter sets in this process, on supervised local workers, or on a Dask
@@ -67,7 +84,7 @@ class Evaluator:
                 if not info.has_binary(iface) and info.can_compile:
                     compile_sources(self._unzipdir, info, iface)
             except Exception:
-                shutil.rmtree(self._unzipdir, ignore_errors=True)
+                remove_folder(self._unzipdir)
                 self._unzipdir = None
                 raise
         self._local = self.spec if self._unzipdir is None else replace(self.spec, fmu_path=self._unzipdir)
@@ -134,7 +151,7 @@ class Evaluator:
             release_plan(self._local_spec())
             if here is not None and here[0] != self._local:
                 release_plan(here[0])
-            shutil.rmtree(self._unzipdir, ignore_errors=True)
+            remove_folder(self._unzipdir)
             self._unzipdir = None
             self._local = None
             self._here = None
@@ -147,6 +164,14 @@ class Evaluator:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    def _scheduler_lost(self, exc: BaseException) -> bool:
+        """Whether a Dask task's error says the scheduler is gone rather than the task failed: fmusa never
+        cancels its own futures, so a cancelled one (``scheduler-connection-lost``) is an interruption; so is
+        any error while the client is no longer connected."""
+        if _cancelled(exc) or "connection-lost" in str(exc) or "CommClosedError" in type(exc).__name__:
+            return True
+        return getattr(self._client, "status", "running") not in ("running", "newly-created")
 
     def parallel_workers(self) -> int:
         """How many runs go at once: the Dask cluster's threads (asked for now), else the local workers."""
@@ -211,13 +236,23 @@ class Evaluator:
                 fut = self._client.submit(run_chunk_supervised, self.spec, c, self.timeout_s, opts, pure=False)
                 futures.append(fut)
                 chunks[fut.key] = c
+            done = 0
             for fut in as_completed(futures):
                 try:
                     batch = fut.result()
                 except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker: record, go on
+                    if self._scheduler_lost(exc):     # not the runs' fault: stop, as Ctrl-C does
+                        for f in futures:
+                            f.release()
+                        raise SchedulerLostError(
+                            f"the connection to the Dask scheduler at {self.scheduler} was lost during the study "
+                            f"({type(exc).__name__}: {' '.join(str(exc).split())[:300]}); the runs finished before "
+                            f"({done} of this batch) are in runs.csv and none was stored as failed: start the "
+                            f"scheduler and its workers again, then rerun the same command with --resume") from None
                     reason = f"the Dask task failed: {type(exc).__name__}: {str(exc).strip()}"[:2000]
                     batch = RunBatch.failed(*chunks[fut.key], n_metrics, reason)
                 take(batch)
+                done += len(batch)
         elif (supervised or self.isolate or (self.workers > 1 and len(ids) >= self.pool_threshold)
               or (here := self._in_process()) is None):
             if self._pool is None:

@@ -1,7 +1,9 @@
 """Metrics of one run from its outputs, and the constraints on them.
 
 A metric reduces one FMU output over the run (the final value of a monitor the FMU keeps, or the max,
-mean, … of the sampled output) and maps it to study units. Pure numpy: no FMU here.
+mean, … of the sampled output) in study units: metric = reduce(scale × output) + offset. A negative scale
+flips the axis before the reduction, so ``max`` then takes the FMU's most negative sample and ``max_abs``
+stays positive. Pure numpy: no FMU here.
 """
 from __future__ import annotations
 
@@ -29,6 +31,25 @@ class MetricRule:
     offset: float = 0.0
     missing_below: float | None = None
     settle_tol: float | None = None      # ``settle``: the band |x| <= settle_tol (FMU units)
+
+    @property
+    def raw_reduce(self) -> str:
+        """The reduction on the FMU's own values that gives the metric's sample: ``max`` of scale × x is
+        ``min`` of x when the scale is negative."""
+        return raw_reduction(self.reduce, self.scale)
+
+    @property
+    def factor(self) -> float:
+        """What the raw reduced value is multiplied by: |scale| for the reductions of |x|."""
+        return abs(self.scale) if self.reduce in ("max_abs", "mean_abs") else self.scale
+
+
+def raw_reduction(reduce: str, scale: float) -> str:
+    """The reduction of the FMU's values equal to ``reduce`` of scale × values (max and min swap places
+    for a negative ``scale``)."""
+    if scale < 0 and reduce in ("max", "min"):
+        return "min" if reduce == "max" else "max"
+    return reduce
 
 
 def settle_index(x: np.ndarray, tol: float) -> int | None:
@@ -59,26 +80,27 @@ def reduce_series(t: np.ndarray, values: np.ndarray, rules: Sequence[MetricRule]
     out = np.empty(len(rules))
     for k, r in enumerate(rules):
         x = values[:, r.column]
-        if r.reduce == "final":
+        how = r.raw_reduce
+        if how == "final":
             v = float(x[-1])
-        elif r.reduce == "max":
+        elif how == "max":
             v = float(np.max(x))
-        elif r.reduce == "min":
+        elif how == "min":
             v = float(np.min(x))
-        elif r.reduce == "max_abs":
+        elif how == "max_abs":
             v = float(np.max(np.abs(x)))
-        elif r.reduce == "mean":
+        elif how == "mean":
             v = _time_mean(t, x)
-        elif r.reduce == "mean_abs":
+        elif how == "mean_abs":
             v = _time_mean(t, np.abs(x))
-        elif r.reduce == "settle":   # the time since which |x| <= settle_tol, on the samples
+        elif how == "settle":   # the time since which |x| <= settle_tol, on the samples
             i = settle_index(x, r.settle_tol)
             v = float("nan") if i is None else float(t[i])
         else:  # pragma: no cover - the study loader rejects other names
             raise ValueError(f"unknown reduction {r.reduce!r}; use one of {', '.join(REDUCTIONS)}")
         if r.missing_below is not None and v < r.missing_below:
             v = float("nan")
-        out[k] = r.scale * v + r.offset
+        out[k] = r.factor * v + r.offset
     return out
 
 
@@ -92,20 +114,21 @@ def reduce_batch(t: np.ndarray, data: np.ndarray, rules: Sequence[MetricRule]) -
     out = np.empty((n, len(rules)))
     for k, r in enumerate(rules):
         x = data[:, :, r.column]
-        if r.reduce == "final":
+        how = r.raw_reduce
+        if how == "final":
             v = x[:, -1].copy()
-        elif r.reduce == "max":
+        elif how == "max":
             v = np.max(x, axis=1)
-        elif r.reduce == "min":
+        elif how == "min":
             v = np.min(x, axis=1)
-        elif r.reduce == "max_abs":
+        elif how == "max_abs":
             v = np.max(np.abs(x), axis=1)
         else:   # time means and settling times: run by run, on each run's own block as reduce_series
             v = np.array([reduce_series(t, data[i], [replace(r, scale=1.0, offset=0.0, missing_below=None)])[0]
                           for i in range(n)], dtype=float)
         if r.missing_below is not None:
             v = np.where(v < r.missing_below, np.nan, v)
-        out[:, k] = r.scale * v + r.offset
+        out[:, k] = r.factor * v + r.offset
     return out
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from fmusa.errors import UsageError
-from fmusa.fmi.archive import extract_fmu
+from fmusa.fmi.archive import extract_fmu, remove_folder
 from fmusa.runs import worker as _worker_side
 from fmusa.runs.lean import LeanBatch
 from fmusa.runs.spec import LeanView, PlanSpec, RunBatch, as_arrays, from_lean, lean_view
@@ -597,7 +597,7 @@ def _close_dask_pools() -> None:
     _DASK_POOLS.clear()
     for _, folder in _DASK_FMUS.values():
         if folder:
-            shutil.rmtree(folder, ignore_errors=True)
+            remove_folder(folder)
     _DASK_FMUS.clear()
 
 
@@ -641,7 +641,7 @@ def _dask_pool(spec: PlanSpec, timeout_s: float | None, options: PoolOptions | N
         for other in [k for k in _DASK_FMUS if k not in used]:
             folder = _DASK_FMUS.pop(other)[1]
             if folder:
-                shutil.rmtree(folder, ignore_errors=True)
+                remove_folder(folder)
     return pool
 
 

@@ -22,9 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import re
-import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -33,12 +31,10 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fmusa.errors import FmusaError
-from fmusa.files import atomic_write
+from fmusa.files import ENV_CACHE, atomic_write, cache_dir  # noqa: F401 - ENV_CACHE: its users import it here
 from fmusa.fmi.info import FMUError, read_fmu_info, select_interface
 from fmusa.runs.spec import PlanSpec, plan_for, release_plan, runner_for
 
-#: Environment variable naming the folder of fmusa's caches (default: the platform's user cache folder).
-ENV_CACHE = "FMUSA_CACHE_DIR"
 #: Bumped when the check changes what it decides, so that older cached verdicts are not used.
 _CHECK_VERSION = 1
 
@@ -384,19 +380,6 @@ def check_reuse_isolated(spec: PlanSpec, a: Sequence[float], b: Sequence[float],
 
 
 # ------------------------------------------------------------------------------------------ cache
-def cache_dir() -> Path:
-    """fmusa's cache folder: ``$FMUSA_CACHE_DIR``, else the platform's user cache folder."""
-    env = os.environ.get(ENV_CACHE)
-    if env:
-        return Path(env).expanduser()
-    if sys.platform == "win32":
-        base = Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local")
-        return base / "fmusa" / "cache"
-    if sys.platform == "darwin":
-        return Path.home() / "Library" / "Caches" / "fmusa"
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fmusa"
-
-
 def _cache_key(spec: PlanSpec, digest: str, a, b) -> str:
     what = [_CHECK_VERSION, digest, spec.interface, spec.solver, spec.relative_tolerance, spec.step_size,
             list(spec.varied), [[k, repr(v)] for k, v in spec.fixed], [[k, repr(v)] for k, v in spec.inputs],

@@ -11,8 +11,9 @@ way (a mean is a trapezoid integral, a final value is sampled exactly).
 before the settling sample are re-run with ``refine_factor`` (f) times finer communication steps (one
 more run of the FMU with a non-uniform grid of communication points; a model exchange FMU, or one that
 cannot change its step, is re-run with the finer step throughout). The bound then shrinks by f², the
-settling time's resolution by f. :func:`sampling_check` measures both against a much finer run, for the
-report.
+settling time's resolution by f. :func:`sampling_check` measures both against a run sampled much finer
+throughout (the bound holds only for the peak the samples show, not for a narrower one between two samples
+elsewhere), for the report.
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ def refine_intervals(t: np.ndarray, data: np.ndarray, rules: Sequence[MetricRule
     for r in rules:
         x = data[:, r.column]
         if r.reduce in PEAK_REDUCTIONS:
-            k = peak_index(x, r.reduce)
+            k = peak_index(x, r.raw_reduce)
             out.update(i for i in (k - 1, k) if 0 <= i < n - 1)
         elif r.reduce == "settle":
             k = settle_index(x, r.settle_tol)
@@ -65,14 +66,15 @@ def _variable_steps(runner) -> bool:
 _FINE_PLANS: dict = {}
 
 
-def _fine_plan(spec, plan, factor: int):
+def _fine_plan(spec, plan, factor: int, throughout: bool = False):
     """The RunPlan of the finer re-runs on ``plan``'s FMU instance, made once per spec and factor. ``uniform``
-    says whether it samples at step/factor throughout (else its ``times`` are set per run)."""
-    key = (spec, factor, id(plan.runner))
+    says whether it samples at step/factor throughout (always so with ``throughout``; else only for an FMU
+    that cannot vary its step, and its ``times`` are set per run)."""
+    key = (spec, factor, id(plan.runner), throughout)
     fp = _FINE_PLANS.get(key)
     if fp is None or fp.runner is not plan.runner:
         from fmusa.fmi.plans import RunPlan
-        uniform = not _variable_steps(plan.runner)
+        uniform = throughout or not _variable_steps(plan.runner)
         step = max(spec.step / factor, spec.stop_time / 5e4) if uniform else None
         fp = RunPlan(plan.runner, spec.varied, dict(spec.fixed), spec.outputs, spec.stop_time, step,
                      dict(spec.inputs))
@@ -82,10 +84,12 @@ def _fine_plan(spec, plan, factor: int):
 
 
 def fine_run(spec, plan, fmu_values: Sequence[float], t: np.ndarray, data: np.ndarray,
-             rules: Sequence[MetricRule], factor: int) -> tuple[np.ndarray, np.ndarray] | None:
+             rules: Sequence[MetricRule], factor: int, throughout: bool = False
+             ) -> tuple[np.ndarray, np.ndarray] | None:
     """Re-run with ``factor`` times finer sampling where ``rules`` take their values (all of the run for an
-    FMU that cannot vary its step): (times, outputs), or None when nothing needs refining."""
-    fp = _fine_plan(spec, plan, factor)
+    FMU that cannot vary its step, or with ``throughout``): (times, outputs), or None when nothing needs
+    refining."""
+    fp = _fine_plan(spec, plan, factor, throughout)
     if not fp.uniform:
         intervals = refine_intervals(t, data, rules)
         if not intervals:
@@ -131,7 +135,8 @@ def sampling_check(spec, plan, fmu_values: Sequence[float], reference_factor: in
     """For one run as the study makes it (with ``refine_peaks`` if set): every peak or settling metric, its
     sampled value, the sampling bound (h²/8·|y''| for a peak, one interval for a settling time, in the
     metric's unit), and its value from a reference run sampled ``reference_factor`` times finer still
-    around the same samples. Raises what the FMU raises."""
+    throughout the run (at most 50,000 samples), so that a peak between two samples far from the sampled one
+    is found too. Raises what the FMU raises."""
     data = plan(list(fmu_values))
     t = plan.times
     metrics = reduce_series(t, data, spec.rules)
@@ -145,7 +150,7 @@ def sampling_check(spec, plan, fmu_values: Sequence[float], reference_factor: in
         if fine is not None:
             grid_t, grid_data = fine
     rules = [r for r in spec.rules if r.reduce in SAMPLED_REDUCTIONS]
-    ref = fine_run(spec, plan, fmu_values, t, data, rules, factor * reference_factor)
+    ref = fine_run(spec, plan, fmu_values, t, data, rules, factor * reference_factor, throughout=True)
     ref_vals = reduce_series(ref[0], ref[1], rules) if ref is not None else metrics[
         [spec.rules.index(r) for r in rules]]
     out = []
@@ -155,7 +160,7 @@ def sampling_check(spec, plan, fmu_values: Sequence[float], reference_factor: in
         row = {"metric": r.name, "reduce": r.reduce, "value": float(metrics[k]), "reference": float(ref_v),
                "step": float(spec.step), "factor": factor}
         if r.reduce in PEAK_REDUCTIONS:
-            d2, h = peak_curvature(grid_t, x, r.reduce)
+            d2, h = peak_curvature(grid_t, x, r.raw_reduce)
             row.update(curvature=d2 * abs(r.scale), h=h, bound=h * h / 8 * d2 * abs(r.scale))
         else:
             k_s = settle_index(x, r.settle_tol)

@@ -60,7 +60,8 @@ def runner_for(spec: PlanSpec) -> FMURunner:
     """A new FMURunner on ``spec``'s FMU with the study's ``fmu_options``: for the runs a plan makes, and for
     runs outside the run store (a finer sampling, another scenario). Close it (or use ``with``)."""
     return FMURunner(spec.fmu_path, interface=spec.interface, solver=spec.solver,
-                     relative_tolerance=spec.relative_tolerance, step_size=spec.step_size, reuse=spec.reuse)
+                     relative_tolerance=spec.relative_tolerance, step_size=spec.step_size, reuse=spec.reuse,
+                     check_reuse=False)      # the study's pre-flight check chose spec.reuse
 
 
 #: The last spec plan_for was asked for and its plan: hashing a spec (every field) costs more than a cheap run.

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from fmusa.errors import UsageError
-from fmusa.files import atomic_write, write_error
+from fmusa.files import OutputError, atomic_write, try_lock, write_error
 from fmusa.runs.metrics import constraint_holds, constraint_table
 
 FLOAT = "%.17g"   # round-trips a double exactly, so reloaded keys match new ones
@@ -41,6 +41,31 @@ def _num(x: float) -> str:
     return "" if math.isnan(x) else FLOAT % x
 
 
+def one_line(text: str) -> str:
+    """A message as runs.csv stores it: on one line (a line break becomes " | "), so that a row cut short
+    by a kill is always its file's last line, which resuming drops."""
+    if "\n" not in text and "\r" not in text:
+        return text
+    return " | ".join(part.strip() for part in text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+                      if part.strip())
+
+
+def _complete_records(data: bytes) -> int:
+    """The length of ``data`` (csv bytes) up to the end of its last complete record: a line break outside
+    quotes (a quoted field may span lines, as messages stored by older versions do)."""
+    if b'"' not in data:                          # no quoted field: the last line break ends the last record
+        return data.rfind(b"\n") + 1
+    last_ok = 0
+    pos, inside = 0, False
+    for line in data.split(b"\n")[:-1]:           # every line ended by a break
+        pos += len(line) + 1
+        if line.count(b'"') % 2:
+            inside = not inside
+        if not inside:
+            last_ok = pos
+    return last_ok
+
+
 class StoreBusyError(UsageError):
     """Another process writes the same runs file.
 
@@ -49,23 +74,7 @@ class StoreBusyError(UsageError):
     """
 
 
-def _try_lock(fh) -> None:
-    """Lock the open file ``fh`` for this process alone, without waiting: ``fcntl.flock`` on POSIX,
-    ``msvcrt.locking`` (its first byte) on Windows. BlockingIOError when another process holds it; any
-    other OSError when the file system cannot lock files at all."""
-    try:
-        import fcntl
-    except ImportError:
-        fcntl = None
-    if fcntl is not None:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        return
-    import msvcrt
-    fh.seek(0)
-    try:
-        msvcrt.locking(fh.fileno(), msvcrt.LK_NBLCK, 1)
-    except PermissionError as exc:     # Windows: the region is locked by another process
-        raise BlockingIOError(exc.errno, str(exc)) from None
+_try_lock = try_lock    # fmusa.files: the extraction folders of fmusa.fmi.archive use it too
 
 
 #: errnos of a lock that another process holds (rather than one the file system refuses)
@@ -205,6 +214,7 @@ class RunStore:
         self._statuses: list[str] = ["ok", "failed"]
         self._messages: dict[int, str] = {}       # row -> message (failed runs, mostly)
         self.next_id = 0
+        self._num_fmt = ",".join([FLOAT] * (len(self.params) + len(self.metrics)))
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = _lock_folder(self.path)
         #: where the runs of an earlier study went when this one started afresh (nothing is deleted)
@@ -215,7 +225,11 @@ class RunStore:
         meta = self.path.with_name(self.path.name + ".study.json")
         if resume and self.path.exists() and self.path.stat().st_size > 0:
             _check_fingerprint(self.path, meta, fingerprint)     # a matching record is not rewritten
+        self._reordered = False
         if resume and self.path.exists() and self.path.stat().st_size > 0 and self._load():
+            if self._reordered:    # columns in another order (edited by hand): read by name, written in ours
+                header = ",".join(_quote(c) for c in self.columns) + "\r\n"
+                self._guard(lambda: atomic_write(self.path, header + self._block(slice(0, self._n))))
             self._fh = open(self.path, "a", newline="", encoding="utf-8")
             #: failed runs of the resumed study set aside to be run again (``retry_failed``)
             self.retried = self._forget_failed() if retry_failed else 0
@@ -234,8 +248,6 @@ class RunStore:
                 return fh
             self._fh = self._guard(start)
         self._writer = csv.writer(self._fh)
-        n_num = len(self.params) + len(self.metrics)
-        self._num_fmt = ",".join([FLOAT] * n_num)
 
     # ------------------------------------------------------------------ arrays
     def _alloc(self, cap: int) -> None:
@@ -333,27 +345,30 @@ class RunStore:
                 self._spill[k] = row
 
     def _load(self) -> bool:
-        with open(self.path, "r+b") as fh:   # a block cut short by a kill: drop its partial last line
-            end = fh.seek(0, os.SEEK_END)
-            pos = end
-            while pos > 0:
-                start = max(0, pos - 65536)
-                fh.seek(start)
-                nl = fh.read(pos - start).rfind(b"\n")
-                if nl >= 0:
-                    pos = start + nl + 1
-                    break
-                pos = start
-            if pos < end:
+        with open(self.path, "r+b") as fh:   # a block cut short by a kill: drop its partial last record
+            data = fh.read()
+            pos = _complete_records(data)
+            if pos < len(data):
                 fh.truncate(pos)
         if pos == 0:                           # not even the header survived: start afresh
             return False
-        df = pd.read_csv(self.path, keep_default_na=True, encoding="utf-8",
-                         dtype={"stage": str, "status": str, "message": str})
+        try:
+            df = pd.read_csv(self.path, keep_default_na=True, encoding="utf-8",
+                             dtype={"stage": str, "status": str, "message": str})
+        except (pd.errors.ParserError, ValueError) as exc:
+            raise UsageError(f"{self.path}: cannot resume: the file cannot be read as runs.csv "
+                             f"({' '.join(str(exc).split())}); fix the line it names, or start afresh without "
+                             f"--resume") from None
         missing = [c for c in self.columns if c not in df.columns]
         if missing:
             raise UsageError(f"{self.path}: cannot resume: columns {', '.join(missing)} are missing "
                              f"(the study changed?); start afresh without --resume or use another --out")
+        extra = [c for c in df.columns if c not in self.columns]
+        if extra:
+            raise UsageError(f"{self.path}: cannot resume: columns {', '.join(map(str, extra))} are not the "
+                             f"study's (runs.csv was edited, or the study changed); remove them, or start "
+                             f"afresh without --resume")
+        self._reordered = list(df.columns) != self.columns
         n = len(df)
         i = self._reserve(n)
         self._ids[i:i + n] = _numbers(self.path, df, ["run_id"]).astype(np.int64)[:, 0]
@@ -490,7 +505,7 @@ class RunStore:
             self._F[i] = self._flag_rows(self._M[i:i + 1], np.array([status == "ok"]))[0]
         self._secs[i] = float(seconds)
         if message:
-            self._messages[i] = message
+            self._messages[i] = one_line(message)
         self._insert(i, 1)
         rec = self._record(i)
         self._guard(lambda: (self._writer.writerow([self._fmt(rec[c]) for c in self.columns]), self._fh.flush()))
@@ -518,18 +533,36 @@ class RunStore:
         self._secs[sl] = batch.seconds
         for j, msg in batch.messages.items():
             if msg:
-                self._messages[i + j] = msg
+                self._messages[i + j] = one_line(msg)
         self._insert(i, n)
         text = self._block(sl)
         self._guard(lambda: (self._fh.write(text), self._fh.flush()))
 
     def _guard(self, write):
         """``write()``, with an OSError (a full disk) as one line naming runs.csv and the free space; the
-        rows before are intact (a partial last line is dropped on resume)."""
+        rows before are intact (a partial last line is dropped on resume). Then :meth:`check_present`."""
         try:
-            return write()
+            out = write()
         except OSError as exc:
             raise write_error(self.path, exc, kept=f"the runs before are kept in {self.path.name}") from None
+        self.check_present()
+        return out
+
+    def check_present(self) -> None:
+        """An :class:`~fmusa.files.OutputError` when runs.csv is no longer the file this store writes (its
+        folder deleted or moved, the file replaced during the study): the rows would go nowhere."""
+        fh = getattr(self, "_fh", None)
+        if fh is None or fh.closed:
+            return
+        try:
+            mine, there = os.fstat(fh.fileno()), os.stat(self.path)
+            same = (mine.st_ino, mine.st_dev) == (there.st_ino, there.st_dev)
+        except OSError:
+            same = False
+        if not same:
+            raise OutputError(f"{self.path}: runs.csv was deleted, moved or replaced while the study ran "
+                              f"(its folder removed?), so the runs since then are lost; nothing more is "
+                              f"written. Run the study again (with --resume if runs.csv is back)")
 
     def _block(self, sl: slice) -> str:
         """The rows ``sl`` as csv text, as the csv module writes them row by row."""
@@ -576,12 +609,19 @@ class RunStore:
         cols["seconds"] = self._secs[rows]
         return pd.DataFrame(cols, columns=self.columns)
 
-    def close(self) -> None:
+    def close(self, keep_lock: bool = False) -> None:
+        """Close runs.csv; release the folder's lock unless ``keep_lock`` (the report is still to be
+        written into the folder: :meth:`release`)."""
         if not self._fh.closed:
             try:
                 self._fh.close()
             except OSError:     # the rows a full disk refused: already reported by the write that failed
                 pass
+        if not keep_lock:
+            self.release()
+
+    def release(self) -> None:
+        """Release the lock on the folder's runs file (closing the lock file releases it)."""
         if self._lock is not None:
-            self._lock.close()          # closing the file releases the lock
+            self._lock.close()
             self._lock = None

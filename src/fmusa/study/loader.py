@@ -31,6 +31,12 @@ _Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 _NULL = "tag:yaml.org,2002:null"
+#: Largest integer a study file may hold: beyond it no count, size or value of a study makes sense, and
+#: converting it to a float overflows.
+MAX_INT = 10 ** 18
+MAX_INT_DIGITS = 18
+#: Deepest nesting of lists and mappings: a study file nests four or five levels.
+MAX_DEPTH = 100
 #: Most values a free-form block may expand to (aliases included); the paper's block has about 40.
 MAX_PLAIN_VALUES = 100_000
 
@@ -77,10 +83,18 @@ class _Parser:
     # ---------------------------------------------------------------- plain values
     def scalar(self, node: ScalarNode):
         try:
-            return self._constructor.construct_object(node, deep=True)
+            v = self._constructor.construct_object(node, deep=True)
         except ConstructorError as exc:
             raise self.error(node, f"cannot read the value {node.value!r}: {exc.problem}; "
                                    f"write a plain number, string, true/false or null") from None
+        except (ValueError, OverflowError) as exc:     # e.g. more digits than Python converts
+            raise self.error(node, f"cannot read the value {node.value[:40]!r}…: {exc}; write a number of "
+                                   f"at most {MAX_INT_DIGITS} digits") from None
+        if isinstance(v, int) and not isinstance(v, bool) and abs(v) > MAX_INT:
+            raise self.error(node, f"the integer {node.value[:20]}… ({len(str(abs(v)))} digits) is larger than "
+                                   f"any value a study uses (at most {MAX_INT:.0e}); check the number, and write large "
+                                   f"physical values in floating point (e.g. 1.0e20)")
+        return v
 
     def describe(self, node: Node) -> str:
         """'a list', 'a mapping', 'the string 'x'', 'the number 3', 'null', 'true'..."""
@@ -450,12 +464,13 @@ def _parse_metrics(p: _Parser, top: _Map, parameters: Mapping) -> dict[str, Metr
         rnode = mm.opt("reduce")
         reduce = "final" if rnode is None else p.choice(rnode, "reduce", where, REDUCTIONS,
                                                         "reduction")
-        tol = mm.num("settle_tol", None, "settle_tol: 5.0e-8  (the band |output| <= settle_tol, in the "
-                                         "FMU's unit)", positive=True)
+        # no number is suggested: a band depends on the output's unit and size, which the loader cannot know
+        band = (f"settle_tol: BAND, the largest |{output}| that counts as settled, in the FMU's unit of {output} "
+                f"(`fmusa inspect` shows it; e.g. a hundredth of its peak)")
+        tol = mm.num("settle_tol", None, band, positive=True)
         if reduce == "settle" and tol is None:
             raise p.error(mm.items["reduce"][1], f"{_key('reduce', where)}: 'settle' (the time since which "
-                                                 f"|{output}| stays within a band) needs the band; add "
-                                                 f"settle_tol: 5.0e-8 (in the FMU's unit of {output})")
+                                                 f"|{output}| stays within a band) needs the band; add {band}")
         if tol is not None and reduce != "settle":
             raise p.error(mm.items["settle_tol"][1], f"{_key('settle_tol', where)} applies to reduce: settle "
                                                      f"only, but the reduction is '{reduce}'; remove it or "
@@ -579,10 +594,21 @@ def _check_grid_size(p: _Parser, m: _Map, where: str, base: float | None, expone
 
 
 def _parse_roi(p: _Parser, m: _Map, where: str, parameters: Mapping) -> RoiStage:
-    m.allow(("manual",))
+    m.allow(("manual", "at"))
+    at = None
+    anode = m.opt("at")
+    if anode is not None and not p.is_null(anode):
+        aw = f"{where}.at"
+        am = p.mapping(anode, aw, "at")
+        at = {}
+        for name, knode, vnode in am.entries():
+            p.name_in(knode, name, aw, parameters, "study parameter", "load: 10")
+            at[name] = p.number(vnode, name, aw, f"{name}: 10")
+        if not at:
+            at = None
     node = m.opt("manual")
     if node is None:
-        return RoiStage(manual=None)
+        return RoiStage(manual=None, at=at)
     mw = f"{where}.manual"
     mm = p.mapping(node, mw, "manual")
     manual: dict[str, tuple[float, float]] = {}
@@ -596,7 +622,7 @@ def _parse_roi(p: _Parser, m: _Map, where: str, parameters: Mapping) -> RoiStage
     if not manual:
         raise p.error(node, f"{_key('manual', where)} is empty; give [lo, hi] per parameter, "
                             f"e.g. manual: {{c: [3.91e5, 9.77e6]}}, or null for the automatic region")
-    return RoiStage(manual=manual)
+    return RoiStage(manual=manual, at=at)
 
 
 def _parse_search(p: _Parser, m: _Map, where: str, parameters: Mapping, metrics: Mapping,
@@ -807,6 +833,10 @@ def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
                                      "interest, but no 'roi' stage comes before it; add 'roi:' "
                                      "above 'search'")
             stage = _parse_search(p, sm, where, parameters, metrics, constraints)
+            for q in (stage.inner, stage.outer):
+                if q is not None and q in (out["roi"].at or {}):
+                    raise p.error(knode, f"key 'search' in 'stages' varies '{q}', so 'stages.roi.at' cannot "
+                                         f"hold it; remove {q} from 'at'")
             manual = out["roi"].manual
             if manual is not None:
                 for q in (stage.inner, stage.outer):
@@ -821,6 +851,14 @@ def _parse_stages(p: _Parser, top: _Map, parameters: Mapping, metrics: Mapping,
             out[name] = _parse_sensitivity(p, sm, where, metrics, fixed)
     if "grid" in out:
         grid = out["grid"]
+        roi = out.get("roi")
+        if roi is not None and roi.at and roi.manual is None:
+            axes = grid.points()
+            for q, v in roi.at.items():
+                if q in axes and not any(math.isclose(v, g, rel_tol=1e-12) for g in axes[q]):
+                    raise p.error(m.key_node("roi"), f"'stages.roi.at' holds {q} = {v:g}, which is not one of "
+                                                     f"its grid values ({', '.join(f'{g:g}' for g in axes[q])}): "
+                                                     f"the region is found from the grid runs there; pick one")
         missing = [q for q in parameters if q not in grid.exponents and q not in grid.values]
         if missing:
             raise p.error(m.key_node("grid"),
@@ -937,7 +975,24 @@ def _parse_fmu(p: _Parser, top: _Map, base_dir: Path) -> Path | None:
         raise p.error(node, f"key 'fmu' at the top level: {path} does not exist; give the path to "
                             f"the .fmu file (relative paths start at the study file's directory) "
                             f"or 'default' for the built ScrewVertebra FMU")
+    if not path.is_file() and not (path.is_dir() and (path / "modelDescription.xml").is_file()):
+        raise p.error(node, f"key 'fmu' at the top level: {path} is not a regular file (a device, a FIFO, or a "
+                            f"folder without modelDescription.xml); give the path to the .fmu file")
     return path
+
+
+def files_outside(study: Study) -> list[str]:
+    """The files a study names outside its own folder (an absolute path, ``..``, a link that leads away), as
+    notes to print: fmusa reads them as asked, and says so, since a study file may come from someone else."""
+    if study.fmu is None or study.path is None:
+        return []
+    folder = Path(study.path).resolve().parent
+    try:
+        Path(study.fmu).resolve().relative_to(folder)
+        return []
+    except ValueError:
+        return [f"{study.path}:{study.lines.get('fmu', 1)}: the study reads the FMU {study.fmu}, outside the "
+                f"study file's folder {folder}"]
 
 
 def _check_conflicts(p: _Parser, top: _Map, parameters: Mapping[str, Parameter], fixed: Mapping,
@@ -1002,6 +1057,49 @@ def _parse(p: _Parser, root: Node | None, base_dir: Path, path: Path | None,
                  fixed_units=fixed_units, lines=dict(p.lines))
 
 
+def _check_depth(p: _Parser, text: str) -> None:
+    """Refuse nesting deeper than MAX_DEPTH from the parser's events (it does not recurse; composing the
+    tree does, and would die of a RecursionError)."""
+    depth = 0
+    for ev in yaml.parse(text, Loader=_Loader):
+        if isinstance(ev, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+            depth += 1
+            if depth > MAX_DEPTH:
+                raise StudyError(f"{p.label}:{ev.start_mark.line + 1}: lists or mappings nested more than "
+                                 f"{MAX_DEPTH} levels deep; a study file nests a few levels")
+        elif isinstance(ev, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+            depth -= 1
+
+
+def _check_graph(p: _Parser, root: Node | None) -> None:
+    """Refuse a node that contains itself (a recursive alias, ``x: &r {y: *r}``) and nesting deeper than
+    MAX_DEPTH, before anything walks the tree recursively; each node is visited once (aliases are shared)."""
+    if root is None:
+        return
+    done: set[int] = set()
+    path: set[int] = set()
+    stack: list[tuple[Node, int, bool]] = [(root, 0, False)]
+    while stack:
+        node, depth, leaving = stack.pop()
+        if leaving:
+            path.discard(id(node))
+            done.add(id(node))
+            continue
+        if id(node) in done or isinstance(node, ScalarNode):
+            continue
+        if depth > MAX_DEPTH:
+            raise p.error(node, f"lists or mappings nested more than {MAX_DEPTH} levels deep; a study file "
+                                f"nests a few levels")
+        path.add(id(node))
+        stack.append((node, depth, True))
+        children = ([c for kv in node.value for c in kv] if isinstance(node, MappingNode) else list(node.value))
+        for child in children:
+            if id(child) in path:
+                raise p.error(node, f"a YAML alias refers to the list or mapping it is in (anchor at line "
+                                    f"{_line(child)}), which would repeat it forever; write the values out")
+            stack.append((child, depth + 1, False))
+
+
 # ============================================================================ entry points
 #: Validates a free-form top-level block (``paper``) once it is read: called with the block as plain Python
 #: and ``line_of(key)`` -> ``"file:line"`` of a dotted key (``"paper.roi.c"``); raises StudyError.
@@ -1024,7 +1122,12 @@ def parse_study(text: str, path: str | os.PathLike = "<string>",
         study_path = Path(path).expanduser().resolve()
         base_dir = study_path.parent
     try:
+        _check_depth(p, text)
         root = yaml.compose(text, Loader=_Loader)
+        _check_graph(p, root)
+    except RecursionError:
+        raise StudyError(f"{label}:1: lists or mappings nested too deeply; a study file nests a few "
+                         f"levels") from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark is not None else 1

@@ -210,6 +210,13 @@ def _plain(v):
         return repr(v)
 
 
+def _flipped(rule) -> list[str]:
+    """A mark in the fingerprint of a metric whose negative scale flips the axis before its reduction (runs
+    stored when the scale was applied after it do not match)."""
+    return ["scaled, then reduced"] if rule.scale < 0 and rule.reduce in ("max", "min", "max_abs",
+                                                                            "mean_abs") else []
+
+
 def spec_fingerprint(spec: PlanSpec, names: Sequence[str], fmu: str) -> dict:
     """Everything of ``spec`` that decides a run's metrics, keyed so that a change reads in the study's
     words: ``fmu`` (the digest ``fmu``), ``parameters`` (study name → [FMU variable, scale, offset]),
@@ -229,7 +236,7 @@ def spec_fingerprint(spec: PlanSpec, names: Sequence[str], fmu: str) -> dict:
                      "inputs": {k: _plain(v) for k, v in spec.inputs},
                      "refine_factor": _plain(spec.refine_factor)},
         "metrics": {r.name: [spec.outputs[r.column], r.reduce, float(r.scale), float(r.offset),
-                             _plain(r.missing_below), _plain(r.settle_tol)] for r in spec.rules},
+                             _plain(r.missing_below), _plain(r.settle_tol)] + _flipped(r) for r in spec.rules},
         "fmu_options": [spec.interface, spec.solver, _plain(spec.relative_tolerance), _plain(spec.step_size)],
     }
     other = {f.name: _plain(getattr(spec, f.name)) for f in dataclasses.fields(spec) if f.name not in known}

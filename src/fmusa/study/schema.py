@@ -159,7 +159,9 @@ class Metric:
 
     ``reduce`` turns the sampled output into one number (``final`` needs no sampling). A reduced
     raw value below ``missing_below`` means "none" (NaN): e.g. ``t_eq = -1`` means never at rest.
-    The reported metric is ``scale * raw + offset`` (unit conversion).
+    The reported metric is the reduction of ``scale`` × output, plus ``offset`` (unit conversion): a negative
+    scale flips the axis before the reduction, so ``max`` takes the FMU's most negative sample and ``max_abs``
+    stays positive.
 
     :param output: **required** The FMU output variable (any variable except the independent one).
     :param reduce: One of ``final``, ``max``, ``min``, ``max_abs``, ``mean``, ``mean_abs``, ``settle``, over the
@@ -167,7 +169,7 @@ class Metric:
         such sample; NaN when the last sample is outside the band): a time to equilibrium for an FMU without a
         ``t_eq`` monitor.
     :param unit: The metric's unit, for reports.
-    :param scale: Nonzero; metric = ``scale`` × value + ``offset``.
+    :param scale: Nonzero; metric = reduce(``scale`` × output) + ``offset``.
     :param offset: Added after ``scale``.
     :param missing_below: A reduced raw FMU value below this means "none" (NaN). For example ``t_eq = -1``
         means the screw never came to rest.
@@ -190,8 +192,8 @@ class Metric:
         equally spaced; ``settle`` needs them).
 
         The same reduction the runs use (:func:`fmusa.runs.metrics.reduce_series`): ``mean`` and
-        ``mean_abs`` are time means (trapezoid rule over ``times``), then ``missing_below`` (on the raw
-        FMU value), then ``scale``/``offset``.
+        ``mean_abs`` are time means (trapezoid rule over ``times``) of scale × output (a negative scale
+        flips max and min), then ``missing_below`` (on the raw FMU value of the reduction), then ``offset``.
         """
         a = np.atleast_1d(np.asarray(samples, dtype=float))
         if a.size == 0:
@@ -279,9 +281,15 @@ class RoiStage:
         ``manual``, a ``grid`` stage must come first. A ``search`` stage is also required: its ``inner`` and
         ``outer`` parameters span the region. Without ``outer``, the region is a range of ``inner`` alone: the
         grid neighbours that bracket its smallest feasible grid value (rule 1 of ``fmusa/analysis/roi.py``),
-        taken at the other study parameters' first grid values.
+        taken at the other study parameters' first grid values (or at ``at``).
+    :param at: Study parameter → value: where the study parameters that the search does not vary are held,
+        both for the region computed from the grid and for the search's runs (default: each one's first grid
+        value). Each value must be one of the parameter's grid values when the region is computed from the
+        grid. Use it when the constraints are met only at other values of those parameters; the error of a
+        grid without a feasible point there names the values where grid points are feasible.
     """
     manual: dict[str, tuple[float, float]] | None = None
+    at: dict[str, float] | None = None
 
 
 @dataclass(frozen=True)

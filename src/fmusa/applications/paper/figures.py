@@ -13,7 +13,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from fmusa.report.figures import (MARKERS, OPT_COLOR, THRESH_COLOR, fmt, level_colors, log_ticks, save,
+from fmusa.report.figures import (MARKERS, OPT_COLOR, PAGE_WIDTH, THRESH_COLOR, fmt, level_colors, log_ticks, save,
                                   search_points, unit_suffix)
 
 import matplotlib.pyplot as plt  # noqa: E402 - after fmusa.report.figures chose the Agg backend
@@ -33,7 +33,7 @@ def search_t_eq(runs: pd.DataFrame, levels: Sequence[dict], path: str | Path, *,
     lv_values = sorted({float(lv["outer"]) for lv in levels}, reverse=True)
     cols = level_colors(lv_values)
     y = pts[metric].astype(float) - shift
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(13, 5.4), sharey=True)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(PAGE_WIDTH, 3.8), sharey=True)
     finite = y[np.isfinite(y) & (y > 0)]
     top = float(finite.max()) * 2.5 if len(finite) else 1.0
     for k, z in enumerate(lv_values):
@@ -114,7 +114,7 @@ def _zoom_panel(a3, zoom: pd.DataFrame, eps_v, eps_v_eq, eps_a_eq, t_ramp, t_eq)
     a3.set_xlabel("time t [s] (zoom on the ramp end, sampled every 0.5 ms)")
     a3.set_ylabel("|ẏ| [mm/s], |ÿ| [mm/s²]\n(log)")
     a3.grid(True, which="both", alpha=0.3)
-    a3.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
+    a3.legend(loc="upper center", bbox_to_anchor=(0.5, -0.32), fontsize=7.5, frameon=False, ncol=2)
 
 
 def time_series(df: pd.DataFrame, path: str | Path, *, eps_y: float | None = None, eps_v: float | None = None,
@@ -124,7 +124,7 @@ def time_series(df: pd.DataFrame, path: str | Path, *, eps_y: float | None = Non
     """Force, displacement (mm), velocity (mm/s) of one run, thresholds and t_eq marked; with ``zoom``
     (a finer sampled run) a fourth panel shows |v_y| on a log axis around the ramp end and t_eq."""
     n = 4 if zoom is not None else 3
-    fig, axes = plt.subplots(n, 1, figsize=(12, 2.5 * n + 0.6))
+    fig, axes = plt.subplots(n, 1, figsize=(PAGE_WIDTH, 1.9 * n + 0.6))
     t = df["time"].to_numpy()
     a0, a1, a2 = axes[0], axes[1], axes[2]
     a0.plot(t, df["F_pull"], color="black")
@@ -147,8 +147,8 @@ def time_series(df: pd.DataFrame, path: str | Path, *, eps_y: float | None = Non
         if t_eq is not None and math.isfinite(t_eq):
             a.axvline(t_eq, color="tab:green", linewidth=1.5,
                       label=f"at rest from t_eq = {t_eq:.6g} s" if a is a0 else None)
-    for a in (a0, a1, a2):
-        a.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
+    for a, where in ((a0, "upper left"), (a1, "upper left"), (a2, "center left")):
+        a.legend(loc=where, fontsize=8, framealpha=0.9)
     a2.set_ylim(bottom=min(-0.05 * (eps_v or 0) * 1e3, float(np.nanmin(df["v_y"])) * 1.1e3))
     if zoom is not None:
         _zoom_panel(axes[3], zoom, eps_v, eps_v_eq, eps_a_eq, t_ramp, t_eq)
@@ -162,7 +162,7 @@ def ramp_time(table: pd.DataFrame, path: str | Path, *, F: float, eps_y: float, 
               inner_unit: str = "N/m", outer_label: str = "", at: float = 10.0) -> Path:
     """The smallest feasible stiffness against the ramp time (columns t_ramp, c_min), next to the two
     quasi-static bounds F/ε_y and F/(ε_ẏ·t_ramp)."""
-    fig, ax = plt.subplots(figsize=(9.5, 5.6))
+    fig, ax = plt.subplots(figsize=(PAGE_WIDTH, 4.4))
     T = table["t_ramp"].to_numpy(float)
     tt = np.geomspace(T.min(), T.max(), 300)
     ax.plot(T, table["c_min"], "o", color="black", markersize=7, zorder=3,

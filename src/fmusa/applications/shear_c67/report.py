@@ -17,7 +17,7 @@ import pandas as pd
 from fmusa.applications.shear_c67.data import DIRECTION_NAMES
 from fmusa.diagnose.rank import Thresholds
 from fmusa.diagnose.views import natural
-from fmusa.files import atomic_path, atomic_write
+from fmusa.files import atomic_write, save_figure
 
 __all__ = ["write_figures", "write_report", "RATE_COLORS"]
 
@@ -41,67 +41,72 @@ def _rate_colors(rates) -> dict[float, str]:
 
 
 def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110)
-    finally:
-        plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def _fig_bilinear(cmp_: pd.DataFrame, path: Path) -> Path:
-    """Our k1, k2 and breakpoint against the authors', per test, coloured by rate."""
+    """Our k1, k2 and breakpoint against the authors', per test: colour by rate, marker by direction."""
     import matplotlib.pyplot as plt
 
     colors = _rate_colors(cmp_["rate_mm_s"])
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
-    for ax, ours, theirs, label in ((axes[0], "k1_N_mm", "stiffness_1", "stiffness below the breakpoint [N/mm]"),
-                                    (axes[1], "k2_N_mm", "stiffness_2", "stiffness past the breakpoint [N/mm]"),
+    fig, axes = plt.subplots(1, 3, figsize=(7.2, 3.4), layout="constrained")
+    for ax, ours, theirs, label in ((axes[0], "k1_N_mm", "stiffness_1", "k below the breakpoint [N/mm]"),
+                                    (axes[1], "k2_N_mm", "stiffness_2", "k past the breakpoint [N/mm]"),
                                     (axes[2], "bp_mm", "breakpoint_mm", "breakpoint [mm]")):
         for rate, g in cmp_.groupby("rate_mm_s"):
             for direction, marker in (("Ant", "o"), ("Pos", "s")):
                 h = g[g["direction"] == direction]
                 if h.empty:
                     continue
-                ax.scatter(h[theirs], h[ours], c=colors[float(rate)], marker=marker, s=36,
-                           label=f"{rate:g} mm/s, {direction}")
+                ax.scatter(h[theirs], h[ours], color=colors[float(rate)], marker=marker, s=30,
+                           label=f"{rate:g} mm/s, {DIRECTION_NAMES.get(direction, direction)}")
         lo = float(np.nanmin(np.r_[cmp_[ours], cmp_[theirs]]))
         hi = float(np.nanmax(np.r_[cmp_[ours], cmp_[theirs]]))
         pad = 0.05 * (hi - lo)
         ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], "k--", lw=1, label="equal")
         ax.set_xlabel(f"authors: {label}")
         ax.set_ylabel(f"fmusa: {label}")
+        ax.set_aspect("equal", adjustable="datalim")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7, loc="upper left")
-    fig.suptitle("Two-phase fit per test: two continuous lines, free intercept (direct least squares) "
-                 "against the authors' breakpoint analysis")
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(4, len(labels)), frameon=False)
+    fig.suptitle("Two-phase fit per test (two continuous lines, free intercept) against the authors' analysis",
+                 fontsize=9)
     return _save(fig, path)
 
 
 def _fig_rates(cmp_: pd.DataFrame, path: Path) -> Path:
-    """Stiffness past the breakpoint (ours, the authors') and secant stiffness against the rate, per unit."""
+    """Stiffness past the breakpoint (ours, the authors') and secant stiffness against the rate, per unit:
+    one colour and marker per specimen (distinct for any count), solid anterior, dashed posterior."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
-    for (spec, direction), g in cmp_.groupby(["specimen", "direction"]):
+    from fmusa.report.figures import series_styles
+
+    specimens = sorted(cmp_["specimen"].unique(), key=lambda s: (len(str(s)), str(s)))     # H2 before H10
+    style = dict(zip(specimens, series_styles(len(specimens))))
+    rows = -(-cmp_.groupby(["specimen", "direction"]).ngroups // 5)          # legend rows (5 columns)
+    fig, axes = plt.subplots(1, 3, figsize=(7.2, 2.9 + 0.17 * rows), sharey=True, layout="constrained")
+    units = sorted(cmp_.groupby(["specimen", "direction"]), key=lambda kv: (specimens.index(kv[0][0]), kv[0][1]))
+    for (spec, direction), g in units:
         g = g.sort_values("rate_mm_s")
-        style = "-" if direction == "Ant" else "--"
-        axes[0].plot(g["rate_mm_s"], g["k2_N_mm"], style, marker="o", label=f"{spec} {direction}")
-        axes[1].plot(g["rate_mm_s"], g["stiffness_2"], style, marker="s", label=f"{spec} {direction}")
-        axes[2].plot(g["rate_mm_s"], g["peak_load_N"] / g["peak_disp_mm"], style, marker="^",
-                     label=f"{spec} {direction}")
-    for ax, title in zip(axes, ("fmusa: stiffness past the breakpoint", "authors: stiffness_2",
+        color, marker = style[spec]
+        line = "-" if direction == "Ant" else "--"
+        face = color if direction == "Ant" else "white"
+        kw = dict(color=color, marker=marker, markerfacecolor=face, markersize=5.5, linewidth=1.2, linestyle=line,
+                  label=f"{spec} {DIRECTION_NAMES.get(direction, direction)}")
+        axes[0].plot(g["rate_mm_s"], g["k2_N_mm"], **kw)
+        axes[1].plot(g["rate_mm_s"], g["stiffness_2"], **kw)
+        axes[2].plot(g["rate_mm_s"], g["peak_load_N"] / g["peak_disp_mm"], **kw)
+    for ax, title in zip(axes, ("fmusa:\nstiffness past the breakpoint", "authors:\nstiffness past the breakpoint",
                                 "secant stiffness at the peak\n(peak load / peak displacement)")):
         ax.set_xscale("log")
         ax.set_xlabel("shear rate [mm/s]")
-        ax.set_ylabel("stiffness [N/mm]")
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3, which="both")
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
+    axes[0].set_ylabel("stiffness [N/mm]")
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(5, max(1, len(labels))), frameon=False,
+               title="unit (filled, solid: anterior; open, dashed: posterior)", title_fontsize=8)
     return _save(fig, path)
 
 
@@ -113,7 +118,13 @@ def write_figures(summary: dict, cmp_: pd.DataFrame, out: Path) -> list[Path]:
 
     figdir = out / "figures"
     figdir.mkdir(parents=True, exist_ok=True)
-    return [_fig_bilinear(cmp_, figdir / "bilinear_vs_authors.png"), _fig_rates(cmp_, figdir / "rate_dependence.png")]
+    import matplotlib.pyplot as plt
+
+    # three panels across a page's width: the fonts a journal prints at that size
+    with plt.rc_context({"font.size": 8, "axes.labelsize": 8, "axes.titlesize": 8.5, "xtick.labelsize": 7.5,
+                         "ytick.labelsize": 7.5, "legend.fontsize": 7.5}):
+        return [_fig_bilinear(cmp_, figdir / "bilinear_vs_authors.png"),
+                _fig_rates(cmp_, figdir / "rate_dependence.png")]
 
 
 def _f(x, fmt=".3g") -> str:
