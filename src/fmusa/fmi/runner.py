@@ -39,13 +39,14 @@ Example::
 from __future__ import annotations
 
 import difflib
+import itertools
 import math
 import os
 import shutil
 from collections import deque
 from ctypes import byref
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 from fmusa.errors import UsageError
@@ -90,6 +91,34 @@ def communication_points(stop_time: float, step: float | None) -> np.ndarray:
     times[-1] = stop_time
     return times
 
+
+
+#: componentEnvironment -> the logger of the live instance that was given it (see _logger_router)
+_LOGGERS: dict[int, Callable] = {}
+_LOG_KEYS = itertools.count(1)
+_ROUTER: list = []   # the one ctypes callback, created on first use (fmpy is imported lazily)
+
+
+def _register_logger(log: Callable) -> int:
+    key = next(_LOG_KEYS)
+    _LOGGERS[key] = log
+    return key
+
+
+def _route_log_message(env, instance_name, status, category, message) -> None:
+    log = _LOGGERS.get(env or 0)
+    if log is None:   # an instance fmusa did not make (plain fmpy in the same process): fmpy's own printer
+        from fmpy.fmi1 import printLogMessage
+        printLogMessage(env, instance_name, status, category, message)
+    else:
+        log(env, instance_name, status, category, message)
+
+
+def _logger_router(logger_type):
+    """The process-wide logger callback: never freed, so the native proxy can never call a dead one."""
+    if not _ROUTER:
+        _ROUTER.append(logger_type(_route_log_message))
+    return _ROUTER[0]
 
 class FMURunner:
     """One extracted, instantiated FMI 2.0 or 3.0 FMU, run again and again (FMI 3.0 arrays element-wise, ``x[2]``).
@@ -242,9 +271,13 @@ class FMURunner:
             if os.getcwd() != cwd:
                 os.chdir(cwd)
         callbacks = fmi2CallbackFunctions()
-        # Keep references to the ctypes callbacks: they must outlive the instance.
-        self._logger_cb = fmi2CallbackLoggerTYPE(self._log_message)
-        callbacks.logger = self._logger_cb
+        # fmpy's native proxy keeps ONE logger for the whole process (the last one given to it): every
+        # instance logs through a router that lives as long as the process and finds the instance's own
+        # logger by its componentEnvironment, so a freed runner leaves no dangling callback behind (a later
+        # plain fmpy instance crashed on its first log message) and two live runners keep their messages apart.
+        self._log_key = _register_logger(self._log_message)
+        callbacks.componentEnvironment = self._log_key
+        callbacks.logger = _logger_router(fmi2CallbackLoggerTYPE)
         callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
         callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
         try:  # native proxy that formats printf-style messages before calling our logger
@@ -275,6 +308,7 @@ class FMURunner:
         self._instance = None
         self._snapshot = None
         self._state = "closed"
+        _LOGGERS.pop(getattr(self, "_log_key", None), None)
 
     def _log_message(self, env, instance_name, status, category, message) -> None:
         def text(b):
