@@ -696,6 +696,14 @@ def _print_diagnosis(args: argparse.Namespace, diag: dict) -> int:
         print(f"  {ps}")
         print(f"  rmse ratio {g['rmse_ratio']:.3f}, held-out rmse ratio {g['heldout_rmse_ratio']:.3f}, "
               f"delta AIC {g['delta_aic']:.1f}")
+    final = diag.get("final") or {}
+    if len(final.get("effects") or []) > 1:
+        print(f"final model: baseline + {' + '.join(final['effects'])} (RMSE {final['rmse']:.4g}, held-out "
+              f"{final['heldout_rmse']:.4g}; intervals: {(final.get('intervals') or {}).get('method', '?')})")
+        print("  " + ", ".join(f"{k} = {v['value']:.4g}{'' if v['unit'] in ('', '1') else ' ' + v['unit']} "
+                               f"[{v['ci95'][0]:.4g}, {v['ci95'][1]:.4g}]" for k, v in final["params"].items()))
+    for r in diag.get("chain_removed") or []:
+        print(f"  not added: {r['effect']} (step {r['step']}): {r['reason']}")
     for t in diag["indistinguishable"]:
         print(f"  cannot be told from {t['effect']}: {t['separating_test']}")
     if diag["leftover"]:

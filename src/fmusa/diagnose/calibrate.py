@@ -21,6 +21,7 @@ from fmusa.diagnose.effects import (DAMPING, EQUIVALENT_BY_CONSTRUCTION, STIFFNE
                                     with_bounds)
 from fmusa.diagnose.interface import ModelInterface
 from fmusa.diagnose.models import resolve
+from fmusa.diagnose.intervals import interval_report
 
 __all__ = ["Fit", "ModelRunner", "calibrate", "MIN_EXPERIMENTS_LEFT_OUT", "heldout_masks", "heldout_folds",
            "pooled_heldout", "heldout_rmse", "unify_equivalent", "fit_candidate", "make_runner"]
@@ -56,6 +57,8 @@ class Fit:
     start_costs: list[float] = field(default_factory=list)
     #: taken from a cache of an earlier diagnosis (its runs were spent then, not now)
     cached: bool = False
+    #: how ci95 was made (:func:`intervals.interval_report`): method, phi, n_eff, and the Gauss–Newton intervals
+    intervals: dict = field(default_factory=dict)
 
     @property
     def aic(self) -> float:
@@ -258,26 +261,28 @@ def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None =
                                   diff_step=fn.rel_step, max_nfev=max_nfev, xtol=tol or XTOL, ftol=tol or FTOL)
 
 
-def _confidence(res, params: list[Param], n: int) -> dict[str, tuple[float, float]]:
-    """95 % intervals from the Gauss-Newton covariance, on the optimiser's scale (so log-scaled ones are
-    asymmetric), clipped to the bounds. Residual autocorrelation makes them too narrow: see the report."""
-    k = len(params)
-    dof = max(n - k, 1)
-    s2 = 2.0 * res.cost / dof
-    J = res.jac
+def _to_natural(p: Param, lo_x: float, hi_x: float) -> tuple[float, float]:
+    """An interval on the optimiser's scale in natural units, clipped to the bounds."""
+    lo_x, hi_x = max(lo_x, p.to_x(p.lower)), min(hi_x, p.to_x(p.upper))
+    lo_v = p.from_x(lo_x) if math.isfinite(lo_x) else p.lower
+    hi_v = p.from_x(hi_x) if math.isfinite(hi_x) else p.upper
+    return (max(lo_v, p.lower), min(hi_v, p.upper))
+
+
+def _confidence(res, params: list[Param], n: int, lengths: Sequence[int] | None = None) -> tuple[dict, dict]:
+    """95 % intervals on the optimiser's scale (so log-scaled ones are asymmetric), clipped to the bounds:
+    the AR(1) sandwich where the residuals are autocorrelated, Gauss–Newton where they are not
+    (:func:`intervals.interval_report`); and how they were made (method, φ, effective n, the Gauss–Newton
+    intervals beside)."""
     try:
-        cov = np.linalg.pinv(J.T @ J) * s2
-        se = np.sqrt(np.clip(np.diag(cov), 0, None))
-    except np.linalg.LinAlgError:
-        se = np.full(k, np.inf)
-    q = stats.t.ppf(0.975, dof)
-    out = {}
-    for p, x, e in zip(params, res.x, se):
-        lo_x, hi_x = max(x - q * e, p.to_x(p.lower)), min(x + q * e, p.to_x(p.upper))
-        lo_v = p.from_x(lo_x) if math.isfinite(lo_x) else p.lower
-        hi_v = p.from_x(hi_x) if math.isfinite(hi_x) else p.upper
-        out[p.name] = (max(lo_v, p.lower), min(hi_v, p.upper))
-    return out
+        rep = interval_report(res.jac, res.fun, res.x, lengths)
+    except (np.linalg.LinAlgError, ValueError):
+        inf = {p.name: (p.lower, p.upper) for p in params}
+        return inf, {"method": "none (the covariance could not be computed)", "gauss_newton": inf}
+    ci = {p.name: _to_natural(p, lo, hi) for p, lo, hi in zip(params, rep["lower"], rep["upper"])}
+    gn = {p.name: _to_natural(p, lo, hi) for p, lo, hi in zip(params, *rep["gauss_newton"])}
+    return ci, {"method": rep["method"], "phi": rep["phi"], "phi_used": rep["phi_used"], "n_eff": rep["n_eff"],
+                "p_value": rep["p_value"], "gauss_newton": gn}
 
 
 #: two starts agree when their residual sums of squares differ by at most this in BIC units (n ln(rss1/rss2)):
@@ -317,11 +322,12 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
                          for c in costs) >= agree:
             break
     n = sum(len(e.t) for e in experiments)
+    ci, how = _confidence(best, params, n, [len(e.t) for e in experiments])
     values = [p.from_x(x) for p, x in zip(params, best.x)]
     preds = model.predict(values, experiments)
     rss = float(sum(np.sum((pr - e.response_signal) ** 2) for pr, e in zip(preds, experiments)))
     return Fit(effect=effect, params={p.name: v for p, v in zip(params, values)},
-               ci95=_confidence(best, params, n), rss=rss, n=n, k=len(params), rmse=math.sqrt(rss / n),
+               ci95=ci, rss=rss, n=n, k=len(params), rmse=math.sqrt(rss / n), intervals=how,
                predictions=preds, starts_tried=len(costs), nfev=nfev, at_bounds=at_bounds(params, best.x, lo, hi),
                start_costs=costs)
 

@@ -20,7 +20,7 @@ import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fmusa.diagnose import residuals as rs  # noqa: E402
-from fmusa.diagnose.views import (by_loading_direction, experiment_motion, extended_name, fit_predictions,  # noqa: E402
+from fmusa.diagnose.views import (by_loading_direction, experiment_motion, extended_name, final_label, final_name, fit_predictions,  # noqa: E402
                                   p_text, residual_series, response_channel)
 from fmusa.format import fmt  # noqa: E402
 from fmusa.files import save_figure  # noqa: E402
@@ -54,11 +54,11 @@ def _models(diag: Mapping, experiments: Sequence) -> list[tuple[str, str, str, l
     base = fit_predictions(diag, "none", experiments)
     if base is not None:
         out.append(("none", "baseline (eq. 1)", BASE_COLOR, base))
-    eff = extended_name(diag)
+    eff = final_name(diag)
     if eff != "none":
         ext = fit_predictions(diag, eff, experiments)
         if ext is not None:
-            out.append((eff, f"extended: + {eff}", EXT_COLOR, ext))
+            out.append((eff, f"final: {final_label(diag)}", EXT_COLOR, ext))
     else:
         ru = _runner_up(diag)
         pr = fit_predictions(diag, ru, experiments) if ru else None
@@ -159,7 +159,7 @@ def fig_fit_time(diag: Mapping, experiments: Sequence, path: Path) -> Path:
         ax.grid(alpha=0.3, axis="y")
     drive = diag["data"]["drive"]
     fig.suptitle(f"{resp.capitalize()} response to the imposed {drive}: data, baseline and "
-                 f"{'extended model' if extended_name(diag) != 'none' else 'no extension (effect: none)'}",
+                 f"{'final model (' + final_label(diag) + ')' if extended_name(diag) != 'none' else 'no extension (effect: none)'}",
                  fontsize=11)
     _top_legend(fig, axes[0] if axes else None, len(models) + 1)
     return _save(fig, path)
@@ -256,10 +256,10 @@ def fig_residuals(diag: Mapping, experiments: Sequence, path: Path) -> Path:
     """Residuals (model − measured) of the baseline and the extended model against time, displacement,
     velocity and loading direction, with binned means."""
     resp, unit, f = response_channel(diag)
-    eff = extended_name(diag)
+    eff = final_name(diag)
     rows = [("none", "baseline", BASE_COLOR)]
     if eff != "none":
-        rows.append((eff, f"extended (+ {eff})", EXT_COLOR))
+        rows.append((eff, f"final ({final_label(diag)})", EXT_COLOR))
     data = [(k, lab, col, residual_series(diag, experiments, k)) for k, lab, col in rows]
     data = [d for d in data if d[3] is not None]
     motion = experiment_motion(diag, experiments)
@@ -292,7 +292,7 @@ def fig_residuals(diag: Mapping, experiments: Sequence, path: Path) -> Path:
                 ax.set_title(f"{label}: rms {fmt(rms)} {unit}", fontsize=10, loc="left")
         _direction_panel(axes[row, 3], by_loading_direction(experiments, motion, res), f, color, lim)
     sign = "model − measured"
-    title = f"Residuals of the {resp} ({sign}), before and after the extension"
+    title = f"Residuals of the {resp} ({sign}), of the baseline and of the final model"
     if eff == "none":
         title = f"Residuals of the {resp} ({sign}) of the baseline (no effect named, so no 'after')"
     fig.suptitle(title, fontsize=11, x=0.3)

@@ -70,8 +70,8 @@ def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
 
     h = hashlib.sha256()
     # v2: friction fits fric_x too; v3: held-out folds kept; v4: damping start from the data, the damping held
-    # at a constant rate, bounds hit recorded
-    h.update(f"{drive}|{max_starts}|v4".encode())
+    # at a constant rate, bounds hit recorded; v5: intervals for correlated residuals
+    h.update(f"{drive}|{max_starts}|v5".encode())
     if interface is not None:
         try:
             default = replace(resolve(None, fmu), name="")
@@ -95,7 +95,9 @@ def fit_to_json(f: Fit, key: str) -> dict:
             "rss": f.rss, "n": f.n, "k": f.k, "rmse": f.rmse, "heldout_rmse": f.heldout_rmse,
             "predictions": [p.tolist() for p in f.predictions], "starts_tried": f.starts_tried, "nfev": f.nfev,
             "heldout_folds": list(f.heldout_folds), "at_bounds": list(f.at_bounds), "held": dict(f.held),
-            "runs": dict(f.runs), "start_costs": list(f.start_costs)}
+            "runs": dict(f.runs), "start_costs": list(f.start_costs),
+            "intervals": {k: ({n: list(v) for n, v in x.items()} if k == "gauss_newton" else x)
+                          for k, x in f.intervals.items()}}
 
 
 def fit_from_json(d: dict) -> Fit:
@@ -105,7 +107,9 @@ def fit_from_json(d: dict) -> Fit:
                predictions=[np.array(p) for p in d["predictions"]], starts_tried=d["starts_tried"],
                nfev=d["nfev"], heldout_folds=list(d.get("heldout_folds") or []),
                at_bounds=list(d.get("at_bounds") or []), held=dict(d.get("held") or {}),
-               runs=dict(d.get("runs") or {}), start_costs=list(d.get("start_costs") or []))
+               runs=dict(d.get("runs") or {}), start_costs=list(d.get("start_costs") or []),
+               intervals={k: ({n: tuple(v) for n, v in x.items()} if k == "gauss_newton" else x)
+                          for k, x in (d.get("intervals") or {}).items()})
 
 
 def _cached(cache_dir: Path | None, name: str, key: str) -> Fit | None:

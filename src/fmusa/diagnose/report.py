@@ -24,8 +24,9 @@ import numpy as np
 
 from fmusa.diagnose.effects import BASELINE, EFFECT_MEANING, PARAM_MEANING, STIFFNESS
 from fmusa.diagnose.runs_report import budget_notice, runs_section
-from fmusa.diagnose.views import (by_loading_direction, delta_text, experiment_motion, natural, p_text, ratio_text,
-                                  residual_series, response_channel)
+from fmusa.diagnose.views import (by_loading_direction, delta_text, experiment_motion, final_label, final_name,
+                                  final_residuals, natural, p_text, ratio_text, residual_series, response_channel,
+                                  structure_text)
 from fmusa.format import fmt, md_code, md_text
 from fmusa.files import atomic_write
 
@@ -43,10 +44,10 @@ def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
 # ============================================================================ report
 CAPTIONS = {
     "fit_time.png": "Measured response against time for each experiment (grey points) with the calibrated "
-                    "baseline (dashed) and the extended model (solid); each panel's title gives both RMSEs.",
-    "loops.png": "Force against displacement: the measured points and the loops the two models trace. A loop "
+                    "baseline (dashed) and the final model (solid: the baseline with every effect of the chain); each panel's title gives both RMSEs.",
+    "loops.png": "Force against displacement: the measured points and the loops the baseline and the final model trace. A loop "
                  "in the data that the baseline's line does not open is hysteresis (friction, viscosity, yield).",
-    "residuals.png": "Residuals (model − measured) of the baseline (top) and of the extended model (bottom) "
+    "residuals.png": "Residuals (model − measured) of the baseline (top) and of the final model (bottom) "
                      "against time, displacement, velocity and loading direction; black: binned means ± sd. "
                      "A binned mean that follows an axis is an effect of that quantity the model lacks.",
     "ranking.png": "Every candidate against the baseline: held-out and fitted RMSE ratios, ΔBIC and the p of "
@@ -66,42 +67,6 @@ def _ci(name: str, value: float, ci) -> str:
 
 def _summary_params(summary: Mapping) -> tuple[dict, dict]:
     return dict(summary.get("params") or {}), dict(summary.get("ci95") or {})
-
-
-def _describe_structure(st: Mapping | None, unit: str, f: float) -> str:
-    """The residual structure in plain words and natural units."""
-    if not st:
-        return "not computed"
-    if not st.get("structured"):
-        return str(st.get("description") or "white: no structure beyond noise")
-    parts = []
-    osc, drift = st.get("oscillation"), st.get("drift")
-    mis = st.get("misfit")
-    if mis:
-        xu = st.get("x_unit") or ""
-        parts.append(f"the model is {fmt(mis['size_low'] * f)}–{fmt(mis['size_high'] * f)} {unit} "
-                     f"{'above' if mis['sign'] > 0 else 'below'} the data from {fmt(mis['x_start'])} {xu} to "
-                     f"{fmt(mis['x_end'])} {xu} of {st.get('x_name') or 'displacement'}"
-                     + (f" (experiment {mis['experiment'] + 1})" if st.get("n_segments", 1) > 1 else "")
-                     + (f", where the measured {st.get('response') or 'response'} falls"
-                        if mis.get("response_falls") else ""))
-    if osc:
-        parts.append(f"an oscillation at {fmt(osc['frequency_hz'])} Hz (period {fmt(1 / osc['frequency_hz'])} s) "
-                     f"of amplitude {fmt(osc['amplitude'] * f)} {unit}, "
-                     f"{100 * osc['share_of_variance']:.0f} % of the residual variance")
-    if drift:
-        over = "over the test" if st.get("n_segments", 1) == 1 else "over an experiment of mean duration"
-        parts.append(f"a drift of {drift['total_change'] * f:+.3g} {unit} {over} "
-                     f"({fmt(drift['slope_per_s'] * f)} {unit}/s, {100 * drift['share_of_variance']:.0f} % of "
-                     f"the residual variance)")
-    if not osc and not drift:
-        rho, z = st.get("lag1_autocorrelation", float("nan")), st.get("runs_z", float("nan"))
-        if (z < 0) or (rho > 0):
-            parts.append(f"a slowly varying systematic error (lag-1 autocorrelation {rho:.2f}, runs test "
-                         f"z = {z:.1f}), but no single oscillation or drift")
-        else:
-            parts.append(f"residuals that alternate more than noise does (lag-1 autocorrelation {rho:.2f})")
-    return "structured: " + "; ".join(parts)
 
 
 def _data_section(diag: Mapping, experiments: Sequence) -> str:
@@ -239,9 +204,23 @@ def _verdict_section(diag: Mapping) -> str:
     return out + _criteria_text(eff, crit, th, unit, f) if th and crit else out
 
 
+def _final_summary(diag: Mapping) -> dict:
+    """The final model's parameters and intervals (the chain's last step, else the named effect's)."""
+    final = diag.get("final") or {}
+    if final.get("params"):
+        return {"params": {n: v["value"] for n, v in final["params"].items()},
+                "ci95": {n: v["ci95"] for n, v in final["params"].items()},
+                "intervals": final.get("intervals") or {}, "gauss_newton": final.get("gauss_newton") or {}}
+    ext = dict(diag.get("extended") or {})
+    if ext:
+        ext["gauss_newton"] = (ext.get("intervals") or {}).get("gauss_newton") or {}
+        return ext
+    return dict(diag.get("extended") or {})
+
+
 def _params_section(diag: Mapping) -> str:
     base_p, base_ci = _summary_params(diag.get("baseline") or {})
-    ext_p, ext_ci = _summary_params(diag.get("extended") or {})
+    ext_p, ext_ci = _summary_params(_final_summary(diag))
     names = list(base_p) + [n for n in ext_p if n not in base_p]
     rows = []
     for n in names:
@@ -251,12 +230,31 @@ def _params_section(diag: Mapping) -> str:
         rows.append([f"`{n}`", PARAM_MEANING.get(n, ""), unit, b, x])
     eff = diag["effect"]
     out = "## Parameters\n\n"
-    out += (f"Values with their 95 % confidence intervals in brackets (Gauss–Newton covariance; see the caveats). "
-            f"Extended model: baseline + `{eff}`" if eff != "none" else
-            "Values with their 95 % confidence intervals in brackets (Gauss–Newton covariance; see the caveats). "
-            "No effect is named, so the extended model is the baseline")
-    out += ".\n\n" + _table(["parameter", "meaning", "unit", "baseline", "extended"], rows) + "\n"
+    shown = (("baseline", diag.get("baseline") or {}),) + ((("final model", _final_summary(diag)),)
+                                                          if diag["effect"] != "none" else ())
+    how = "; ".join(f"{label}: {_interval_method(s)}" for label, s in shown)
+    out += (f"Values with their 95 % confidence intervals in brackets ({how}; see the caveats). "
+            f"Final model: {final_label(diag)}" if eff != "none" else
+            f"Values with their 95 % confidence intervals in brackets ({how}; see the caveats). "
+            "No effect is named, so the final model is the baseline")
+    out += ".\n\n" + _table(["parameter", "meaning", "unit", "baseline", "final model"], rows) + "\n"
+    gn = (_final_summary(diag).get("gauss_newton") or {})
+    if gn and "sandwich" in _interval_method(_final_summary(diag)):
+        out += ("\nThe Gauss–Newton intervals of the final model, which assume white residuals and are too narrow "
+                "here: " + ", ".join(f"`{n}` {_ci(n, ext_p[n], v)}" for n, v in gn.items() if n in ext_p) + ".\n")
     return out
+
+
+def _interval_method(summary: Mapping) -> str:
+    """How a fit's intervals were made, in words (with φ and the effective sample size of the residuals)."""
+    iv = summary.get("intervals") or {}
+    m = iv.get("method")
+    if not m:
+        return "Gauss–Newton covariance"
+    if "sandwich" in m:
+        return (f"{m}, lag-1 autocorrelation φ = {iv.get('phi_used', float('nan')):.2f}, about "
+                f"{max(iv.get('n_eff', float('nan')), 1):.0f} effective samples")
+    return m
 
 
 def _change_text(r: Mapping, f: float) -> str:
@@ -318,10 +316,10 @@ def _residual_statistics(cols: list, unit: str, f: float) -> list[list]:
 
 def _direction_text(diag: Mapping, experiments: Sequence, unit: str, f: float) -> str:
     """The residual by loading direction of the baseline and the extended model ('' without predictions)."""
-    eff = diag["effect"]
+    eff = final_name(diag)
     motion = experiment_motion(diag, experiments)
     drows = []
-    for key, label in [("none", "baseline")] + ([(eff, f"extended (+ {eff})")] if eff != "none" else []):
+    for key, label in [("none", "baseline")] + ([(eff, f"final ({final_label(diag)})")] if eff != "none" else []):
         r = residual_series(diag, experiments, key)
         if r is None:
             continue
@@ -341,19 +339,23 @@ def _direction_text(diag: Mapping, experiments: Sequence, unit: str, f: float) -
 def _leftover_text(diag: Mapping, unit: str, f: float) -> str:
     """What is left in the residuals of the final model, and what it may be."""
     eff = diag["effect"]
-    st = (diag.get("residuals") or {}).get("extended")
-    model = "extended model" if eff != "none" else "baseline"
+    st = final_residuals(diag)
+    model = f"final model ({final_label(diag)})" if eff != "none" else "baseline"
     if not (diag.get("leftover") or (st and st.get("structured"))):
         return f"Nothing: the residuals of the {model} pass all four tests as white noise.\n"
-    out = f"Structure remains in the residuals of the {model}: {_describe_structure(st, unit, f)}."
+    out = f"Structure remains in the residuals of the {model}: {structure_text(st, unit, f).removeprefix('structured: ')}."
     osc, drift = (st or {}).get("oscillation"), (st or {}).get("drift")
-    if osc:
-        out += (f" The oscillation (frequency {fmt(osc['frequency_hz'])} Hz, amplitude "
-                f"{fmt(osc['amplitude'] * f)} {unit}, p = {p_text(osc.get('p_value'))}) is not part of any "
-                "candidate: a resonance of the test rig or a periodic disturbance.")
+    axis = (st or {}).get("axis") or {}
+    if osc and axis.get("derived_time"):
+        out += (f" The waviness (p = {p_text(osc.get('p_value'))}) is not part of any candidate. The test's time "
+                f"axis was derived from a nominal rate, so it was searched along the {axis.get('name')}, and it is "
+                f"a feature of the {axis.get('name')} (a periodic roughness, a thread or a lead screw), not a "
+                "frequency: nothing here says how fast the rig moved.")
+    elif osc:
+        out += (f" The oscillation (p = {p_text(osc.get('p_value'))}) is not part of any candidate: a resonance of "
+                "the test rig or a periodic disturbance.")
     if drift:
-        out += (f" The drift ({fmt(drift['slope_per_s'] * f)} {unit}/s, {drift['total_change'] * f:+.3g} "
-                f"{unit} in all, p = {p_text(drift.get('p_value'))}) may be a sensor drift, temperature, or a slow "
+        out += (f" The drift (p = {p_text(drift.get('p_value'))}) may be a sensor drift, temperature, or a slow "
                 "effect none of the candidates has.")
     if not osc and not drift:
         out += (" It is neither an oscillation (none recurs over three periods or more) nor a drift: a "
@@ -367,7 +369,7 @@ def _residual_section(diag: Mapping, experiments: Sequence) -> str:
     eff = diag["effect"]
     cols = [("baseline", res.get("baseline"))]
     if eff != "none":
-        cols.append((f"extended (+ {eff})", res.get("extended")))
+        cols.append((f"final ({final_label(diag)})", final_residuals(diag)))
     alpha = (cols[0][1] or {}).get("alpha", float("nan"))
     out = "## Residuals before and after\n\n"
     out += (f"Residual = model − measured {resp}. Four tests tell structure from white noise, each at "
@@ -376,7 +378,7 @@ def _residual_section(diag: Mapping, experiments: Sequence) -> str:
             "spectral line and a linear drift. Several experiments are tested each on its own and pooled.\n\n")
     out += _table(["statistic"] + [c for c, _ in cols], _residual_statistics(cols, unit, f)) + "\n\n"
     for label, st in cols:
-        out += f"- {label}: {_describe_structure(st, unit, f)}.\n"
+        out += f"- {label}: {structure_text(st, unit, f)}.\n"
     out += _direction_text(diag, experiments, unit, f)
     return out + "\n### What is left\n\n" + _leftover_text(diag, unit, f)
 
@@ -415,25 +417,26 @@ def _ties_section(diag: Mapping) -> str:
 
 def _caveats_section(diag: Mapping) -> str:
     res = diag.get("residuals") or {}
-    structured = [k for k in ("baseline", "extended") if (res.get(k) or {}).get("structured")]
+    structured = [k for k in ("baseline", "extended") if ((final_residuals(diag) if k == "extended" else res.get(k))
+                                                          or {}).get("structured")]
     out = "## Caveats\n\n"
-    out += ("- The 95 % intervals come from the Gauss–Newton covariance and assume white, independent "
-            "residuals of constant variance.")
-    if (res.get("extended") or {}).get("structured"):
-        rho = res["extended"].get("lag1_autocorrelation", float("nan"))
-        n = res["extended"].get("n", 0)
-        if math.isfinite(rho) and -1 < rho < 1 and rho > 0:
-            n_eff = n * (1 - rho) / (1 + rho)
-            out += (f" Here the residuals are structured (lag-1 autocorrelation {rho:.2f}), so the intervals "
-                    f"are too narrow: with AR(1) errors {n} points carry the information of about "
-                    f"{max(n_eff, 1):.0f}, and the intervals should be about {math.sqrt(n / max(n_eff, 1)):.1f}× "
-                    f"wider.")
-        else:
-            out += " Here the residuals are structured, so the intervals are too narrow."
+    iv = _final_summary(diag).get("intervals") or {}
+    if "sandwich" in (iv.get("method") or ""):
+        out += (f"- The 95 % intervals of the final model account for the autocorrelation of its residuals: the "
+                f"residuals of each experiment are taken as an AR(1) process (lag-1 autocorrelation "
+                f"{iv.get('phi_used', float('nan')):.2f} after its small-sample correction), the covariance is the "
+                f"sandwich (JᵀJ)⁻¹JᵀΣJ(JᵀJ)⁻¹ and the quantile a t on about {max(iv.get('n_eff', 1), 1):.0f} "
+                "effective samples. On synthetic tests with AR(1) noise (φ 0 to 0.95) such intervals cover the "
+                "true parameters in 90–98 % of cases, where Gauss–Newton intervals, which assume white residuals, "
+                "are too narrow (they cover about 80 % at φ = 0.5 and 25 % at φ = 0.95); a misfit that is no AR(1) process (a "
+                "systematic bend the model lacks) is covered only as far as it looks like one.")
+    elif iv.get("method"):
+        out += ("- The 95 % intervals of the final model are Gauss–Newton intervals, which assume white residuals: "
+                "its residuals show no positive lag-1 autocorrelation (with it they would be too narrow, and the "
+                "AR(1) sandwich would be used).")
     else:
-        out += (" Structured residuals would make them too narrow; here the residuals of the "
-                f"{'extended model' if diag['effect'] != 'none' else 'baseline'} pass as white, so they are "
-                "about right.")
+        out += ("- The 95 % intervals come from the Gauss–Newton covariance and assume white, independent "
+                "residuals of constant variance.")
     out += "\n"
     out += ("- The p of the nested F test and the BIC make the same white-noise assumption; with structured "
             "residuals they overstate the evidence. The held-out ratio does not rely on it.\n")
@@ -464,37 +467,43 @@ def _warnings_section(diag: Mapping) -> str:
 
 
 def _chain_section(diag: Mapping) -> str:
-    """The chain of effects: each step's gain over the model before it, and the final model's parameters."""
+    """The chain of effects: each step's gain over the model before it and where its fit stopped at a bound,
+    and every addition the checks removed, with why."""
     steps = diag.get("chain") or []
-    if not steps:
+    removed = diag.get("chain_removed") or []
+    if not steps and not removed:
         return ""
     _, unit, f = response_channel(diag)
     rows = []
     for i, s in enumerate(steps, 1):
         g = s["gain"]
+        bounds = ", ".join(f"`{b['name']}` ({b['bound']})" for b in s.get("at_bounds") or []) or "none"
         rows.append([f"#{i}", f"`{s['effect']}`", f"{fmt(s['rmse'] * f)}", f"{fmt(s['heldout_rmse'] * f)}",
                      ratio_text(g.get("rmse_ratio")), ratio_text(g.get("heldout_rmse_ratio")),
-                     delta_text(g.get("delta_bic")), p_text(g.get("p_value"))])
+                     delta_text(g.get("delta_bic")), p_text(g.get("p_value")), bounds])
     out = "## Chain of effects\n\n"
     if len(steps) == 1:
         out += (f"After `{steps[0]['effect']}`, every remaining candidate was tried on top of it: none passed the "
-                f"tests (significant and mattering against the model with `{steps[0]['effect']}`), so the chain "
-                f"stops at one effect.\n\n")
-    else:
+                f"tests and the checks (significant, mattering and physically possible against the model with "
+                f"`{steps[0]['effect']}`), so the chain stops at one effect.\n\n")
+    elif steps:
         out += ("After the first effect, every remaining candidate was tried on top of the model so far; the best "
-                "addition was kept while it passed the same tests as the first (significant and mattering). "
-                "Gains are against the model of the step before (the first against the baseline).\n\n")
-    out += _table(["step", "effect", f"RMSE [{unit}]", f"held-out RMSE [{unit}]", "RMSE ratio",
-                   "held-out ratio", "ΔBIC", "p"], rows) + "\n"
-    final = diag.get("final") or {}
-    if len(steps) > 1 and final.get("params"):
-        prow = []
-        for n, v in final["params"].items():
-            val, u = natural(n, v["value"])
-            lo, hi = natural(n, v["ci95"][0])[0], natural(n, v["ci95"][1])[0]
-            prow.append([f"`{n}`", PARAM_MEANING.get(n, ""), u or "–", f"{fmt(val, 4)} [{fmt(lo, 3)}, {fmt(hi, 3)}]"])
-        out += (f"\nFinal model: baseline + {' + '.join(f'`{e}`' for e in final['effects'])}:\n\n"
-                + _table(["parameter", "meaning", "unit", "value [95 %]"], prow) + "\n")
+                "addition was kept while it passed the same tests as the first (significant and mattering) and "
+                "the checks (an effect the protocol can identify, parameters the tests support, a fit not worse "
+                "than the step before). Gains are against the model of the step before (the first against the "
+                "baseline). The headline, the parameters, the residuals and the figures are the final model's: "
+                f"{final_label(diag)}.\n\n")
+    if steps:
+        out += _table(["step", "effect", f"RMSE [{unit}]", f"held-out RMSE [{unit}]", "RMSE ratio",
+                       "held-out ratio", "ΔBIC", "p", "at a bound"], rows) + "\n"
+    if removed:
+        labels = {"physics": "a parameter the tests cannot support", "protocol": "the protocol cannot identify it",
+                  "optimiser": "an optimiser failure"}
+        out += "\nRemoved by the checks (not added to the model):\n\n"
+        for r in removed:
+            out += (f"- step {r['step']}, `{r['effect']}` ({labels.get(r['check'], r['check'])}): {r['reason']}"
+                    + (f". The test that would tell: {r['separating_test']}" if r.get("separating_test") else "")
+                    + ".\n")
     return out
 
 
@@ -515,13 +524,16 @@ def _fit_checks_section(diag: Mapping) -> str:
         lines.append(f"- The fitted baseline (RMSE {fmt(base.get('rmse', float('nan')) * f)} {unit}) is {verdict} "
                      f"than the straight line through the origin with the secant stiffness {fmt(c)} {u} (RMSE "
                      f"{fmt(line['rmse'] * f)} {unit}).")
-    for label, summary in (("baseline", base), ("extended model", diag.get("extended") or {})):
-        if label == "extended model" and diag.get("effect") == "none":
-            continue
-        for b in summary.get("at_bounds") or []:
+    checked = [("baseline", base.get("at_bounds") or [])]
+    if diag.get("effect") != "none":
+        checked += [(f"step {i} (+ {st['effect']})", st.get("at_bounds") or [])
+                    for i, st in enumerate(diag.get("chain") or [], 1)] or \
+                   [("extended model", (diag.get("extended") or {}).get("at_bounds") or [])]
+    for label, bounds in checked:
+        for b in bounds:
             v, u = natural(b["name"], b["value"])
             lim, _ = natural(b["name"], b["limit"])
-            lines.append(f"- The {label}'s fit stopped at the {b['bound']} bound of `{b['name']}` ({fmt(v)} {u}, "
+            lines.append(f"- {label[0].upper()}{label[1:]}: the fit stopped at the {b['bound']} bound of `{b['name']}` ({fmt(v)} {u}, "
                          f"bound {fmt(lim)} {u}): no optimum inside the range; the value is a limit, not an "
                          f"estimate.")
     return "## Fit checks\n\n" + "\n".join(lines) + "\n" if lines else ""
@@ -534,7 +546,10 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
     out_dir.mkdir(parents=True, exist_ok=True)
     experiments = list(experiments)
     eff = diag["effect"]
-    parts = [f"# Diagnosis: `{eff}`\n\n"
+    title = " + ".join(f"`{e}`" for e in ((diag.get("final") or {}).get("effects") or [eff]))
+    if len((diag.get("final") or {}).get("effects") or []) == 1:
+        title = f"`{eff}`"
+    parts = [f"# Diagnosis: {title}\n\n"
              f"The measured {diag['data']['response']} under imposed {diag['data']['drive']} against the "
              f"baseline spring–damper (eq. 1: stiffness c, damping d) and against the baseline plus each "
              f"candidate effect ({len(diag.get('ranking') or [])} candidates); the effect is named only when "

@@ -27,9 +27,11 @@ from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, DAMPING, S
                                     main_parameter, model_parameters)
 from fmusa.diagnose.fitcache import data_key, run_fits
 from fmusa.diagnose.interface import ModelInterface
+from fmusa.diagnose.plausibility import implausible, support_of, unidentifiable
 from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members,
                                  indistinguishable, nested_p_value, protocol_features, rank_candidates)
 from fmusa.diagnose.units import check_units, model_scale
+from fmusa.diagnose.views import structure_text
 from fmusa.files import atomic_write
 
 __all__ = ["diagnose", "response_range", "write_json", "run_diagnosis", "run_study_diagnosis"]
@@ -60,8 +62,20 @@ def _structure(fit: Fit, experiments: Sequence, drive: str) -> dict:
             "displacement", "force"
     else:
         x, x_unit, x_name, resp = np.concatenate([e.force for e in experiments]), "N", "force", "displacement"
-    return rs.residual_structure(t_all, r, segments=segments, unit="N" if drive == "displacement" else "m",
-                                 x=x, x_unit=x_unit, x_name=x_name, measured=meas, response=resp)
+    # a time axis derived from a nominal rate is made up: structure is searched along the nominal drive path
+    # (rate x time, mm or N) and stated per mm or N of the drive, never as a frequency
+    derived = all(e.meta.get("time_derived") and e.meta.get("rate_si") for e in experiments)
+    if derived:
+        f_drive = 1e3 if drive == "displacement" else 1.0
+        t_all = np.concatenate([(np.asarray(e.t, float) - e.t[0]) * float(e.meta["rate_si"]) * f_drive
+                                for e in experiments])
+    st = rs.residual_structure(t_all, r, segments=segments, unit="N" if drive == "displacement" else "m",
+                               x=x, x_unit=x_unit, x_name=x_name, measured=meas, response=resp)
+    st["axis"] = ({"name": x_name, "unit": x_unit, "derived_time": True} if derived else
+                  {"name": "time", "unit": "s", "derived_time": False})
+    unit, f = ("N", 1.0) if drive == "displacement" else ("mm", 1e3)
+    st["description"] = structure_text(st, unit, f)
+    return st
 
 
 def _fit_summary(f: Fit) -> dict:
@@ -73,6 +87,8 @@ def _fit_summary(f: Fit) -> dict:
         out.update(mapped_from=f.mapped_from, own=f.own)
     out["at_bounds"] = [dict(b, unit=UNITS.get(b["name"], "")) for b in f.at_bounds]
     out["held"] = dict(f.held)
+    out["intervals"] = {k: ({n: list(v) for n, v in x.items()} if k == "gauss_newton" else x)
+                        for k, x in f.intervals.items()}
     return out
 
 
@@ -86,24 +102,40 @@ AGREE_STARTS = 2
 def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect: str, candidates: Sequence[str],
                  experiments: Sequence, drive: str, fmu: str, max_starts: int, interface: ModelInterface,
                  workers: int, cache_dir, key: str, progress: bool, th: Thresholds, chain: int,
-                 budget: RunBudget | None = None, agree: int = 0, runs: dict | None = None) -> list[dict]:
+                 budget: RunBudget | None = None, agree: int = 0, runs: dict | None = None,
+                 removed: list | None = None) -> list[dict]:
     """After the first effect, each remaining candidate on top of the model so far, while the best addition
     passes the same tests as the first (significant against the model so far: ΔBIC, held-out ratio, F test)
     and matters (:func:`rank.effect_size`). Each step: the effect, its gain over the model before it (fitted
-    and held-out RMSE ratios, ΔBIC, p) and the fit. Candidates equivalent to a named one are not tried (the
-    same equations add nothing). ``runs``: filled with each step's fits (candidate name -> Fit or LeftOut),
-    for the run count; when the run budget ends within a step, the chain stops there."""
+    and held-out RMSE ratios, ΔBIC, p), the parameters left at a bound and the fit. Candidates equivalent to
+    a named one are not tried (the same equations add nothing).
+
+    An addition is not made when the protocol cannot identify it (:func:`plausibility.unidentifiable`) or
+    when its model has a parameter the tests cannot support (:func:`plausibility.implausible`); an addition
+    that fits worse than the model it extends is an optimiser failure and is refitted from that model's
+    optimum, and dropped when it stays worse. Each of these is appended to ``removed`` with the reason.
+    ``runs``: filled with each step's fits (candidate name -> Fit or LeftOut; a refit under its own name), for
+    the run count; when the run budget ends within a step, the chain stops there."""
     runs = {} if runs is None else runs
     if effect == "none":
         return []
+    removed = [] if removed is None else removed
     steps = [{"effect": lead, "model": lead, "gain": _gain(base, ext, lead), "rmse": ext.rmse,
-              "heldout_rmse": ext.heldout_rmse, "fit": ext}]
+              "heldout_rmse": ext.heldout_rmse, "at_bounds": list(ext.at_bounds), "fit": ext}]
     named = set(members)
     current, name = ext, lead
     rr = response_range(experiments)
+    features = protocol_features(experiments)
+    support = support_of(experiments)
     while len(steps) < chain:
         rest = [c for c in candidates if c not in named
                 and not any(equivalent_by_construction(c, m) for m in named)]
+        for c in list(rest):
+            why = unidentifiable(c, features, drive)
+            if why:
+                removed.append({"step": len(steps) + 1, "effect": c, "model": f"{name}+{c}", "check": "protocol",
+                                "reason": why["reason"], "separating_test": why["separating_test"]})
+                rest.remove(c)
         if not rest:
             break
         # first start: the model so far at its optimum, the added effect at its own first start
@@ -114,6 +146,25 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         if any(isinstance(r, LeftOut) for r in results.values()):
             break       # a step is chosen among all its candidates or not at all
         combos = {c: results[f"{name}+{c}"] for c in rest if isinstance(results.get(f"{name}+{c}"), Fit)}
+        for c in list(combos):
+            if combos[c].rss > current.rss * (1 + 1e-6):       # nested: never worse at its optimum
+                worse = combos[c]
+                combos[c] = _refit_from(fmu, f"{name}+{c}", drive, experiments, max_starts, interface, current)
+                runs[f"{name}+{c} (refit)"] = combos[c]
+                if combos[c].rss > current.rss * (1 + 1e-6):
+                    removed.append({"step": len(steps) + 1, "effect": c, "model": f"{name}+{c}",
+                                    "check": "optimiser",
+                                    "reason": f"the fit (RMSE {worse.rmse:.4g}) is worse than the model it extends "
+                                              f"(RMSE {current.rmse:.4g}), also refitted from that model's optimum "
+                                              f"(RMSE {combos[c].rmse:.4g}): an optimiser failure"})
+                    del combos[c]
+        for c in list(combos):
+            bad = implausible(f"{name}+{c}", combos[c].params, support)
+            if bad:
+                removed.append({"step": len(steps) + 1, "effect": c, "model": f"{name}+{c}", "check": "physics",
+                                "reason": "; ".join(b["why"] for b in bad),
+                                "separating_test": "; ".join(b["test"] for b in bad), "parameters": bad})
+                del combos[c]
         if not combos:
             break
         ranking = rank_candidates(current, combos, th, rr)
@@ -124,7 +175,7 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         fit = combos[pick]
         name = f"{name}+{pick}"
         steps.append({"effect": pick, "model": name, "gain": _gain(current, fit, pick), "rmse": fit.rmse,
-                      "heldout_rmse": fit.heldout_rmse, "fit": fit,
+                      "heldout_rmse": fit.heldout_rmse, "at_bounds": list(fit.at_bounds), "fit": fit,
                       "tried": sorted(combos)})
         named |= set(group_members(nxt))
         current = fit
@@ -164,6 +215,34 @@ def run_count(results: dict, chain_results: dict, budget: RunBudget) -> dict:
     left = [n for n, r in {**results, **chain_results}.items() if isinstance(r, LeftOut)]
     return {"total": budget.used, "counted_by_fits": by_fits, "budget": budget.limit,
             "budget_ended": bool(left), "left_out": left, **stages}
+
+
+def _refit_from(fmu: str, model: str, drive: str, experiments: Sequence, max_starts: int,
+                interface: ModelInterface, previous: Fit) -> Fit:
+    """The extended ``model`` fitted again, its first start at the optimum of the model it extends."""
+    from fmusa.diagnose.calibrate import fit_candidate
+
+    return fit_candidate(fmu, model, drive, list(experiments), max_starts, interface, start=dict(previous.params))
+
+
+def _screened_ranking(base: Fit, fits: dict, th: Thresholds, experiments: Sequence) -> tuple[list[dict], list]:
+    """The ranking of the single effects, where a fit with a parameter the tests cannot support
+    (:func:`plausibility.implausible`) is listed last, not significant, with why; and those removals."""
+    support = support_of(experiments)
+    bad = {n: implausible(n, f.params, support) for n, f in fits.items()}
+    ok = {n: f for n, f in fits.items() if not bad[n]}
+    rr = response_range(experiments)
+    ranking = rank_candidates(base, ok, th, rr)
+    out = {n: f for n, f in fits.items() if bad[n]}
+    removed = []
+    for row in rank_candidates(base, out, th, rr) if out else []:
+        b = bad[row["effect"]]
+        if row["significant"]:
+            removed.append({"step": 1, "effect": row["effect"], "model": row["effect"], "check": "physics",
+                            "reason": "; ".join(x["why"] for x in b),
+                            "separating_test": "; ".join(x["test"] for x in b), "parameters": b})
+        ranking.append(dict(row, significant=False, implausible=b))
+    return ranking, removed
 
 
 def damping_look_alikes(base: Fit, members: Sequence[str], effect: str) -> list[dict]:
@@ -280,7 +359,7 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     line["baseline_not_worse"] = bool(base.rmse <= line["rmse"] * (1 + 1e-3) + 1e-12 * sc.F_pk)
     # the same equations under two parametrisations are scored as one model
     fits = unify_equivalent({n: r for n, r in results.items() if n != "none" and isinstance(r, Fit)})
-    ranking = rank_candidates(base, fits, thresholds, response_range(experiments))
+    ranking, removed = _screened_ranking(base, fits, thresholds, experiments)
     effect, ties = choose_effect(ranking, thresholds, fits)
     members = group_members(effect)
     # a group "a ≡ b" reports the parameters of its best-ranked member; of members that are the same
@@ -293,7 +372,7 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     chain_results: dict = {}
     steps = effect_chain(base, ext, lead, members, effect, candidates, experiments, drive, fmu, max_starts,
                          interface, workers, cache_dir, key, progress, thresholds, chain, budget, agree,
-                         chain_results)
+                         chain_results, removed)
     final = steps[-1]["fit"] if steps else ext
     res_final = _structure(final, experiments, drive) if len(steps) > 1 else res_ext
     features = protocol_features(experiments)
@@ -323,9 +402,13 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "residuals": {"baseline": res_base, "extended": res_ext, **({"final": res_final} if len(steps) > 1 else {})},
         "leftover": res_final.get("description", "") if res_final.get("structured") else "",
         "chain": [{k: v for k, v in s.items() if k != "fit"} for s in steps],
-        "final": {"effects": [s["effect"] for s in steps],
+        "chain_removed": removed,
+        "final": {"effects": [s["effect"] for s in steps], "model": steps[-1]["model"] if steps else None,
+                  "at_bounds": [dict(b, unit=UNITS.get(b["name"], "")) for b in final.at_bounds],
                   "params": {n: {"value": v, "ci95": list(final.ci95.get(n, (v, v))), "unit": UNITS.get(n, "")}
                              for n, v in final.params.items()},
+                  "intervals": {k: v for k, v in final.intervals.items() if k != "gauss_newton"},
+                  "gauss_newton": {n: list(v) for n, v in (final.intervals.get("gauss_newton") or {}).items()},
                   "rmse": final.rmse, "heldout_rmse": final.heldout_rmse} if steps else None,
         "data": _data_summary(experiments, drive),
         # the FMU variable of each fitted parameter (the catalogue's names are the keys above); where the effects

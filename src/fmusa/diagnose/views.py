@@ -16,7 +16,7 @@ from fmusa.diagnose.effects import UNITS
 from fmusa.format import fmt
 
 __all__ = ["NATURAL_UNITS", "natural", "param_label", "p_text", "ratio_text", "delta_text", "response_channel",
-           "fit_predictions", "extended_name", "residual_series", "experiment_motion", "by_loading_direction"]
+           "fit_predictions", "extended_name", "final_name", "final_label", "final_residuals", "structure_text", "residual_series", "experiment_motion", "by_loading_direction"]
 
 #: SI unit -> (natural unit, factor SI -> natural)
 NATURAL_UNITS = {"N/m": ("N/mm", 1e-3), "N.s/m": ("N·s/mm", 1e-3), "m": ("mm", 1e3), "N": ("N", 1.0), "1/m": ("1/mm", 1e-3),
@@ -94,6 +94,28 @@ def extended_name(diag: Mapping) -> str:
     return diag.get("effect", "none")
 
 
+def final_name(diag: Mapping) -> str:
+    """The key of the final model's fit: the last step of the chain of effects ("a+b"), else the named
+    effect ('none' when there is none)."""
+    model = (diag.get("final") or {}).get("model")
+    return model if model and (model in _fits(diag) or "_fits" not in diag) else extended_name(diag)
+
+
+def final_label(diag: Mapping) -> str:
+    """The final model in words: "baseline + a + b", or "baseline" when no effect is named."""
+    effects = (diag.get("final") or {}).get("effects") or []
+    if not effects:
+        eff = extended_name(diag)
+        return "baseline" if eff == "none" else f"baseline + {eff}"
+    return "baseline + " + " + ".join(effects)
+
+
+def final_residuals(diag: Mapping) -> dict | None:
+    """The residual structure of the final model (of the chain's last step, else of the named effect's)."""
+    res = diag.get("residuals") or {}
+    return res.get("final") or res.get("extended")
+
+
 def residual_series(diag: Mapping, experiments: Sequence, key: str) -> list[np.ndarray] | None:
     """model − measured per experiment, in SI."""
     pr = fit_predictions(diag, key, experiments)
@@ -153,3 +175,52 @@ def by_loading_direction(experiments: Sequence, motion, resid: list[np.ndarray])
                 acc[k][2] += st["count"]
     return {k: {"mean": (m / c if c else float("nan")), "rms": (math.sqrt(q / c) if c else float("nan")),
                 "count": c} for k, (m, q, c) in acc.items()}
+
+
+# ============================================================================ residual structure in words
+def structure_text(st: Mapping | None, unit: str, f: float) -> str:
+    """The residual structure in plain words and natural units: the one text the console, diagnosis.json
+    and the report print. Where the time axis was derived from a nominal rate (``st['axis']``), the search
+    ran along the drive, and a periodic part is a waviness with a period in mm (or N) of the drive, never a
+    frequency; a drift is per mm (or N) of the drive."""
+    if not st:
+        return "not computed"
+    if not st.get("structured"):
+        return str(st.get("description") or "white: no structure beyond noise")
+    axis = st.get("axis") or {"name": "time", "unit": "s", "derived_time": False}
+    along = bool(axis.get("derived_time"))
+    au = axis.get("unit") or ""
+    parts = []
+    osc, drift = st.get("oscillation"), st.get("drift")
+    mis = st.get("misfit")
+    if mis:
+        xu = st.get("x_unit") or ""
+        parts.append(f"the model is {fmt(mis['size_low'] * f)}–{fmt(mis['size_high'] * f)} {unit} "
+                     f"{'above' if mis['sign'] > 0 else 'below'} the data from {fmt(mis['x_start'])} {xu} to "
+                     f"{fmt(mis['x_end'])} {xu} of {st.get('x_name') or 'displacement'}"
+                     + (f" (experiment {mis['experiment'] + 1})" if st.get("n_segments", 1) > 1 else "")
+                     + (f", where the measured {st.get('response') or 'response'} falls"
+                        if mis.get("response_falls") else ""))
+    if osc and along:
+        parts.append(f"a waviness with a period of {fmt(1 / osc['frequency_hz'])} {au} of {axis['name']} "
+                     f"and amplitude {fmt(osc['amplitude'] * f)} {unit}, "
+                     f"{100 * osc['share_of_variance']:.0f} % of the residual variance")
+    elif osc:
+        parts.append(f"an oscillation at {fmt(osc['frequency_hz'])} Hz (period {fmt(1 / osc['frequency_hz'])} s) "
+                     f"of amplitude {fmt(osc['amplitude'] * f)} {unit}, "
+                     f"{100 * osc['share_of_variance']:.0f} % of the residual variance")
+    if drift:
+        over = "over the test" if st.get("n_segments", 1) == 1 else "over an experiment of mean length"
+        per = f"{unit}/{au}" if along else f"{unit}/s"
+        parts.append(f"a drift of {drift['total_change'] * f:+.3g} {unit} {over} "
+                     f"({fmt(drift['slope_per_s'] * f)} {per}, {100 * drift['share_of_variance']:.0f} % of "
+                     f"the residual variance)")
+    if not osc and not drift:
+        rho, z = st.get("lag1_autocorrelation", float("nan")), st.get("runs_z", float("nan"))
+        if (z < 0) or (rho > 0):
+            parts.append(f"a slowly varying systematic error (lag-1 autocorrelation {rho:.2f}, runs test "
+                         f"z = {z:.1f}), but no single oscillation or drift")
+        else:
+            parts.append(f"residuals that alternate more than noise does (lag-1 autocorrelation {rho:.2f})")
+    return "structured: " + "; ".join(parts)
+

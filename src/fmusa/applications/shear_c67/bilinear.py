@@ -21,6 +21,8 @@ from typing import Iterable
 import numpy as np
 from scipy import optimize
 
+from fmusa.diagnose.intervals import sandwich_covariance
+
 __all__ = ["GRID", "TUNING", "split_of", "fit_two_lines", "fit_line"]
 
 #: Interior breakpoints scanned for the first local minimum of the squared error (then refined between its
@@ -62,7 +64,8 @@ def fit_two_lines(x_mm: np.ndarray, f_n: np.ndarray, grid: int = GRID) -> dict:
     """Continuous two-line fit F = i1 + k1 x up to the breakpoint, i2 + k2 x past it (i2 = i1 + (k1 − k2) bp),
     in the raw frame: stiffnesses dF/dx [N/mm] (positive for Pos tests too, as the authors give them),
     breakpoint in raw displacement [mm]. The loading direction is that of the record (last minus first
-    displacement). Keys k1_N_mm, k2_N_mm, bp_mm, intercept_1_N, intercept_2_N, rmse_N, points, and
+    displacement). Keys k1_N_mm, k2_N_mm, bp_mm, intercept_1_N, intercept_2_N, rmse_N, points, k1_se_N_mm (the
+    standard error of k1 at that breakpoint, AR(1) sandwich: :mod:`fmusa.diagnose.intervals`), and
     bp_global_mm (the breakpoint of the smallest squared error on the same grid, refined: not used)."""
     x, f = np.asarray(x_mm, float).ravel(), np.asarray(f_n, float).ravel()
     if x.shape != f.shape or len(x) < 4:
@@ -88,8 +91,13 @@ def fit_two_lines(x_mm: np.ndarray, f_n: np.ndarray, grid: int = GRID) -> dict:
             b_glob = float(res.x)
     sse, beta = _sse(u, f, b)
     k1, k2 = s * beta[1], s * (beta[1] + beta[2])          # dF/dx in the raw frame
+    # the standard error of k1 at this breakpoint, for correlated residuals (AR(1) sandwich): the samples of
+    # a record are far from independent
+    X = np.c_[np.ones_like(u), u, np.maximum(u - b, 0.0)]
+    cov, _ = sandwich_covariance(X, f - X @ beta)
+    k1_se = float(np.sqrt(max(cov[1, 1], 0.0)))
     i1 = float(beta[0])
     bp = s * b
     return {"k1_N_mm": float(k1), "k2_N_mm": float(k2), "bp_mm": float(bp), "intercept_1_N": i1,
             "intercept_2_N": float(i1 + (k1 - k2) * bp), "rmse_N": float(np.sqrt(sse / len(u))),
-            "bp_global_mm": float(s * b_glob), "points": int(len(u))}
+            "bp_global_mm": float(s * b_glob), "points": int(len(u)), "k1_se_N_mm": k1_se}

@@ -174,6 +174,80 @@ def _param_text(name: str, v: dict) -> str:
     return f"{name} = {_f(value, '.4g')}{' ' + unit if unit else ''}"
 
 
+def _ci_text(name: str, v: dict) -> str:
+    """' [lo, hi]' of a parameter's 95 % interval in the units of the data ('' without one)."""
+    ci = v.get("ci95") if isinstance(v, dict) else None
+    if not ci or len(ci) != 2:
+        return ""
+    return f" [{_f(natural(name, ci[0])[0], '.3g')}, {_f(natural(name, ci[1])[0], '.3g')}]"
+
+
+def _population_section(summary: dict) -> list[str]:
+    """The population of k1 over the specimens per direction and rate, and the leave-one-out check."""
+    pop = summary.get("population_k1") or {}
+    cells = pop.get("cells") or {}
+    if not cells:
+        return []
+    L = ["## The population: k1 over the specimens\n",
+         f"Each specimen's k1 (two lines, free intercept) with its standard error, combined by {pop['method']}. "
+         "τ is the spread between specimens beyond each test's own uncertainty; the shrinkage is how far a "
+         "specimen's estimate moves towards the mean (0: its own test decides, 1: the population does). "
+         "Leave one out: the range of a new specimen predicted from the other specimens, and whether the "
+         "left-out specimen's k1 of the authors' analysis falls inside.\n",
+         "| direction | rate [mm/s] | specimens | mean k1 [N/mm] | τ between specimens [N/mm] | SD of the "
+         "estimates [N/mm] | a new specimen, 95 % [N/mm] | largest shrinkage | authors' k1 inside (left out) |",
+         "|---|---|---|---|---|---|---|---|---|"]
+    for c in cells.values():
+        f, loo = c["fit"], c["leave_one_out"]
+        miss = [r["name"] for r in loo["rows"] if not r["inside"]]
+        L.append(f"| {DIRECTION_NAMES.get(c['direction'], c['direction'])} | {c['rate_mm_s']:g} | {f['k']} | "
+                 f"{_f(f['mean'], '.4g')} ± {_f(f['mean_se'], '.2g')} | {_f(f['tau'], '.3g')} | {_f(f['sd'], '.3g')} | "
+                 f"{_f(f['prediction'][0], '.3g')} to {_f(f['prediction'][1], '.3g')} | "
+                 f"{_f(max(s['shrinkage'] for s in f['specimens']), '.2f')} | {loo['inside']} of {loo['tested']}"
+                 + (f" (outside: {', '.join(miss)})" if miss else "") + " |")
+    L.append("")
+    units = summary.get("population_units") or {}
+    for d, params in units.items():
+        c = params.get("c_y")
+        if not c or not c.get("k"):
+            continue
+        lo, hi = c["prediction"]
+        L.append(f"The diagnosed units' final models, {DIRECTION_NAMES.get(d, d)}: stiffness c {_f(c['mean'] / 1e3, '.4g')} "
+                 f"± {_f(c['tau'] / 1e3, '.3g')} N/mm between specimens over {c['k']} specimens"
+                 + (f", a new specimen {_f(lo / 1e3, '.3g')} to {_f(hi / 1e3, '.3g')} N/mm" if math.isfinite(lo)
+                    else f" ({c.get('note', '')})")
+                 + "; per specimen (estimate → shrunk, shrinkage): "
+                 + ", ".join(f"{x['name']} {_f(x['estimate'] / 1e3, '.4g')} → {_f(x['shrunk'] / 1e3, '.4g')} "
+                             f"({_f(x['shrinkage'], '.2f')})" for x in c["specimens"]) + ".\n")
+    L.append(f"In all, the authors' k1 of {pop['inside']} of {pop['tested']} left-out specimen tests "
+             f"({100 * pop['share']:.0f} %) falls inside the range predicted from the other specimens (nominal 95 %).\n")
+    return L
+
+
+def _bands_section(summary: dict) -> list[str]:
+    """Each rate predicted from the unit's other rates with a 95 % band: the share of its samples inside."""
+    bands = {k: v for k, v in (summary.get("prediction_bands") or {}).items() if v}
+    if not bands:
+        return []
+    L = ["## Prediction bands: each rate predicted from the other rates\n",
+         "The two-phase elastic curve with damping, fitted to two rates of a unit, predicts the third with a "
+         "95 % band for a new measurement (the parameters' covariance, AR(1) sandwich where the training "
+         "residuals are autocorrelated, and the residual variance). A share near 95 % is a band that holds; "
+         "a share far below says the model does not carry over to that rate; a band much wider than the "
+         "response says little.\n",
+         "| unit | predicted rate [mm/s] | samples inside the 95 % band | median half-width [N] | "
+         "held-out RMSE [N] | training intervals |", "|---|---|---|---|---|---|"]
+    shares = []
+    for key, rows in bands.items():
+        for r in rows:
+            shares.append(r["share_inside"])
+            L.append(f"| {_unit(key)} | {r['rate_mm_s']:g} | {100 * r['share_inside']:.0f} % | "
+                     f"{_f(r['half_width_median_N'], '.3g')} | {_f(r['heldout_rmse_N'], '.3g')} | {r['method']} |")
+    L.append("")
+    L.append(f"Median share inside over the {len(shares)} predicted rates: {100 * float(np.median(shares)):.0f} %.\n")
+    return L
+
+
 def _tests_per_unit(summary: dict) -> int | None:
     """The number of tests (rates) of every unit when all have the same, else None."""
     counts = {g["tests"] for g in summary["groups"].values()}
@@ -228,15 +302,27 @@ def _units_section(summary: dict) -> list[str]:
     groups = summary["groups"]
     n = len(groups)
     L = _units_heading(_tests_per_unit(summary))
-    L.append("| unit | effect named | held-out RMSE ratio | ΔBIC | effect parameters | cannot be told from | "
-             "left in the residuals |")
+    L.append("| unit | final model (first effect named) | held-out RMSE ratio of the first | ΔBIC of the first | "
+             "final model's effect parameters [95 %] | cannot be told from | left in the residuals of the final model |")
     L.append("|---|---|---|---|---|---|---|")
     for k, g in groups.items():
-        ps = "; ".join(_param_text(nm, v) for nm, v in g["effect_params"].items())
-        L.append(f"| {_unit(k)} | **{g['effect']}** | {_f(g['gain']['heldout_rmse_ratio'])} | "
+        fin = g.get("final") or {}
+        ps = "; ".join(_param_text(nm, v) + _ci_text(nm, v) for nm, v in (fin.get("params") or g["effect_params"]).items())
+        model = " + ".join(fin.get("effects") or []) or g["effect"]
+        L.append(f"| {_unit(k)} | **{model}** | {_f(g['gain']['heldout_rmse_ratio'])} | "
                  f"{_f(g['gain']['delta_bic'], '.1f')} | {ps or '–'} | {', '.join(g['indistinguishable']) or '–'} | "
                  f"{g['leftover'] or '–'} |")
     L.append("")
+    methods = sorted({(g.get("final") or {}).get("interval_method") for g in groups.values()} - {None})
+    if methods:
+        L.append(f"Intervals: {'; '.join(methods)} (the method of each unit is in its report).\n")
+    removed = [(k, r) for k, g in groups.items() for r in g.get("chain_removed") or []]
+    if removed:
+        L.append("Steps of the chains the checks removed (a parameter the test cannot support, an effect the "
+                 "protocol cannot identify, or an optimiser failure):\n")
+        for k, r in removed:
+            L.append(f"- {_unit(k)}, step {r['step']}, `{r['effect']}`: {r['reason']}.")
+        L.append("")
     n_cand = max(len(g["ranking"]) for g in groups.values())
     cands = {1: "the one candidate", 2: "both candidates"}.get(n_cand, f"all {_word(n_cand)} candidates")
     L.append(f"Every group's own report (figures, ranking of {cands}, residual tests) is in its folder, e.g. "
@@ -565,7 +651,9 @@ def _rate_section(summary: dict) -> list[str]:
 
 def write_report(summary: dict, cmp_: pd.DataFrame, out: Path, figs: list[Path]) -> Path:
     """out/report.md: the data, the diagnosis per unit, the comparison with the authors, the rates."""
-    L = _intro(summary) + _units_section(summary) + _bilinear_section(summary, cmp_) + _rate_section(summary)
+    L = (_intro(summary) + _units_section(summary) + _population_section(summary) + _bands_section(summary)
+         + _bilinear_section(summary, cmp_)
+         + _rate_section(summary))
     for p in figs:
         L.append(f"![{p.stem}](figures/{p.name})\n")
     path = Path(out) / "report.md"

@@ -22,9 +22,11 @@ import pandas as pd
 
 from fmusa.applications.shear_c67 import bilinear
 from fmusa.applications.shear_c67 import data as shear_c67
+from fmusa.applications.shear_c67.prediction import held_out_rate_bands
 from fmusa.diagnose.calibrate import ModelRunner, calibrate, fit_candidate
 from fmusa.diagnose.effects import CANDIDATES, data_scales
 from fmusa.diagnose.measured import MeasuredDataError
+from fmusa.diagnose.population import MIN_SPECIMENS, leave_one_out, population_of_diagnoses, random_effects
 from fmusa.diagnose.run import run_diagnosis
 from fmusa.files import atomic_path, atomic_write
 
@@ -114,7 +116,7 @@ def _direct_row(row: pd.Series) -> dict:
     rate1 = (u[i_b] / i_b) / (u[-1] / (len(u) - 1)) if 0 < i_b < len(u) and u[-1] > 0 else np.nan
     return {"specimen": row["specimen"], "direction": row["direction"], "rate_mm_s": row["rate_mm_s"],
             "split": bilinear.split_of(row["specimen"]),
-            "k1_N_mm": two["k1_N_mm"], "k2_N_mm": two["k2_N_mm"], "bp_mm": two["bp_mm"],
+            "k1_N_mm": two["k1_N_mm"], "k1_se_N_mm": two["k1_se_N_mm"], "k2_N_mm": two["k2_N_mm"], "bp_mm": two["bp_mm"],
             "intercept_1_N": two["intercept_1_N"], "rmse_N": two["rmse_N"], "bp_global_mm": two["bp_global_mm"],
             "linear_k_N_mm": line["k_N_mm"], "linear_rmse_N": line["rmse_N"], "phase1_rate_ratio": float(rate1),
             "peak_N": float(np.max(np.abs(f))), "points": int(len(x))}
@@ -219,6 +221,10 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     for key, diag in groups.items():
         print(f"{key}: rate dependence on top of the two-phase curve", flush=True)
         rate_models[key] = rate_dependence(unit_exps[key], fmu, diag, max_starts)
+    bands = {}
+    for key in groups:
+        print(f"{key}: prediction bands of each rate from the others", flush=True)
+        bands[key] = held_out_rate_bands(unit_exps[key], fmu, max_starts)
     print(f"two-line fits of {len(tests)} tests", flush=True)
     ours = fit_bilinear_per_test(tests, fmu, max_points, max_starts, model_specimens=chosen)
     cmp_ = ours.merge(authors, on=["specimen", "direction", "rate_mm_s"], how="left")
@@ -227,6 +233,10 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     data["diagnosed_tests"] = int(tests.specimen.isin(chosen).sum())
     summary = summarize(groups, cmp_, data)
     summary["rate_models"] = rate_models
+    summary["prediction_bands"] = bands
+    summary["population_units"] = {
+        d: population_of_diagnoses({k: g for k, g in groups.items() if k.endswith(f"_{d}")})
+        for d in dict.fromkeys(k.rsplit("_", 1)[1] for k in groups)}
     atomic_write(out / "summary.json", json.dumps(summary, indent=2, default=_json_default))
     with atomic_path(out / "bilinear_comparison.csv") as tmp:
         cmp_.drop(columns=["model_k1_ci"]).to_csv(tmp, index=False, encoding="utf-8")
@@ -274,6 +284,15 @@ def _group_summary(d: dict) -> dict:
             "baseline_c_N_mm": d["baseline"]["params"]["c_y"] / 1000.0,
             "ranking": [{k2: r[k2] for k2 in ("effect", "significant", "heldout_rmse_ratio", "delta_bic",
                                                "rmse_ratio")} for r in d["ranking"]],
+            "final": {"effects": (d.get("final") or {}).get("effects") or ([] if d["effect"] == "none" else [d["effect"]]),
+                      "params": {n: v for n, v in ((d.get("final") or {}).get("params") or {}).items()
+                                 if n not in ("c_y", "d_y")},
+                      "c_N_mm": ((d.get("final") or {}).get("params") or {}).get("c_y", {}).get("value", float("nan"))
+                                / 1000.0,
+                      "c_ci_N_mm": [c / 1000.0 for c in ((d.get("final") or {}).get("params") or {}).get(
+                          "c_y", {}).get("ci95", [float("nan"), float("nan")])],
+                      "interval_method": ((d.get("final") or {}).get("intervals") or {}).get("method")},
+            "chain_removed": list(d.get("chain_removed") or []),
             "leftover": d["leftover"], "tests": len(d["data"]["experiments"]), "heldout": d["data"]["heldout"],
             "protocol": d["protocol"]}
 
@@ -328,6 +347,29 @@ def _by_rate(g: pd.DataFrame) -> dict:
             "points_max": int(g["points"].max())}
 
 
+def population_k1(cmp_: pd.DataFrame) -> dict:
+    """The population of k1 per direction and rate over the specimens (:func:`population.random_effects` of
+    the two-line k1 and its standard error), and leave one specimen out: the range of a new specimen predicted
+    from the rest, and whether that specimen's k1 of the authors' analysis (stiffness_1) falls inside."""
+    out, inside, tested = {}, 0, 0
+    if "k1_se_N_mm" not in cmp_:
+        return {}
+    for (direction, rate), g in cmp_.groupby(["direction", "rate_mm_s"]):
+        g = g.dropna(subset=["k1_N_mm", "k1_se_N_mm"])
+        if g["specimen"].nunique() < MIN_SPECIMENS:
+            continue
+        fit = random_effects(g["k1_N_mm"], g["k1_se_N_mm"], list(g["specimen"]))
+        loo = leave_one_out(g["k1_N_mm"], g["k1_se_N_mm"], g["stiffness_1"], list(g["specimen"])) \
+            if "stiffness_1" in g else {"rows": [], "inside": 0, "tested": 0, "share": float("nan")}
+        inside += loo["inside"]
+        tested += loo["tested"]
+        out[f"{direction} {rate:g}"] = {"direction": direction, "rate_mm_s": float(rate), "fit": fit,
+                                        "leave_one_out": loo}
+    return {"cells": out, "inside": inside, "tested": tested, "share": inside / tested if tested else float("nan"),
+            "method": "random effects (Paule–Mandel) on each specimen's two-line k1 and its AR(1)-sandwich "
+                      "standard error; range of a new specimen: mean ± t(k−2) √(τ² + SE(mean)²)"}
+
+
 def summarize(groups: dict, cmp_: pd.DataFrame, data: dict | None = None) -> dict:
     """The numbers and facts the report states: what was diagnosed, effects per unit, our vs the
     authors' bilinear (all tests, and per rate on the tuning and the held-out specimens apart), rate trends
@@ -365,4 +407,5 @@ def summarize(groups: dict, cmp_: pd.DataFrame, data: dict | None = None) -> dic
             "bilinear": {"k1_rel_diff_median": float(np.nanmedian(np.abs(dk1))),
                          "k2_rel_diff_median": float(np.nanmedian(np.abs(dk2))),
                          "breakpoint_abs_diff_median_mm": float(np.nanmedian(np.abs(dbp)))},
-            "rate": rate}
+            "rate": rate,
+            "population_k1": population_k1(cmp_)}
