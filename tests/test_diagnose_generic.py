@@ -11,8 +11,9 @@ from pathlib import Path
 import yaml
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "fmusa" / "diagnose"
-#: the effect catalogue: the one module of the diagnosis that names parameters, as data
-CATALOGUE = {"effects.py"}
+#: the effect catalogue: the modules of the diagnosis that name the catalogue's parameters, as data: the
+#: effects and their parameters, and each effect's physical-support rules (plausibility.py)
+CATALOGUE = {"effects.py", "plausibility.py"}
 #: ScrewVertebra's variables that a diagnosis sets or reads (its tolerance parameter ``rtol`` is also the
 #: solver's generic keyword, so it is checked in the description only), and the effects' parameters
 SCREW_VERTEBRA = ("c_y", "d_y", "mode", "y_in", "use_y_in", "F_ext_y", "F_meas", "y_meas", "F_pull", "F_max",

@@ -106,7 +106,7 @@ def test_chain_does_not_add_what_the_protocol_cannot_identify():
     removed: list = []
     steps = effect_chain(base, ext, "nonlinear_stiffness", ["nonlinear_stiffness"], "nonlinear_stiffness",
                          ("viscoelastic_relaxation", "coulomb_friction"), [e], "displacement", "no.fmu", 2, None,
-                         1, None, "k", False, Thresholds(), 3, removed)
+                         1, None, "k", False, Thresholds(), 3, removed=removed)
     assert [s["effect"] for s in steps] == ["nonlinear_stiffness"]
     assert {r["effect"] for r in removed} == {"viscoelastic_relaxation", "coulomb_friction"}
     assert all(r["check"] == "protocol" and r["reason"].startswith("cannot tell") and r["separating_test"]

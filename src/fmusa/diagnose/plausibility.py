@@ -110,7 +110,7 @@ def implausible(effect: str, params: Mapping[str, float], support: Support) -> l
 IDENTIFYING_FEATURES: dict[str, dict] = {
     "coulomb_friction": {
         "needs": (("unloading", "hold"), ("unloading", "several_rates")),
-        "hidden_by": "damping d_y, a Maxwell branch or an elastic bend",
+        "hidden_by": "the damping, a Maxwell branch or an elastic bend",
         "test": "unload after the peak, and hold the displacement or load at a second rate"},
     "yield_softening": {
         "needs": (("unloading",),),
