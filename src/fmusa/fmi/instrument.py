@@ -12,6 +12,7 @@ import re
 import shutil
 from pathlib import Path
 
+from fmusa.files import atomic_write
 from fmusa.fmi.info import FMUError
 
 __all__ = ["instrumented_copy", "count_logged_runs"]
@@ -69,7 +70,7 @@ def instrumented_copy(fmu: str | os.PathLike, dest: str | os.PathLike, log: str 
                                      f"{m.group(1)}) {{", text, count=1)
     text = (text + _WRAPPER % {"log": json.dumps(str(Path(log).resolve())), "delay": float(delay_s)})
     guard = "#ifndef _POSIX_C_SOURCE\n#define _POSIX_C_SOURCE 199309L  /* nanosleep under -std=c99 */\n#endif\n"
-    src.write_text(guard + text, encoding="utf-8", errors="surrogateescape")
+    atomic_write(src, guard + text, errors="surrogateescape")
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
     if cc is None or os.name == "nt":
         compile_sources(dest)     # CMake, or whatever builds FMUs here
