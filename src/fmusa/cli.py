@@ -265,7 +265,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if par:      # the search in rounds (search.parallel): its rounds against the sequential search's
         print(f"search: {par['runs']} points asked in {par['rounds']} rounds of up to {par['workers']}; the "
               f"sequential search asks for {par['sequential_rounds']}, one per round")
-    for note in sens.get("messages") or []:    # the sensitivity stage's notes (SALib's warnings among them)
+    for note in (s.get("sensitivity") or {}).get("messages") or []:    # the sensitivity stage's notes (SALib's warnings among them)
         print(f"sensitivity: {note}")
     for name in ("runs.csv", "summary.json", "report.md"):
         if (args.out / name).exists():
