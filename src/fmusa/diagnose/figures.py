@@ -8,6 +8,7 @@ model − measured in the response channel.
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -23,12 +24,14 @@ from fmusa.diagnose import residuals as rs  # noqa: E402
 from fmusa.diagnose.views import (by_loading_direction, experiment_motion, extended_name, final_label, final_name, fit_predictions,  # noqa: E402
                                   p_text, residual_series, response_channel)
 from fmusa.format import fmt  # noqa: E402
+from fmusa.figure_check import MAX_HEIGHT_IN, MAX_WIDTH_IN  # noqa: E402
 from fmusa.files import save_figure  # noqa: E402
 
 __all__ = ["write_figures", "fig_fit_time", "fig_loops", "fig_residuals", "fig_ranking", "MAX_PANELS"]
 
 DPI = 130
-MAX_PANELS = 6                 # experiments drawn one per panel; the rest are summarised
+MAX_PANELS = 5                 # experiments drawn one per panel (with the summary, 3 rows of 2); the rest summarised
+PAGE_W, PAGE_H = MAX_WIDTH_IN, MAX_HEIGHT_IN      # a journal page's text area [in]: every figure fits in it
 DATA_COLOR = "0.35"
 BASE_COLOR = "#1f77b4"
 EXT_COLOR = "#d62728"
@@ -85,25 +88,39 @@ def _save(fig, path: Path) -> Path:
     return save_figure(fig, path, dpi=DPI)     # written whole or not at all, checked in the tests
 
 
-def _grid(n_panels: int, width: float = 5.2, height: float = 3.3):
-    cols = 1 if n_panels == 1 else 2 if n_panels <= 4 else 3
+def _grid(n_panels: int, height: float = 3.0, top: float = 0.9):
+    """One panel alone, else two per row, on a page's width; rows shrink to keep the figure on one page
+    (``top``: room for the title and the legend above the panels)."""
+    cols = 1 if n_panels == 1 else 2
     rows = math.ceil(n_panels / cols)
-    # one panel alone is drawn wider, so the figure's title and legend fit above it
-    fig, axes = plt.subplots(rows, cols, figsize=(max(width * cols, 8.0), height * rows), squeeze=False)
+    row_h = min(height, (PAGE_H - top) / rows)
+    # one panel alone is drawn at the page's width too, so the figure's title and legend fit above it
+    fig, axes = plt.subplots(rows, cols, figsize=(PAGE_W, row_h * rows + top), squeeze=False)
     flat = list(axes.ravel())
     for ax in flat[n_panels:]:
         ax.set_visible(False)
     return fig, flat[:n_panels]
 
 
-def _top_legend(fig, ax, ncol: int) -> None:
-    """One legend for all panels, under the title, so that no panel's data hide behind it."""
+def _suptitle(fig, text: str, fontsize: float = 11) -> int:
+    """The figure's title wrapped to its width; the number of lines."""
+    lines = textwrap.wrap(text, int(fig.get_figwidth() * 72 / (0.56 * fontsize)))
+    fig.suptitle("\n".join(lines), fontsize=fontsize, y=1 - 0.08 / fig.get_figheight(), va="top")
+    return len(lines)
+
+
+def _top_legend(fig, ax, ncol: int, title_lines: int = 1, handles=None, bottom: float = 0.0,
+                legend_h: float = 0.3) -> None:
+    """One legend for all panels, under the title, so that no panel's data hide behind it (``legend_h``,
+    ``bottom``: the room it takes and the room kept under the panels [in]; tight_layout makes the title's)."""
     h = fig.get_figheight()
-    fig.tight_layout(rect=(0, 0, 1, 1 - 0.3 / h))
-    if ax is not None:
-        handles, labels = ax.get_legend_handles_labels()
-        fig.legend(handles, labels, loc="upper center", ncol=ncol, frameon=False, fontsize=9,
-                   bbox_to_anchor=(0.5, 1 - 0.28 / h))
+    below = (0.1 + 0.21 * title_lines) / h
+    fig.tight_layout(rect=(0, bottom / h, 1, 1 - legend_h / h))
+    if handles is None and ax is not None:
+        handles = ax.get_legend_handles_labels()[0]
+    if handles:
+        fig.legend(handles=handles, loc="upper center", ncol=ncol, frameon=False, fontsize=8.5,
+                   bbox_to_anchor=(0.5, 1 - below))
 
 
 def _short(name: str, n: int = 38) -> str:
@@ -113,9 +130,9 @@ def _short(name: str, n: int = 38) -> str:
 def _not_shown_note(fig, experiments: Sequence, shown: list[int]) -> None:
     rest = len(experiments) - len(shown)
     if rest > 0:
-        fig.text(0.5, -0.01, f"{len(shown)} of {len(experiments)} experiments drawn; the RMSE of all "
-                 f"{len(experiments)} is in the last panel of fit_time.png and in report.md",
-                 ha="center", va="top", fontsize=9, style="italic")
+        fig.text(0.5, 0.12 / fig.get_figheight(), f"{len(shown)} of {len(experiments)} experiments drawn; the "
+                 f"RMSE of all {len(experiments)}: fit_time.png (last panel) and report.md",
+                 ha="center", va="bottom", fontsize=9, style="italic")
 
 
 def fig_fit_time(diag: Mapping, experiments: Sequence, path: Path) -> Path:
@@ -151,6 +168,7 @@ def fig_fit_time(diag: Mapping, experiments: Sequence, path: Path) -> Path:
         ax.set_xticks(x)
         ax.set_xticklabels([_short(e.name, 18) for e in experiments], rotation=60, ha="right", fontsize=7)
         ax.set_ylabel(f"RMSE of {resp} [{unit}]")
+        ax.set_xlabel("experiment")
         ax.set_title(f"all {len(experiments)} experiments", fontsize=9.5)
         vals_all = [v for *_, preds in models for v in (_rmse(p, e.response_signal) for p, e in
                                                          zip(preds, experiments)) if v > 0]
@@ -158,10 +176,9 @@ def fig_fit_time(diag: Mapping, experiments: Sequence, path: Path) -> Path:
             ax.set_yscale("log")
         ax.grid(alpha=0.3, axis="y")
     drive = diag["data"]["drive"]
-    fig.suptitle(f"{resp.capitalize()} response to the imposed {drive}: data, baseline and "
-                 f"{'final model (' + final_label(diag) + ')' if extended_name(diag) != 'none' else 'no extension (effect: none)'}",
-                 fontsize=11)
-    _top_legend(fig, axes[0] if axes else None, len(models) + 1)
+    lines = _suptitle(fig, f"{resp.capitalize()} response to the imposed {drive}: data, baseline and "
+                      f"{'final model (' + final_label(diag) + ')' if extended_name(diag) != 'none' else 'no extension (effect: none)'}")
+    _top_legend(fig, axes[0] if axes else None, len(models) + 1, lines)
     return _save(fig, path)
 
 
@@ -170,7 +187,7 @@ def fig_loops(diag: Mapping, experiments: Sequence, path: Path) -> Path:
     drive = diag["data"]["drive"]
     models = _models(diag, experiments)
     shown = _shown(experiments)
-    fig, axes = _grid(len(shown), width=4.6, height=3.8)
+    fig, axes = _grid(len(shown), height=3.2)
     for ax, i in zip(axes, shown):
         e = experiments[i]
         y = np.asarray(e.displacement, float) * 1e3
@@ -190,8 +207,9 @@ def fig_loops(diag: Mapping, experiments: Sequence, path: Path) -> Path:
         ax.axhline(0, color="0.7", lw=0.6, zorder=0)
         ax.axvline(0, color="0.7", lw=0.6, zorder=0)
         ax.grid(alpha=0.3)
-    fig.suptitle(f"Force–displacement loops ({drive} imposed)", fontsize=11)
-    _top_legend(fig, axes[0] if axes else None, len(models) + 1)
+    lines = _suptitle(fig, f"Force–displacement loops ({drive} imposed)")
+    _top_legend(fig, axes[0] if axes else None, len(models) + 1, lines,
+                bottom=0.4 if len(experiments) > len(shown) else 0.0)
     _not_shown_note(fig, experiments, shown)
     return _save(fig, path)
 
@@ -245,10 +263,12 @@ def _direction_panel(ax, d: dict, f: float, color: str, lim: float) -> None:
     ax.errorbar(xs, np.nan_to_num(means), yerr=np.nan_to_num(rmss), fmt="none", ecolor="black", capsize=5,
                 lw=1.2, label="± rms")
     ax.set_xticks(xs)
-    ax.set_xticklabels([f"{k}\n(n={d[k]['count']})" for k in names], fontsize=8.5)
+    ax.set_xticklabels([f"{k}\n(n={d[k]['count']})" for k in names], fontsize=8)
     ax.axhline(0, color="0.5", lw=0.8)
-    ax.set_ylim(-lim, lim)
-    ax.set_title("by loading direction: mean ± rms", fontsize=9.5)
+    reach = np.nan_to_num(np.abs(means) + np.abs(rmss))
+    ax.set_ylim(-max(lim, 1.08 * reach.max()), max(lim, 1.08 * reach.max()))     # every bar inside the axes
+    ax.set_xlabel("loading direction (n: number of points)", fontsize=8.5)
+    ax.set_title("by loading direction: mean ± rms", fontsize=9)
     ax.grid(alpha=0.3, axis="y")
 
 
@@ -268,41 +288,38 @@ def fig_residuals(diag: Mapping, experiments: Sequence, path: Path) -> Path:
     v_mm = np.concatenate([m[1] for m in motion]) * 1e3
     peaks = [float(np.max(np.abs(m[1]))) * 1e3 for m in motion]
     vlabel = "velocity [mm/s]" if diag["data"]["drive"] == "displacement" else \
-        "velocity [mm/s] (smoothed, of the measured displacement)"
+        "measured velocity [mm/s] (smoothed)"
     ylabel_disp = "displacement [mm]" if diag["data"]["drive"] == "displacement" else \
         "measured displacement [mm]"
-    nrow = max(len(data), 1)
-    fig, axes = plt.subplots(nrow, 4, figsize=(17, 3.6 * nrow), squeeze=False,
-                             gridspec_kw={"width_ratios": [1.2, 1, 1, 0.75]})
+    nblock = max(len(data), 1)       # one 2 × 2 block of panels per model: time, displacement / velocity, direction
+    fig, axes = plt.subplots(2 * nblock, 2, figsize=(PAGE_W, min(2 * nblock * 2.45 + 0.9, PAGE_H)), squeeze=False)
     if not data:
         for ax in axes.ravel():
             ax.set_visible(False)
         axes[0, 0].set_visible(True)
         axes[0, 0].text(0.5, 0.5, "no model predictions in the diagnosis", ha="center", va="center")
     ms = 2.0 if len(t) > 1500 else 3.0
-    for row, (key, label, color, res) in enumerate(data):
+    for b, (key, label, color, res) in enumerate(data):
         r = np.concatenate(res) * f
         rms = float(np.sqrt(np.mean(r ** 2)))
         lim = np.nanpercentile(np.abs(r), 99.5) * 1.15 if len(r) else 1.0
-        for col, (x, xl) in enumerate([(t, "time [s]"), (y_mm, ylabel_disp), (v_mm, vlabel)]):
-            ax = axes[row, col]
-            _residual_panel(ax, x, r, xl, color, ms, lim, peaks if col == 2 else None)
-            if col == 0:
-                ax.set_ylabel(f"{label}\nresidual [{unit}]")
-                ax.set_title(f"{label}: rms {fmt(rms)} {unit}", fontsize=10, loc="left")
-        _direction_panel(axes[row, 3], by_loading_direction(experiments, motion, res), f, color, lim)
+        block = [axes[2 * b, 0], axes[2 * b, 1], axes[2 * b + 1, 0], axes[2 * b + 1, 1]]
+        for ax, (x, xl) in zip(block, [(t, "time [s]"), (y_mm, ylabel_disp), (v_mm, vlabel)]):
+            _residual_panel(ax, x, r, xl, color, ms, lim, peaks if ax is block[2] else None)
+            ax.set_ylabel(f"residual [{unit}]")
+        block[0].set_title(f"{label}: rms {fmt(rms)} {unit}", fontsize=9.5, loc="left", color=color)
+        _direction_panel(block[3], by_loading_direction(experiments, motion, res), f, color, lim)
+        block[3].set_ylabel(f"residual [{unit}]")
     sign = "model − measured"
     title = f"Residuals of the {resp} ({sign}), of the baseline and of the final model"
     if eff == "none":
         title = f"Residuals of the {resp} ({sign}) of the baseline (no effect named, so no 'after')"
-    fig.suptitle(title, fontsize=11, x=0.3)
-    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    lines = _suptitle(fig, title)
     from matplotlib.lines import Line2D
     handles = [Line2D([], [], ls="none", marker=".", color=c, ms=8, label=f"residual, {lab}")
                for _, lab, c, _ in data]
     handles.append(Line2D([], [], marker="o", ms=4, color="black", label="binned mean ± sd (bins with ≥ 3 points)"))
-    fig.legend(handles=handles, loc="upper right", ncol=len(handles), fontsize=8.5, frameon=False,
-               bbox_to_anchor=(1.0, 1.005))
+    _top_legend(fig, None, 2, lines, handles=handles, legend_h=0.45)
     return _save(fig, path)
 
 
@@ -338,7 +355,7 @@ def _ranking_heldout_panel(ax, ranking: list, th: Mapping, ypos: np.ndarray, col
     ax.xaxis.set_major_locator(matplotlib.ticker.FixedLocator(ticks))
     ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: fmt(x)))
     ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-    ax.set_xlabel("RMSE / baseline's RMSE (log; < 1 is better)")
+    ax.set_xlabel("RMSE ratio to the baseline's [–] (log; < 1 is better)")
     ax.set_title(f"held-out prediction error (significant < {fmt(th.get('heldout_ratio'))})")
 
 
@@ -363,7 +380,7 @@ def _ranking_bic_panel(ax, ranking: list, th: Mapping, ypos: np.ndarray, cols: l
     for yy, v in zip(ypos, dbic):
         if np.isfinite(v):
             _label_bar(ax, v, yy, f"{v:+.0f}" if abs(v) >= 10 else f"{v:+.1f}", inside=False, right=v >= 0)
-    ax.set_xlabel("ΔBIC vs the baseline (< 0 is better" + (", symlog)" if big else ")"))
+    ax.set_xlabel("ΔBIC vs the baseline [–] (< 0 is better" + (", symlog)" if big else ")"))
     ax.set_title(f"information criterion (significant < {fmt(th.get('delta_bic'))})")
 
 
@@ -382,7 +399,7 @@ def _ranking_p_panel(ax, ranking: list, th: Mapping, ypos: np.ndarray, cols: lis
         ax.set_xlim(0, top * 1.25 + 0.5)
     for yy, v, pv in zip(ypos, lp, p):
         _label_bar(ax, v, yy, p_text(pv), inside=False, right=True)
-    ax.set_xlabel("−log₁₀ p of the nested F test (larger: stronger)")
+    ax.set_xlabel("−log₁₀ p of the nested F test [–] (larger: stronger)")
     ax.set_title(f"extra parameters' significance (p < {fmt(th.get('p_value'))})")
 
 
@@ -396,8 +413,9 @@ def fig_ranking(diag: Mapping, path: Path) -> Path:
     eff = extended_name(diag)
     names = [r["effect"] for r in ranking]
     n = max(len(names), 1)
-    fig, axes = plt.subplots(1, 3, figsize=(15, max(3.0, 1.4 + 0.5 * n)), sharey=True,
-                             gridspec_kw={"width_ratios": [1.25, 1.2, 1]})
+    # the three criteria stacked on a page's width, each with the candidates' names
+    panel_h = min(0.75 + 0.42 * n, (PAGE_H - 1.2) / 3)
+    fig, axes = plt.subplots(3, 1, figsize=(PAGE_W, 3 * panel_h + 1.2), sharey=True)
     ypos = np.arange(len(names))[::-1].astype(float)
     cols = [EXT_COLOR if r["effect"] in eff.split(" ≡ ") else SIG_COLOR if r.get("significant") else OTHER_COLOR
             for r in ranking]
@@ -405,20 +423,21 @@ def fig_ranking(diag: Mapping, path: Path) -> Path:
     _ranking_bic_panel(axes[1], ranking, th, ypos, cols)
     _ranking_p_panel(axes[2], ranking, th, ypos, cols)
     axes[0].set_yticks(ypos)
-    axes[0].set_yticklabels([f"{nm} ★" if nm == eff else nm for nm in names])
     axes[0].set_ylim(-0.6, len(names) - 0.25)
     for a in axes:
         a.grid(alpha=0.3, axis="x")
+        a.set_yticks(ypos)
+        a.set_yticklabels([f"{nm} ★" if nm == eff else nm for nm in names], fontsize=8.5)
+        a.tick_params(axis="y", labelleft=True)
+        a.set_ylabel("candidate effect", fontsize=9)
+        a.title.set_fontsize(9.5)
     handles = [Patch(color=EXT_COLOR, label=f"named: {eff} ★" if eff != "none" else "named"),
                Patch(color=SIG_COLOR, label="significant, not named"),
                Patch(color=OTHER_COLOR, label="not significant"),
                Line2D([], [], ls="none", marker="D", color="black", mfc="white", label="fitted-data RMSE ratio"),
                Line2D([], [], ls="--", color=THRESH_COLOR, label="significance threshold")]
-    fig.suptitle(f"Candidate effects against the baseline, best first (effect named: {eff})", fontsize=11)
-    fig.tight_layout(rect=(0, 0.0, 1, 0.93))
-    fig.legend(handles=handles, loc="lower center", ncol=5, bbox_to_anchor=(0.5, 0.87 if n > 3 else 0.84),
-               fontsize=8.5, frameon=False)
-    fig.subplots_adjust(top=0.78 if n <= 3 else 0.84)
+    lines = _suptitle(fig, f"Candidate effects against the baseline, best first (effect named: {eff})")
+    _top_legend(fig, None, 3, lines, handles=handles, legend_h=0.45)          # the legend takes two rows
     return _save(fig, path)
 
 

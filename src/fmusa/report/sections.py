@@ -8,6 +8,7 @@ labels come from the study's descriptions and units.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
@@ -711,7 +712,11 @@ def sensitivity_section(ctx: ReportContext) -> str:
                 "sensitivity_pce.png": "Sobol indices from the polynomial chaos expansion, with bootstrap intervals.",
                 "sensitivity_pce_validation.png": "Polynomial chaos validation: runs against leave-one-out predictions."}
     for p in map(Path, paths):
-        cap = captions.get(p.name, "Sensitivity indices.")
+        page = re.fullmatch(r"(.+)_(\d+)(\.png)", p.name)      # a further page of a figure of many outputs
+        if page and page[1] + page[3] in captions:
+            cap = captions[page[1] + page[3]][:-1] + f" (continued, page {page[2]})."
+        else:
+            cap = captions.get(p.name, "Sensitivity indices.")
         ctx.add_figure(p.name, cap)
         out += figure_markdown(p.name, cap)
     trows = _top_inputs(ctx, summ) if isinstance(summ, Mapping) else []

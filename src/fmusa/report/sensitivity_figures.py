@@ -11,10 +11,13 @@ from typing import Mapping
 import numpy as np
 
 from fmusa.analysis.sensitivity import MORRIS_LEVELS
-from fmusa.files import atomic_path
+from fmusa.figure_check import MAX_HEIGHT_IN, MAX_WIDTH_IN
+from fmusa.files import save_figure
 
-#: Width and height of one panel [in], and the resolution: a page holds two panels side by side.
-PANEL_W, PANEL_H, DPI = 6.2, 3.3, 130
+#: Width and height of one panel [in], and the resolution: a page (7.5 in wide) holds two panels side by side.
+PANEL_W, PANEL_H, DPI = 3.7, 3.0, 130
+#: At most this many rows of panels on one figure; more outputs go on further pages (name_2.png, …).
+MAX_ROWS = 4
 
 
 def _tables(result: Mapping) -> tuple[dict, dict]:
@@ -29,19 +32,29 @@ def _unit(meta: Mapping, metric: str) -> str:
 
 
 def _grid(n: int) -> tuple[int, int]:
-    """Rows and columns of ``n`` panels: one column up to three panels, two beyond."""
-    ncols = 1 if n <= 3 else 2
+    """Rows and columns of ``n`` panels (at most 2 × MAX_ROWS, one page): one panel alone, else two per row."""
+    ncols = 1 if n == 1 else 2
     return math.ceil(n / ncols), ncols
 
 
+def _size(nr: int, nc: int, row_extra: float = 0.0, top: float = 0.5) -> tuple[float, float]:
+    """Figure size [in] of ``nr`` × ``nc`` panels within a page: rows shrink to fit its height."""
+    row = min(PANEL_H + row_extra, (MAX_HEIGHT_IN - top) / nr)
+    width = PANEL_W * nc + 0.1 if nc > 1 else PANEL_W * 1.4
+    return min(width, MAX_WIDTH_IN), row * nr + top
+
+
+def _pages(items: list, path: Path) -> list[tuple[list, Path]]:
+    """``items`` split into pages of at most 2 × MAX_ROWS panels: the first page is ``path``, the next
+    ``<stem>_2<suffix>``, …, so that every figure fits a journal page."""
+    per = 2 * MAX_ROWS
+    chunks = [items[i:i + per] for i in range(0, len(items), per)] or [[]]
+    return [(c, path if k == 0 else path.with_name(f"{path.stem}_{k + 1}{path.suffix}"))
+            for k, c in enumerate(chunks)]
+
+
 def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=DPI)
-    finally:
-        plt.close(fig)
-    return path
+    return save_figure(fig, path, tight=False, dpi=DPI)   # written whole, checked in the tests (figure_check)
 
 
 def _suptitle(fig, text: str, fontsize: float = 9.5) -> None:
@@ -56,12 +69,14 @@ def _title(meta: Mapping, metric: str, with_unit: bool = True) -> str:
     return textwrap.shorten(head + (f": {desc}" if desc else ""), 80, placeholder="…")
 
 
-def _morris_figure(morris: Mapping, meta: Mapping, path: Path) -> Path:
+def _morris_figure(morris: Mapping, meta: Mapping, path: Path) -> list[Path]:
+    return [_morris_page(morris, metrics, meta, p) for metrics, p in _pages(list(morris), path)]
+
+
+def _morris_page(morris: Mapping, metrics: list, meta: Mapping, path: Path) -> Path:
     import matplotlib.pyplot as plt
-    metrics = list(morris)
     nr, nc = _grid(len(metrics))
-    fig, axes = plt.subplots(nr, nc, figsize=(PANEL_W * nc, (PANEL_H + 0.9) * nr + 0.4),
-                             squeeze=False, layout="constrained")
+    fig, axes = plt.subplots(nr, nc, figsize=_size(nr, nc, 0.5, 0.6), squeeze=False, layout="constrained")
     for ax, metric in zip(axes.flat, metrics):
         tab = morris[metric]
         names = list(tab)
@@ -127,12 +142,15 @@ def _index_columns(tab: Mapping, names, method: str):
 
 
 def _indices_figure(table: Mapping, meta: Mapping, path: Path, title: str, method: str,
-                    notes: Mapping | None = None) -> Path:
+                    notes: Mapping | None = None) -> list[Path]:
+    return [_indices_page(table, metrics, meta, p, title, method, notes) for metrics, p in _pages(list(table), path)]
+
+
+def _indices_page(table: Mapping, metrics: list, meta: Mapping, path: Path, title: str, method: str,
+                  notes: Mapping | None = None) -> Path:
     import matplotlib.pyplot as plt
-    metrics = list(table)
     nr, nc = _grid(len(metrics))
-    fig, axes = plt.subplots(nr, nc, figsize=(PANEL_W * nc, PANEL_H * nr + 0.5), squeeze=False,
-                             layout="constrained")
+    fig, axes = plt.subplots(nr, nc, figsize=_size(nr, nc, 0.0, 0.6), squeeze=False, layout="constrained")
     for ax, metric in zip(axes.flat, metrics):
         tab = table[metric]
         names = list(tab)
@@ -148,6 +166,7 @@ def _indices_figure(table: Mapping, meta: Mapping, path: Path, title: str, metho
         ax.set_xticklabels(names, rotation=60 if len(names) > 6 else 0, ha="right" if len(names) > 6 else "center",
                            fontsize=7.5)
         ax.set_ylabel("share of variance [–]", fontsize=8.5)
+        ax.set_xlabel("input parameter", fontsize=8)
         t = _title(meta, metric)
         note = (notes or {}).get(metric)
         if note:
@@ -170,7 +189,7 @@ def _pce_validation_figure(points, validation: Mapping, meta: Mapping, path: Pat
     n = len(metrics)
     ncols = min(n, 3) if n > 1 else 1
     nrows = math.ceil(n / ncols)
-    side = 3.3
+    side = min(3.3, (MAX_WIDTH_IN - 0.4) / ncols, (MAX_HEIGHT_IN - 0.8) / nrows)     # square panels on a page
     fig, axes = plt.subplots(nrows, ncols, figsize=(max(side * ncols + 0.4, 4.6), side * nrows + 0.8),
                              squeeze=False, layout="constrained")
     for ax, metric in zip(axes.flat, metrics):
@@ -215,17 +234,17 @@ def plot_sensitivity(result: Mapping, figdir: str | Path) -> list[Path]:
     figdir.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
     if summary.get("morris"):
-        paths.append(_morris_figure(summary["morris"], meta, figdir / "sensitivity_morris.png"))
+        paths.extend(_morris_figure(summary["morris"], meta, figdir / "sensitivity_morris.png"))
     if summary.get("sobol"):
         samples = (summary.get("samples") or {}).get("sobol", "?")
-        paths.append(_indices_figure(summary["sobol"], meta, figdir / "sensitivity_sobol.png",
+        paths.extend(_indices_figure(summary["sobol"], meta, figdir / "sensitivity_sobol.png",
                                      f"Sobol indices by Saltelli's scheme (n = {meta.get('n', '?')}, {samples} runs, "
                                      f"no second order); bars: 95 % confidence intervals", "sobol"))
     if summary.get("pce"):
         val = summary.get("pce_validation") or {}
         notes = {m: (f"validation error {v['loo_error']:.2g}" + ("" if v.get("trusted", True) else ": not trusted"))
                  for m, v in (val.get("metrics") or {}).items()}
-        paths.append(_indices_figure(summary["pce"], meta, figdir / "sensitivity_pce.png",
+        paths.extend(_indices_figure(summary["pce"], meta, figdir / "sensitivity_pce.png",
                                      f"Sobol indices from a sparse polynomial chaos ({val.get('runs', '?')} runs); "
                                      f"bars: 95 % bootstrap intervals over the design", "pce", notes))
         points = result.get("pce_points") if isinstance(result, Mapping) else None
