@@ -14,13 +14,13 @@ MORE = [
 
 
 def public_names() -> list[str]:
-    """Dotted paths of ``fmusa.__all__`` (``diagnose`` is the function of ``fmusa.diagnose.run``)."""
+    """Dotted paths of ``fmusa.__all__`` (``diagnose``: documented where it is written, fmusa.api)."""
     import fmusa
     out = []
     for name in fmusa.__all__:
         if name in ("__version__", "FmusaError"):
             continue
-        module = fmusa._EXPORTS.get(name) or (fmusa._DIAGNOSE if name == "diagnose" else None)
+        module = fmusa._EXPORTS.get(name) or ("fmusa.api" if name == "diagnose" else None)
         if module is None:
             raise RuntimeError(f"fmusa.__all__ has {name!r}, which docs/_gen/api_page.py cannot place; add it")
         out.append(f"{module}.{name}")
