@@ -330,24 +330,10 @@ def _parse_effects(p: YamlParser, node: Node | None, base_dir: Path) -> EffectsS
         pool = {c: c for c in CANDIDATES}
         cands = tuple(p.names_in(m.opt("candidates"), "candidates", "effects", pool, "effect",
                                  "[coulomb_friction, backlash_gap]"))
-    params = {}
-    if m.opt("parameters") is not None:
-        pm = p.mapping(m.opt("parameters"), "effects.parameters", "parameters")
-        known = _catalogue_names()
-        for k, kn, vn in pm.entries():
-            if k not in known:
-                raise p.error(kn, f"key '{k}' in 'effects.parameters' is not a parameter of the effect catalogue "
-                                  f"(known: {', '.join(sorted(known))}); map catalogue names to FMU variables")
-            params[k] = _variable(p, vn, k, "effects.parameters", f"{k}: NAME")
-    bounds = {}
-    if m.opt("bounds") is not None:
-        bm = p.mapping(m.opt("bounds"), "effects.bounds", "bounds")
-        known = _catalogue_names()
-        for k, kn, vn in bm.entries():
-            if k not in known:
-                raise p.error(kn, f"key '{k}' in 'effects.bounds' is not a parameter of the effect catalogue "
-                                  f"(known: {', '.join(sorted(known))})")
-            bounds[k] = _bounds(p, vn, k, "effects.bounds")
+    params = _catalogue_entries(p, m.opt("parameters"), "parameters", "; map catalogue names to FMU variables",
+                                lambda vn, k, where: _variable(p, vn, k, where, f"{k}: NAME"))
+    bounds = _catalogue_entries(p, m.opt("bounds"), "bounds", "",
+                                lambda vn, k, where: _bounds(p, vn, k, where))
     attached_keys = ("element", "force_input", "displacement_output", "velocity_output", "force_sign")
     if where == "inside":
         for k in attached_keys:
@@ -375,6 +361,21 @@ def _parse_effects(p: YamlParser, node: Node | None, base_dir: Path) -> EffectsS
     sign = m.num("force_sign", -1.0, "force_sign: -1", nonzero=True)
     return EffectsSection(where=where, candidates=cands, bounds=bounds, element=element, force_sign=sign, **names)
 
+
+
+def _catalogue_entries(p, node, key: str, hint: str, read) -> dict:
+    """``effects.<key>``: a mapping keyed by the effect catalogue's parameter names, each value read by ``read``."""
+    out: dict = {}
+    if node is None:
+        return out
+    where = f"effects.{key}"
+    known = _catalogue_names()
+    for k, kn, vn in p.mapping(node, where, key).entries():
+        if k not in known:
+            raise p.error(kn, f"key '{k}' in '{where}' is not a parameter of the effect catalogue "
+                              f"(known: {', '.join(sorted(known))}){hint}")
+        out[k] = read(vn, k, where)
+    return out
 
 def _catalogue_names() -> set[str]:
     """Every parameter name of the effect catalogue (any drive)."""
