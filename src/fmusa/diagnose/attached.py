@@ -64,13 +64,9 @@ class CoupledRunner:
         self.parallel = 1
 
     def _count(self, n: int) -> None:
-        """Take ``n`` runs from the run budget (BudgetExhausted when it has ended) and count them."""
-        from fmusa.diagnose.budget import current
+        from fmusa.diagnose.budget import take
 
-        b = current()
-        if b is not None:
-            b.take(n)
-        self.runs[self.stage] = self.runs.get(self.stage, 0) + n
+        take(self.runs, self.stage, n)
 
     def predict_many(self, points: Sequence[Sequence[float]], experiments: Sequence) -> list:
         """:meth:`predict` at every point, one after another: per point the predictions or the RuntimeError."""

@@ -74,6 +74,15 @@ def set_current(budget: RunBudget | None) -> RunBudget | None:
     return old
 
 
+def take(runs: dict[str, int], stage: str, n: int) -> None:
+    """Take ``n`` runs from this process's budget (BudgetExhausted when it has ended) and count them in
+    ``runs`` under ``stage``: the one bookkeeping of the FMU runners and the coupled runner."""
+    b = current()
+    if b is not None:
+        b.take(n)
+    runs[stage] = runs.get(stage, 0) + n
+
+
 @dataclass
 class LeftOut:
     """A fit the budget ended: its name and the runs it had spent (by stage) when it stopped."""

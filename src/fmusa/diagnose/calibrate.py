@@ -116,13 +116,9 @@ class ModelRunner:
         return runner, plan
 
     def _count(self, n: int) -> None:
-        """Take ``n`` runs from the budget (BudgetExhausted when it has ended) and count them."""
-        from fmusa.diagnose.budget import current
+        from fmusa.diagnose.budget import take
 
-        b = current()
-        if b is not None:
-            b.take(n)
-        self.runs[self.stage] = self.runs.get(self.stage, 0) + n
+        take(self.runs, self.stage, n)
 
     def _simulate(self, plan, values: Sequence[float], experiments: Sequence) -> list[np.ndarray]:
         if self.in_scale == 1.0 and self.out_scale == 1.0:
