@@ -208,6 +208,20 @@ def runner(tmp_path_factory: pytest.TempPathFactory) -> Runner:
     return Runner(tmp_path_factory.mktemp("docs-examples"))
 
 
+
+def _gen_module(name: str):
+    """A docs/_gen module loaded from its file: tests/ has a module of the same name (reference.py), and a
+    plain import would return whichever sys.modules holds first."""
+    import importlib.util
+    sys.path.insert(0, str(ROOT / "docs" / "_gen"))
+    try:
+        spec = importlib.util.spec_from_file_location(f"_docs_gen_{name}", ROOT / "docs" / "_gen" / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+    finally:
+        sys.path.pop(0)
+
 def test_every_example_block_is_known() -> None:
     """Each block is run, or is one of the pinned skips; and every pinned skip still exists."""
     seen = set()
@@ -312,11 +326,7 @@ def test_no_page_states_a_timing_that_no_run_wrote() -> None:
 def test_generated_pages_are_current() -> None:
     """The committed reference pages and the identifiability table equal what the code and the tests give
     now (so the README's links show current pages on the repository page)."""
-    sys.path.insert(0, str(ROOT / "docs" / "_gen"))
-    try:
-        import reference
-    finally:
-        sys.path.pop(0)
+    reference = _gen_module("reference")
     assert not reference.stale(), f"stale generated pages {reference.stale()}: run `{reference.REWRITE}`"
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     for page in reference.PAGES:

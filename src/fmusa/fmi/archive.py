@@ -27,7 +27,8 @@ from fmusa.fmi.info import (ENV_MAX_BYTES, MAX_FMU_BYTES, FMUError, host_platfor
 PREFIX = "fmusa-fmu-"
 #: The lock file of an extraction folder (it also names the owner's process id, for people).
 OWNER_FILE = ".fmusa-owner"
-#: A lock file younger than this is not judged: its folder may be being made right now.
+#: An owner file still empty (its owner writes its process id only once it holds the lock) and younger
+#: than this is not judged: its folder may be being made right now.
 GRACE_S = 2.0
 _CHUNK = 1 << 20
 #: folder -> the open, locked owner file of each extraction folder this process made
@@ -73,13 +74,14 @@ def _owner_gone(lock: Path) -> bool:
     """Whether nobody holds the lock of ``lock`` (an owner file): the process that made its folder ended.
     A lock that cannot be taken for another reason (a file system without locks) means "keep"."""
     try:
-        if time.time() - lock.stat().st_mtime < GRACE_S:
-            return False
         fh = open(lock, "r+", encoding="utf-8")
     except OSError:
         return False
     try:
-        try_lock(fh)
+        if not fh.read(32).strip() and time.time() - lock.stat().st_mtime < GRACE_S:
+            return False        # not locked yet by its maker, perhaps
+        fh.seek(0)
+        try_lock(fh)            # (on Windows the read above already fails when the byte is locked)
     except OSError:
         return False
     finally:
