@@ -88,7 +88,9 @@ def test_an_implausible_first_effect_is_not_named():
                                          Thresholds(), [e])
     assert ranking[-1]["effect"] == "coulomb_friction" and not ranking[-1]["significant"]
     assert ranking[-1]["implausible"][0]["parameter"] == "fric_x"
-    assert removed and removed[0]["effect"] == "coulomb_friction" and removed[0]["check"] == "physics"
+    # a ramp at one rate cannot identify friction either: both checks are listed
+    assert {(r["effect"], r["check"]) for r in removed} == {("coulomb_friction", "physics"),
+                                                            ("coulomb_friction", "protocol")}
     assert choose_effect(ranking, Thresholds())[0] == "nonlinear_stiffness"
 
 
@@ -111,3 +113,79 @@ def test_chain_does_not_add_what_the_protocol_cannot_identify():
     assert {r["effect"] for r in removed} == {"viscoelastic_relaxation", "coulomb_friction"}
     assert all(r["check"] == "protocol" and r["reason"].startswith("cannot tell") and r["separating_test"]
                for r in removed)
+
+
+def test_the_first_effect_too_is_checked_against_the_protocol():
+    """On one ramp at one rate a Maxwell branch cannot be identified: as the first effect it is listed last, not
+    significant, removed at step 1 with why and the test that would tell, and listed as "cannot tell"; the bend
+    is named. Friction, unidentifiable under load-unload at one rate, stays when its equivalent (yield, the same
+    equations) is identifiable there."""
+    from fmusa.diagnose.rank import Thresholds, choose_effect
+    from fmusa.diagnose.run import _first_unidentifiable, _screened_ranking, _with_cannot_tell_first  # noqa: PLC2701
+
+    e = _ramp(1.45, 274.0, 1.45)
+    meas = np.asarray(e.force, float)
+    base = _fit("none", {"c_y": 1.9e5, "d_y": 0.0}, 400.0 * meas.size, meas + 20.0)
+    ve = _fit("viscoelastic_relaxation", {"c_y": 1e5, "d_y": 0.0, "ve_k": 1e5, "ve_tau": 0.1}, 0.5 * meas.size,
+              meas + 0.5)
+    bend = _fit("nonlinear_stiffness", {"c_y": 1e5, "d_y": 0.0, "nl_ratio": 2.0, "nl_y_b": 0.5e-3},
+                1.0 * meas.size, meas + 1.0)
+    ranking, removed = _screened_ranking(base, {"viscoelastic_relaxation": ve, "nonlinear_stiffness": bend},
+                                         Thresholds(), [e], "displacement")
+    assert ranking[-1]["effect"] == "viscoelastic_relaxation" and not ranking[-1]["significant"]
+    assert ranking[-1]["unidentifiable"]["reason"].startswith("cannot tell")
+    assert [(r["step"], r["effect"], r["check"]) for r in removed] == [(1, "viscoelastic_relaxation", "protocol")]
+    assert "hold" in removed[0]["separating_test"]
+    assert choose_effect(ranking, Thresholds())[0] == "nonlinear_stiffness"
+    listed = _with_cannot_tell_first([], removed)
+    assert [i["effect"] for i in listed] == ["viscoelastic_relaxation"] and listed[0]["reason"].startswith("cannot")
+    assert _with_cannot_tell_first(listed, removed) == listed          # not listed twice
+    # under a force drive the table does not apply: nothing removed
+    assert not _screened_ranking(base, {"viscoelastic_relaxation": ve}, Thresholds(), [e], "force")[1]
+    one_rate_unload = {"unloading": True, "hold": False, "several_rates": False}
+    fits = {"coulomb_friction": ve, "yield_softening": ve, "viscoelastic_relaxation": ve}
+    assert set(_first_unidentifiable(fits, one_rate_unload, "displacement")) == {"viscoelastic_relaxation"}
+    assert set(_first_unidentifiable({"coulomb_friction": ve}, one_rate_unload, "displacement")) == {"coulomb_friction"}
+
+
+def test_a_step_rescued_by_its_refit_is_flagged(fmu_path, tmp_path):
+    """A chain step whose first fit is worse than the model it extends (here a stalled fit put in the fit cache)
+    is refitted from that model's optimum through the FMU; the refit is better, so the step is kept and flagged
+    with the three RMSEs, in diagnosis.json's chain and in the report's chain section."""
+    import json
+
+    import effects_reference as er
+
+    from fmusa.diagnose.fitcache import fit_to_json
+    from fmusa.diagnose.measured import downsample
+    from fmusa.diagnose.rank import Thresholds
+    from fmusa.diagnose.report import _chain_section   # noqa: PLC2701
+    from fmusa.diagnose.run import effect_chain
+
+    truth = {"c_y": 2.0e5, "d_y": 150.0, "nl_ratio": 2.5, "nl_y_b": 5e-4, "F_offset": 25.0}
+    kt, ku = [0.0, 1.0, 2.0], [0.0, 1.2e-3, 0.0]
+    t = np.linspace(0.0, 2.0, 201)
+    F = er.simulate(truth, "displacement", kt, ku, t) + np.random.default_rng(2).normal(0.0, 0.5, t.size)
+    e = downsample(Experiment(name="lu", path=Path("lu.csv"), drive="displacement", t=t,
+                              displacement=np.interp(t, kt, ku), force=F), 60)
+    meas = np.asarray(e.force, float)
+    base = _fit("none", {"c_y": 2.0e5, "d_y": 150.0}, 900.0 * meas.size, meas + 30.0)
+    # the bend without the offset: 25 N off
+    ext = _fit("nonlinear_stiffness", {k: truth[k] for k in ("c_y", "d_y", "nl_ratio", "nl_y_b")},
+               625.0 * meas.size, meas - 25.0)
+    stalled = _fit("nonlinear_stiffness+sensor_offset", {**ext.params, "F_offset": 0.0}, 2500.0 * meas.size,
+                   meas - 50.0)
+    (tmp_path / "nonlinear_stiffness+sensor_offset.json").write_text(json.dumps(fit_to_json(stalled, "k")))
+    removed: list = []
+    steps = effect_chain(base, ext, "nonlinear_stiffness", ["nonlinear_stiffness"], "nonlinear_stiffness",
+                         ("sensor_offset",), [e], "displacement", str(fmu_path), 1, None, 1, tmp_path, "k", False,
+                         Thresholds(), 2, removed=removed)
+    assert [s["effect"] for s in steps] == ["nonlinear_stiffness", "sensor_offset"] and not removed
+    note = steps[1]["refit"]
+    assert note["first_rmse"] == pytest.approx(50.0) and note["previous_rmse"] == pytest.approx(25.0)
+    assert note["refit_rmse"] < 2.0 and steps[1]["fit"].params["F_offset"] == pytest.approx(25.0, rel=0.1)
+    assert "refit" not in steps[0]
+    diag = {"chain": [{k: v for k, v in s.items() if k != "fit"} for s in steps], "chain_removed": removed,
+            "data": {"drive": "displacement", "response": "force"}}
+    text = _chain_section(diag)
+    assert "#2 (refitted)" in text and "Step 2 (`sensor_offset`) was refitted" in text

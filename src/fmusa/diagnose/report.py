@@ -265,6 +265,14 @@ def _change_text(r: Mapping, f: float) -> str:
     return f"{fmt(es.get('size', float('nan')) * f)} ({fmt(es.get('floor', float('nan')) * f)})"
 
 
+def _screened_text(row: Mapping) -> str:
+    """Why a candidate was kept from being named by the checks: the protocol cannot identify it, or a parameter
+    the tests cannot support (" (…)"; empty when neither)."""
+    why = (["the protocol cannot identify it"] if row.get("unidentifiable") else []) + \
+          [f"`{b['parameter']}` beyond the test" for b in row.get("implausible") or []]
+    return f" ({'; '.join(why)})" if why else ""
+
+
 def _ranking_section(diag: Mapping) -> str:
     resp, unit, f = response_channel(diag)
     rows = []
@@ -273,7 +281,7 @@ def _ranking_section(diag: Mapping) -> str:
         ptxt = ", ".join(f"{k} = {fmt(natural(k, v)[0])}{(' ' + natural(k, v)[1]) if natural(k, v)[1] else ''}"
                          for k, v in eparams) or "–"
         rows.append([i, f"`{r['effect']}`" + (" ★" if r["effect"] in diag["effect"].split(" ≡ ") else ""),
-                     "yes" if r.get("significant") else "no", r.get("k", "–"),
+                     "yes" if r.get("significant") else "no" + _screened_text(r), r.get("k", "–"),
                      fmt(r.get("rmse", float("nan")) * f), fmt(r.get("heldout_rmse", float("nan")) * f),
                      ratio_text(r.get("rmse_ratio")), ratio_text(r.get("heldout_rmse_ratio")),
                      delta_text(r.get("delta_aic")), delta_text(r.get("delta_bic")), p_text(r.get("p_value")), ptxt,
@@ -478,7 +486,8 @@ def _chain_section(diag: Mapping) -> str:
     for i, s in enumerate(steps, 1):
         g = s["gain"]
         bounds = ", ".join(f"`{b['name']}` ({b['bound']})" for b in s.get("at_bounds") or []) or "none"
-        rows.append([f"#{i}", f"`{s['effect']}`", f"{fmt(s['rmse'] * f)}", f"{fmt(s['heldout_rmse'] * f)}",
+        rows.append([f"#{i}" + (" (refitted)" if s.get("refit") else ""), f"`{s['effect']}`",
+                     f"{fmt(s['rmse'] * f)}", f"{fmt(s['heldout_rmse'] * f)}",
                      ratio_text(g.get("rmse_ratio")), ratio_text(g.get("heldout_rmse_ratio")),
                      delta_text(g.get("delta_bic")), p_text(g.get("p_value")), bounds])
     out = "## Chain of effects\n\n"
@@ -496,6 +505,9 @@ def _chain_section(diag: Mapping) -> str:
     if steps:
         out += _table(["step", "effect", f"RMSE [{unit}]", f"held-out RMSE [{unit}]", "RMSE ratio",
                        "held-out ratio", "ΔBIC", "p", "at a bound"], rows) + "\n"
+    for i, s in enumerate(steps, 1):
+        if s.get("refit"):
+            out += f"Step {i} (`{s['effect']}`) was refitted: {s['refit']['text']}.\n\n"
     if removed:
         labels = {"physics": "a parameter the tests cannot support", "protocol": "the protocol cannot identify it",
                   "optimiser": "an optimiser failure"}

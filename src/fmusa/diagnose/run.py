@@ -146,6 +146,7 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         if any(isinstance(r, LeftOut) for r in results.values()):
             break       # a step is chosen among all its candidates or not at all
         combos = {c: results[f"{name}+{c}"] for c in rest if isinstance(results.get(f"{name}+{c}"), Fit)}
+        rescued = {}
         for c in list(combos):
             if combos[c].rss > current.rss * (1 + 1e-6):       # nested: never worse at its optimum
                 worse = combos[c]
@@ -158,6 +159,8 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
                                               f"(RMSE {current.rmse:.4g}), also refitted from that model's optimum "
                                               f"(RMSE {combos[c].rmse:.4g}): an optimiser failure"})
                     del combos[c]
+                else:      # rescued: said wherever the step is shown, since its first fit failed
+                    rescued[c] = refit_note(worse, combos[c], current)
         for c in list(combos):
             bad = implausible(f"{name}+{c}", combos[c].params, support)
             if bad:
@@ -176,10 +179,19 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         name = f"{name}+{pick}"
         steps.append({"effect": pick, "model": name, "gain": _gain(current, fit, pick), "rmse": fit.rmse,
                       "heldout_rmse": fit.heldout_rmse, "at_bounds": list(fit.at_bounds), "fit": fit,
-                      "tried": sorted(combos)})
+                      "tried": sorted(combos), **({"refit": rescued[pick]} if pick in rescued else {})})
         named |= set(group_members(nxt))
         current = fit
     return steps
+
+
+def refit_note(first: Fit, refit: Fit, previous: Fit) -> dict:
+    """A step whose first fit was worse than the model it extends and whose refit from that model's optimum was
+    not: the three RMSEs and what it means (the first fit stalled; the kept fit is the refit)."""
+    return {"first_rmse": first.rmse, "refit_rmse": refit.rmse, "previous_rmse": previous.rmse,
+            "text": f"its first fit (RMSE {first.rmse:.4g}) was worse than the model it extends (RMSE "
+                    f"{previous.rmse:.4g}): an optimiser failure; refitted from that model's optimum (RMSE "
+                    f"{refit.rmse:.4g}), the refit is the step"}
 
 
 def jacobian_lanes(workers: int, jobs: int) -> int:
@@ -225,24 +237,48 @@ def _refit_from(fmu: str, model: str, drive: str, experiments: Sequence, max_sta
     return fit_candidate(fmu, model, drive, list(experiments), max_starts, interface, start=dict(previous.params))
 
 
-def _screened_ranking(base: Fit, fits: dict, th: Thresholds, experiments: Sequence) -> tuple[list[dict], list]:
+def _first_unidentifiable(fits: dict, features: dict, drive: str) -> dict:
+    """The single effects the protocol cannot identify (:func:`plausibility.unidentifiable`), each with why; an
+    effect whose equivalent by construction is identifiable here stays (the same equations, named as a group)."""
+    why = {n: unidentifiable(n, features, drive) for n in fits}
+    return {n: w for n, w in why.items() if w and not any(
+        equivalent_by_construction(n, m) and not why.get(m, unidentifiable(m, features, drive)) for m in fits)}
+
+
+def _screened_ranking(base: Fit, fits: dict, th: Thresholds, experiments: Sequence,
+                      drive: str = "displacement") -> tuple[list[dict], list]:
     """The ranking of the single effects, where a fit with a parameter the tests cannot support
-    (:func:`plausibility.implausible`) is listed last, not significant, with why; and those removals."""
+    (:func:`plausibility.implausible`) or an effect the protocol cannot identify
+    (:func:`plausibility.unidentifiable`) is listed last, not significant, with why; and those removals
+    (the significant ones: those the check kept from being named)."""
     support = support_of(experiments)
     bad = {n: implausible(n, f.params, support) for n, f in fits.items()}
-    ok = {n: f for n, f in fits.items() if not bad[n]}
+    cannot = _first_unidentifiable(fits, protocol_features(experiments), drive)
+    ok = {n: f for n, f in fits.items() if not bad[n] and n not in cannot}
     rr = response_range(experiments)
     ranking = rank_candidates(base, ok, th, rr)
-    out = {n: f for n, f in fits.items() if bad[n]}
+    out = {n: f for n, f in fits.items() if n not in ok}
     removed = []
     for row in rank_candidates(base, out, th, rr) if out else []:
-        b = bad[row["effect"]]
-        if row["significant"]:
-            removed.append({"step": 1, "effect": row["effect"], "model": row["effect"], "check": "physics",
+        n, b, w = row["effect"], bad[row["effect"]], cannot.get(row["effect"])
+        if row["significant"] and w:
+            removed.append({"step": 1, "effect": n, "model": n, "check": "protocol", "reason": w["reason"],
+                            "separating_test": w["separating_test"]})
+        if row["significant"] and b:
+            removed.append({"step": 1, "effect": n, "model": n, "check": "physics",
                             "reason": "; ".join(x["why"] for x in b),
                             "separating_test": "; ".join(x["test"] for x in b), "parameters": b})
-        ranking.append(dict(row, significant=False, implausible=b))
+        ranking.append(dict(row, significant=False, **({"implausible": b} if b else {}),
+                            **({"unidentifiable": w} if w else {})))
     return ranking, removed
+
+
+def _with_cannot_tell_first(listed: list[dict], removed: Sequence[dict]) -> list[dict]:
+    """``listed`` and every first effect the protocol could not identify (removed at step 1), as "cannot tell"
+    with the test that would tell, where not listed already."""
+    seen = {i["effect"] for i in listed}
+    return listed + [{"effect": r["effect"], "reason": r["reason"], "separating_test": r["separating_test"]}
+                     for r in removed if r["step"] == 1 and r["check"] == "protocol" and r["effect"] not in seen]
 
 
 def damping_look_alikes(base: Fit, members: Sequence[str], effect: str) -> list[dict]:
@@ -359,7 +395,7 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     line["baseline_not_worse"] = bool(base.rmse <= line["rmse"] * (1 + 1e-3) + 1e-12 * sc.F_pk)
     # the same equations under two parametrisations are scored as one model
     fits = unify_equivalent({n: r for n, r in results.items() if n != "none" and isinstance(r, Fit)})
-    ranking, removed = _screened_ranking(base, fits, thresholds, experiments)
+    ranking, removed = _screened_ranking(base, fits, thresholds, experiments, drive)
     effect, ties = choose_effect(ranking, thresholds, fits)
     members = group_members(effect)
     # a group "a ≡ b" reports the parameters of its best-ranked member; of members that are the same
@@ -396,8 +432,9 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "ranking": ranking,
         "failed": {n: r for n, r in results.items() if isinstance(r, str)},
         "runs": run_count(results, chain_results, budget),
-        "indistinguishable": indistinguishable(effect, ties, ranking, features, fits, drive)
-                             + damping_look_alikes(base, members, effect),
+        "indistinguishable": _with_cannot_tell_first(
+            indistinguishable(effect, ties, ranking, features, fits, drive) + damping_look_alikes(base, members, effect),
+            removed),
         "protocol": features,
         "residuals": {"baseline": res_base, "extended": res_ext, **({"final": res_final} if len(steps) > 1 else {})},
         "leftover": res_final.get("description", "") if res_final.get("structured") else "",

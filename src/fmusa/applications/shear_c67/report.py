@@ -225,26 +225,43 @@ def _population_section(summary: dict) -> list[str]:
 
 
 def _bands_section(summary: dict) -> list[str]:
-    """Each rate predicted from the unit's other rates with a 95 % band: the share of its samples inside."""
+    """Each rate predicted from the unit's other rates with a 95 % band: the share of its samples inside, the
+    half-width against the peak force, and the AR(1) band beside it."""
     bands = {k: v for k, v in (summary.get("prediction_bands") or {}).items() if v}
     if not bands:
         return []
+    rows = [r for rs in bands.values() for r in rs]
     L = ["## Prediction bands: each rate predicted from the other rates\n",
          "The two-phase elastic curve with damping, fitted to two rates of a unit, predicts the third with a "
-         "95 % band for a new measurement (the parameters' covariance, AR(1) sandwich where the training "
-         "residuals are autocorrelated, and the residual variance). A share near 95 % is a band that holds; "
-         "a share far below says the model does not carry over to that rate; a band much wider than the "
-         "response says little.\n",
-         "| unit | predicted rate [mm/s] | samples inside the 95 % band | median half-width [N] | "
-         "held-out RMSE [N] | training intervals |", "|---|---|---|---|---|---|"]
-    shares = []
-    for key, rows in bands.items():
-        for r in rows:
-            shares.append(r["share_inside"])
-            L.append(f"| {_unit(key)} | {r['rate_mm_s']:g} | {100 * r['share_inside']:.0f} % | "
-                     f"{_f(r['half_width_median_N'], '.3g')} | {_f(r['heldout_rmse_N'], '.3g')} | {r['method']} |")
+         f"95 % band: {rows[0]['method']}. A share near 95 % is a band that holds; a share far below says the model "
+         "does not carry over to that rate as it did elsewhere. Beside it, the band from the parameters' AR(1) "
+         "sandwich covariance and the residual variance.\n",
+         "| unit | predicted rate [mm/s] | from [mm/s] | samples inside the 95 % band | half-width [N] (of the peak) "
+         "| within the unit / across units [N] | held-out RMSE [N] | AR(1) band: inside, median half-width [N] |",
+         "|---|---|---|---|---|---|---|---|"]
+    for key, rs in bands.items():
+        for r in rs:
+            L.append(f"| {_unit(key)} | {r['rate_mm_s']:g} | {', '.join(f'{x:g}' for x in r.get('trained_on') or [])} | "
+                     f"{100 * r['share_inside']:.0f} % | {_f(r['half_width_N'], '.3g')} "
+                     f"({100 * r['half_width_rel_peak']:.0f} %) | {_f(r['within_half_width_N'], '.3g')} / "
+                     f"{_f(r.get('population_half_width_N', float('nan')), '.3g')} | {_f(r['heldout_rmse_N'], '.3g')} | "
+                     f"{100 * r['ar1_share_inside']:.0f} %, {_f(r['ar1_half_width_median_N'], '.3g')} |")
     L.append("")
-    L.append(f"Median share inside over the {len(shares)} predicted rates: {100 * float(np.median(shares)):.0f} %.\n")
+    share = np.array([r["share_inside"] for r in rows])
+    rel = np.array([r["half_width_rel_peak"] for r in rows])
+    ar1 = np.array([r["ar1_share_inside"] for r in rows])
+    L.append(f"Over the {len(rows)} predicted rates: median share inside {100 * float(np.median(share)):.0f} % "
+             f"({int(np.sum(share >= 0.9))} of {len(rows)} at 90 % or more; all samples pooled "
+             f"{100 * float(np.average(share, weights=[r['points'] for r in rows])):.0f} %), median half-width "
+             f"{100 * float(np.median(rel)):.0f} % of the peak force. The AR(1) band: median share "
+             f"{100 * float(np.median(ar1)):.0f} % ({int(np.sum(ar1 >= 0.9))} of {len(rows)} at 90 % or more), "
+             f"median half-width {_f(float(np.median([r['ar1_half_width_median_N'] for r in rows])), '.3g')} N.\n")
+    for rate in sorted({r["rate_mm_s"] for r in rows}):
+        at = [r for r in rows if r["rate_mm_s"] == rate]
+        L.append(f"- {rate:g} mm/s predicted from the other rates: median share inside "
+                 f"{100 * float(np.median([r['share_inside'] for r in at])):.0f} % over {len(at)} units, median "
+                 f"half-width {100 * float(np.median([r['half_width_rel_peak'] for r in at])):.0f} % of the peak.")
+    L.append("")
     return L
 
 
@@ -322,6 +339,12 @@ def _units_section(summary: dict) -> list[str]:
                  "protocol cannot identify, or an optimiser failure):\n")
         for k, r in removed:
             L.append(f"- {_unit(k)}, step {r['step']}, `{r['effect']}`: {r['reason']}.")
+        L.append("")
+    refitted = [(k, r) for k, g in groups.items() for r in g.get("chain_refitted") or []]
+    if refitted:
+        L.append("Steps of the chains kept after a refit (the first fit was worse than the model it extends):\n")
+        for k, r in refitted:
+            L.append(f"- {_unit(k)}, step {r['step']}, `{r['effect']}`: {r['text']}.")
         L.append("")
     n_cand = max(len(g["ranking"]) for g in groups.values())
     cands = {1: "the one candidate", 2: "both candidates"}.get(n_cand, f"all {_word(n_cand)} candidates")

@@ -22,7 +22,7 @@ import pandas as pd
 
 from fmusa.applications.shear_c67 import bilinear
 from fmusa.applications.shear_c67 import data as shear_c67
-from fmusa.applications.shear_c67.prediction import held_out_rate_bands
+from fmusa.applications.shear_c67.prediction import add_population_bands, held_out_rate_bands
 from fmusa.diagnose.calibrate import ModelRunner, calibrate, fit_candidate
 from fmusa.diagnose.effects import CANDIDATES, data_scales
 from fmusa.diagnose.measured import MeasuredDataError
@@ -233,7 +233,9 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     data["diagnosed_tests"] = int(tests.specimen.isin(chosen).sum())
     summary = summarize(groups, cmp_, data)
     summary["rate_models"] = rate_models
-    summary["prediction_bands"] = bands
+    add_population_bands(bands)
+    summary["prediction_bands"] = {k: [{n: v for n, v in r.items() if n not in ("prediction_N", "measured_N")}
+                                       for r in rows] for k, rows in bands.items()}
     summary["population_units"] = {
         d: population_of_diagnoses({k: g for k, g in groups.items() if k.endswith(f"_{d}")})
         for d in dict.fromkeys(k.rsplit("_", 1)[1] for k in groups)}
@@ -293,6 +295,8 @@ def _group_summary(d: dict) -> dict:
                           "c_y", {}).get("ci95", [float("nan"), float("nan")])],
                       "interval_method": ((d.get("final") or {}).get("intervals") or {}).get("method")},
             "chain_removed": list(d.get("chain_removed") or []),
+            "chain_refitted": [{"step": i, "effect": st["effect"], **st["refit"]}
+                               for i, st in enumerate(d.get("chain") or [], 1) if st.get("refit")],
             "leftover": d["leftover"], "tests": len(d["data"]["experiments"]), "heldout": d["data"]["heldout"],
             "protocol": d["protocol"]}
 
