@@ -37,6 +37,8 @@ BASE_COLOR = "#1f77b4"
 EXT_COLOR = "#d62728"
 OTHER_COLOR = "#8c8c8c"
 SIG_COLOR = "#ff9f40"
+#: a candidate the checks kept from being named: the protocol cannot identify it, or a parameter beyond the test
+SCREENED_COLOR = "#c9b3e0"
 THRESH_COLOR = "#7b2cbf"
 
 plt.rcParams.update({"font.size": 10, "axes.titlesize": 10.5, "axes.labelsize": 10, "legend.fontsize": 8.5,
@@ -417,8 +419,8 @@ def fig_ranking(diag: Mapping, path: Path) -> Path:
     panel_h = min(0.75 + 0.42 * n, (PAGE_H - 1.2) / 3)
     fig, axes = plt.subplots(3, 1, figsize=(PAGE_W, 3 * panel_h + 1.2), sharey=True)
     ypos = np.arange(len(names))[::-1].astype(float)
-    cols = [EXT_COLOR if r["effect"] in eff.split(" ≡ ") else SIG_COLOR if r.get("significant") else OTHER_COLOR
-            for r in ranking]
+    cols = [EXT_COLOR if r["effect"] in eff.split(" ≡ ") else SIG_COLOR if r.get("significant")
+            else SCREENED_COLOR if r.get("implausible") or r.get("unidentifiable") else OTHER_COLOR for r in ranking]
     _ranking_heldout_panel(axes[0], ranking, th, ypos, cols)
     _ranking_bic_panel(axes[1], ranking, th, ypos, cols)
     _ranking_p_panel(axes[2], ranking, th, ypos, cols)
@@ -434,6 +436,8 @@ def fig_ranking(diag: Mapping, path: Path) -> Path:
     handles = [Patch(color=EXT_COLOR, label=f"named: {eff} ★" if eff != "none" else "named"),
                Patch(color=SIG_COLOR, label="significant, not named"),
                Patch(color=OTHER_COLOR, label="not significant"),
+               *([Patch(color=SCREENED_COLOR, label="removed by the checks (protocol, or beyond the test)")]
+                 if SCREENED_COLOR in cols else []),
                Line2D([], [], ls="none", marker="D", color="black", mfc="white", label="fitted-data RMSE ratio"),
                Line2D([], [], ls="--", color=THRESH_COLOR, label="significance threshold")]
     lines = _suptitle(fig, f"Candidate effects against the baseline, best first (effect named: {eff})")

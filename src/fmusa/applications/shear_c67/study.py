@@ -23,11 +23,14 @@ import pandas as pd
 from fmusa.applications.shear_c67 import bilinear
 from fmusa.applications.shear_c67 import data as shear_c67
 from fmusa.applications.shear_c67.prediction import add_population_bands, held_out_rate_bands
-from fmusa.diagnose.calibrate import ModelRunner, calibrate, fit_candidate
+from fmusa.diagnose.calibrate import Fit, ModelRunner, calibrate, fit_candidate
 from fmusa.diagnose.effects import CANDIDATES, data_scales
 from fmusa.diagnose.measured import MeasuredDataError
 from fmusa.diagnose.population import MIN_SPECIMENS, leave_one_out, population_of_diagnoses, random_effects
-from fmusa.diagnose.run import run_diagnosis
+from fmusa.diagnose.fitcache import data_key, run_fits
+from fmusa.diagnose.models import resolve
+from fmusa.diagnose.run import AGREE_STARTS, run_diagnosis
+from fmusa.fmi.info import FMURunError
 from fmusa.files import atomic_path, atomic_write
 
 __all__ = ["fit_bilinear_per_test", "rate_dependence", "run_shear_diagnosis", "describe_data", "summarize"]
@@ -170,15 +173,27 @@ def _model_row(row: pd.Series, model: ModelRunner, damped: ModelRunner, max_poin
             "damped_share": dfit.params["d_y"] * v / force if force > 0 else float("nan")}
 
 
-def rate_dependence(exps: Sequence, fmu: str, diag: dict, max_starts: int = 6) -> dict:
+def rate_dependence(exps: Sequence, fmu: str, diag: dict, max_starts: int = 6,
+                    cache_dir: str | os.PathLike | None = None) -> dict:
     """Does a Maxwell branch on top of the two-phase curve predict a held-out rate better?
 
     The single-effect ranking tests the Maxwell branch on a straight line, where the bend of the curve
     dominates the residuals; here it is added to the two-phase elastic model, and each rate is
-    predicted by the fit to the other two (leave one rate out)."""
+    predicted by the fit to the other two (leave one rate out). With ``cache_dir`` (the unit's diagnosis fit
+    cache) a fit of that model already there (the chain's, when it tried the branch on top of the bend) is
+    reused, and a new one is saved there."""
     two = diag["_fits"].get("nonlinear_stiffness") or fit_candidate(fmu, "nonlinear_stiffness", "displacement",
                                                                     exps, max_starts)
-    both = fit_candidate(fmu, "nonlinear_stiffness+viscoelastic_relaxation", "displacement", exps, max_starts)
+    name = "nonlinear_stiffness+viscoelastic_relaxation"
+    if cache_dir is None:
+        both = fit_candidate(fmu, name, "displacement", exps, max_starts)
+    else:
+        interface = resolve(None, fmu)
+        key = data_key(exps, "displacement", max_starts, fmu, interface, AGREE_STARTS)
+        both = run_fits([(fmu, name, "displacement", list(exps), max_starts, interface, 1, AGREE_STARTS)], 1,
+                        Path(cache_dir), key, False)[name]
+        if not isinstance(both, Fit):
+            raise FMURunError(f"{name} could not be fitted: {both}")
     return {"two_phase": {"rmse": two.rmse, "heldout_rmse": two.heldout_rmse, "bic": two.bic},
             "two_phase_maxwell": {"rmse": both.rmse, "heldout_rmse": both.heldout_rmse, "bic": both.bic,
                                   "ve_k_N_mm": both.params["ve_k"] / 1000.0, "ve_tau_s": both.params["ve_tau"],
@@ -220,7 +235,7 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     rate_models = {}
     for key, diag in groups.items():
         print(f"{key}: rate dependence on top of the two-phase curve", flush=True)
-        rate_models[key] = rate_dependence(unit_exps[key], fmu, diag, max_starts)
+        rate_models[key] = rate_dependence(unit_exps[key], fmu, diag, max_starts, out / key / "fits")
     bands = {}
     for key in groups:
         print(f"{key}: prediction bands of each rate from the others", flush=True)
