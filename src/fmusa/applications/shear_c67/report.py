@@ -256,6 +256,17 @@ def _bands_section(summary: dict) -> list[str]:
              f"{100 * float(np.median(rel)):.0f} % of the peak force. The AR(1) band: median share "
              f"{100 * float(np.median(ar1)):.0f} % ({int(np.sum(ar1 >= 0.9))} of {len(rows)} at 90 % or more), "
              f"median half-width {_f(float(np.median([r['ar1_half_width_median_N'] for r in rows])), '.3g')} N.\n")
+    parts = []
+    for label, sh, hw in (("within the unit", "within_share_inside", "within_half_width_N"),
+                          ("across the units", "population_share_inside", "population_half_width_N")):
+        ok = [r for r in rows if math.isfinite(r.get(hw, float("nan")))]
+        if ok:
+            x = np.array([r[sh] for r in ok])
+            parts.append(f"{label} alone, {int(np.sum(x >= 0.9))} of {len(ok)} rates at 90 % or more (pooled "
+                         f"{100 * float(np.average(x, weights=[r['points'] for r in ok])):.0f} %), median half-width "
+                         f"{100 * float(np.median([r[hw] / r['peak_N'] for r in ok])):.0f} % of the peak")
+    if parts:
+        L.append("Each term of the band alone: " + "; ".join(parts) + ".\n")
     for rate in sorted({r["rate_mm_s"] for r in rows}):
         at = [r for r in rows if r["rate_mm_s"] == rate]
         L.append(f"- {rate:g} mm/s predicted from the other rates: median share inside "
