@@ -161,3 +161,28 @@ def test_coverage_through_the_fmu(fmu_path):
                                          f"Gauss–Newton {share_gn}\n")
     assert share["c_y"] >= 0.85, (share, share_gn)
     assert share_gn["c_y"] < share["c_y"]
+
+
+def test_a_parameter_in_large_units_keeps_its_variance():
+    """A stiffness in N/m (column 1e-6 per unit) beside a log parameter (column ~1): JᵀJ's condition number
+    (~1e16) made a pseudo-inverse drop the stiffness's direction, a zero-width 95 % interval. The covariance is
+    the exact (JᵀJ)⁻¹σ² (a closed form: the columns are orthogonal), and a parameter the data do not determine
+    (two identical columns) gets an infinite variance and an unbounded band, never a zero one."""
+    from fmusa.diagnose.intervals import gauss_newton_covariance
+
+    n = 200
+    t = np.linspace(-1.0, 1.0, n)
+    J = np.column_stack([1e-6 * t, np.ones(n)])           # orthogonal columns
+    r = np.random.default_rng(3).normal(0.0, 0.1, n)
+    s2 = float(r @ r) / (n - 2)
+    cov = gauss_newton_covariance(J, r)
+    assert cov[0, 0] == pytest.approx(s2 / float(J[:, 0] @ J[:, 0]), rel=1e-9)
+    assert cov[1, 1] == pytest.approx(s2 / n, rel=1e-9)
+    rep = interval_report(J, r, np.array([6.2e4, 0.0]))
+    assert rep["upper"][0] - rep["lower"][0] > 1e4            # about ±2.7e4 N/m, not ±0
+    same = np.column_stack([t, t, np.ones(n)])
+    cov = gauss_newton_covariance(same, r)
+    assert np.isinf(cov[0, 0]) and np.isinf(cov[1, 1])
+    assert cov[2, 2] == pytest.approx(float(r @ r) / (n - 3) / n, rel=1e-9)   # the intercept stays determined
+    y0, lo, hi = prediction_band(lambda th: th[0] * t + th[2], np.zeros(3), cov, noise_var=0.01)
+    assert np.all(np.isinf(hi))

@@ -72,11 +72,41 @@ def ar1_phi(r: np.ndarray, lengths: Sequence[int] | None = None, k: int = 0) -> 
             "n": n_all}
 
 
+#: a direction of the parameters whose singular value (of J with unit columns) is below this fraction of the
+#: largest is not determined by the data
+SINGULAR = 1e-8
+
+
+def _bread(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(JᵀJ)⁻¹ from the SVD of J with its columns scaled to unit norm (a parameter in N/m beside one in log
+    units makes JᵀJ's condition number the square of J's: a pseudo-inverse of it then drops the direction
+    and gives that parameter a zero variance, a 95 % interval of zero width); and which parameters lie in a
+    direction the data do not determine (singular value below SINGULAR): those get no finite variance."""
+    d = np.linalg.norm(J, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    _, s, vt = np.linalg.svd(J / d, full_matrices=False)
+    keep = s > SINGULAR * (s[0] if s.size else 0.0)
+    inv = (vt[keep].T / s[keep] ** 2) @ vt[keep] / np.outer(d, d)
+    free = np.sum(vt[~keep] ** 2, axis=0) > 1e-6 if not keep.all() else np.zeros(J.shape[1], bool)
+    return inv, free | (np.linalg.norm(J, axis=0) == 0)
+
+
+def _undetermined(cov: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """``cov`` with an infinite variance for the parameters the data do not determine."""
+    cov = cov.copy()
+    cov[free, :] = 0.0
+    cov[:, free] = 0.0
+    cov[free, free] = np.inf
+    return cov
+
+
 def gauss_newton_covariance(J: np.ndarray, r: np.ndarray, k: int | None = None) -> np.ndarray:
-    """σ²(JᵀJ)⁻¹ with σ² = RSS/(n − k): the white-noise covariance."""
+    """σ²(JᵀJ)⁻¹ with σ² = RSS/(n − k): the white-noise covariance (infinite variance where the data do not
+    determine a parameter)."""
     n, k = J.shape[0], J.shape[1] if k is None else k
     s2 = float(r @ r) / max(n - k, 1)
-    return np.linalg.pinv(J.T @ J) * s2
+    bread, free = _bread(np.asarray(J, float))
+    return _undetermined(bread * s2, free)
 
 
 def sandwich_covariance(J: np.ndarray, r: np.ndarray, lengths: Sequence[int] | None = None,
@@ -104,8 +134,8 @@ def sandwich_covariance(J: np.ndarray, r: np.ndarray, lengths: Sequence[int] | N
                 c = Js[h:].T @ Js[:-h]
                 m += w * (c + c.T)
         meat += m
-    bread = np.linalg.pinv(J.T @ J)
-    cov = bread @ meat @ bread * gamma0
+    bread, free = _bread(J)
+    cov = _undetermined(bread @ meat @ bread * gamma0, free)
     n_eff = n * (1 - ph) / (1 + ph)
     return cov, {"phi": est["phi"], "phi_used": ph, "gamma0": gamma0, "n_eff": float(n_eff),
                  "p_value": est["p_value"]}
@@ -155,7 +185,10 @@ def prediction_band(predict: Callable[[np.ndarray], np.ndarray], x: np.ndarray, 
         xj = x.copy()
         xj[j] += h
         G[:, j] = (np.asarray(predict(xj), float) - y0) / h
-    var = np.einsum("ij,jk,ik->i", G, cov, G) + noise_var
+    cov = np.asarray(cov, float)
+    free = np.isinf(np.diag(cov))          # a parameter the data do not determine: no finite band where it acts
+    var = np.einsum("ij,jk,ik->i", G, np.where(np.isinf(cov), 0.0, cov), G) + noise_var
+    var[np.any(G[:, free] != 0, axis=1)] = np.inf
     q = stats.norm.ppf(0.5 + level / 2) if quantile is None else quantile
     half = q * np.sqrt(np.clip(var, 0, None))
     return y0, y0 - half, y0 + half
