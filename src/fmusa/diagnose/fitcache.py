@@ -70,8 +70,9 @@ def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
 
     h = hashlib.sha256()
     # v2: friction fits fric_x too; v3: held-out folds kept; v4: damping start from the data, the damping held
-    # at a constant rate, bounds hit recorded; v5: intervals for correlated residuals
-    h.update(f"{drive}|{max_starts}|v5".encode())
+    # at a constant rate, bounds hit recorded; v5: intervals for correlated residuals; v6: intervals from the
+    # column-scaled Jacobian (a parameter in large units no longer gets a zero-width interval)
+    h.update(f"{drive}|{max_starts}|v6".encode())
     if interface is not None:
         try:
             default = replace(resolve(None, fmu), name="")
