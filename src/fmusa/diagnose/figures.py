@@ -154,7 +154,9 @@ def fig_fit_time(diag: Mapping, experiments: Sequence, path: Path) -> Path:
         for key, label, color, preds in models:
             ls = "--" if key == "none" else "-"
             ax.plot(t, preds[i] * f, ls, color=color, lw=1.6, label=label, zorder=3 if key != "none" else 2)
-            parts.append(f"{'baseline' if key == 'none' else key} {fmt(_rmse(preds[i], meas) * f)}")
+            # a chain's name ("a+b") is too long for a panel's title: the legend says what "final" is
+            name = "baseline" if key == "none" else "final" if "+" in key else key
+            parts.append(f"{name} {fmt(_rmse(preds[i], meas) * f)}")
         ax.set_title(_short(e.name) + ("\nRMSE [" + unit + "]: " + ", ".join(parts) if parts else ""),
                      fontsize=9.5)
         ax.set_xlabel("time [s]")
