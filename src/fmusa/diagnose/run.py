@@ -156,13 +156,17 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         if any(isinstance(r, LeftOut) for r in results.values()):
             break       # a step is chosen among all its candidates or not at all
         combos = {c: results[f"{name}+{c}"] for c in rest if isinstance(results.get(f"{name}+{c}"), Fit)}
+        ended = False
         for c in list(combos):
             if combos[c].rss > current.rss * (1 + 1e-6):       # nested: never worse at its optimum
                 worse = combos[c]
-                combos[c] = _refit_from(fmu, f"{name}+{c}", drive, experiments, min(max_starts, CHAIN_STARTS),
-                                        interface, current,
-                                        gate)
-                runs[f"{name}+{c} (refit)"] = combos[c]
+                refit = _refit_from(fmu, f"{name}+{c}", drive, experiments, min(max_starts, CHAIN_STARTS),
+                                    interface, current, gate, jacobian_lanes(workers, 1), budget)
+                runs[f"{name}+{c} (refit)"] = refit
+                if isinstance(refit, LeftOut):
+                    ended = True
+                    break
+                combos[c] = refit
                 if combos[c].rss > current.rss * (1 + 1e-6):
                     removed.append({"step": len(steps) + 1, "effect": c, "model": f"{name}+{c}",
                                     "check": "optimiser",
@@ -170,6 +174,8 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
                                               f"(RMSE {current.rmse:.4g}), also refitted from that model's optimum "
                                               f"(RMSE {combos[c].rmse:.4g}): an optimiser failure"})
                     del combos[c]
+        if ended:
+            break       # the run budget ended within the step: no step chosen among part of its candidates
         for c in list(combos):
             bad = implausible(f"{name}+{c}", combos[c].params, support)
             if bad:
@@ -257,12 +263,23 @@ def run_depth(stages: dict) -> int:
 
 
 def _refit_from(fmu: str, model: str, drive: str, experiments: Sequence, max_starts: int,
-                interface: ModelInterface, previous: Fit, gate: dict | None = None) -> Fit:
-    """The extended ``model`` fitted again, its first start at the optimum of the model it extends."""
+                interface: ModelInterface, previous: Fit, gate: dict | None = None, parallel: int = 1,
+                budget: RunBudget | None = None) -> Fit | LeftOut:
+    """The extended ``model`` fitted again, its first start at the optimum of the model it extends (in this
+    process, alone: on ``parallel`` FMU instances, its runs taken from ``budget``; what it spent when that
+    ended)."""
+    from fmusa.diagnose import budget as rb
     from fmusa.diagnose.calibrate import fit_candidate
 
-    return fit_candidate(fmu, model, drive, list(experiments), max_starts, interface, start=dict(previous.params),
-                         gate=gate)
+    old = rb.set_current(budget) if budget is not None else None
+    try:
+        return fit_candidate(fmu, model, drive, list(experiments), max_starts, interface, parallel=parallel,
+                             start=dict(previous.params), gate=gate)
+    except rb.BudgetExhausted as exc:
+        return LeftOut(f"{model} (refit)", dict(getattr(exc, "runs", {}) or {}))
+    finally:
+        if budget is not None:
+            rb.set_current(old)
 
 
 def _screened_ranking(base: Fit, fits: dict, th: Thresholds, experiments: Sequence) -> tuple[list[dict], list]:
