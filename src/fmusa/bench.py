@@ -951,6 +951,9 @@ def _timed_diagnosis(exps, drive: str, fmu, workers: int) -> dict:
             "runs_by_stage": {"baseline": d["runs"]["baseline"]["total"],
                               **{n: r["total"] for n, r in d["runs"]["candidates"].items()},
                               **{f"chain:{n}": r["total"] for n, r in d["runs"]["chain"].items()}},
+            "rounds_by_stage": {"baseline": d["runs"]["baseline"].get("rounds"),
+                                **{n: r.get("rounds") for n, r in d["runs"]["candidates"].items()},
+                                **{f"chain:{n}": r.get("rounds") for n, r in d["runs"]["chain"].items()}},
             "loadavg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
 
 
