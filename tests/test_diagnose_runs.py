@@ -141,6 +141,9 @@ def test_a_chain_fit_that_cannot_be_significant_makes_no_heldout_runs(counted):
     base = Fit(effect="", params={}, ci95={}, rss=first["rmse"] ** 2 * first["n"], n=first["n"], k=first["k"],
                rmse=first["rmse"])
     assert can_be_significant(base, base, th.delta_bic, th.p_value)      # no gain: cannot be significant
+    from fmusa.diagnose.runs_report import runs_section
+
+    assert "no held-out refits: it cannot be the chain's next step" in runs_section(d)
     # with one FMU instance per fit, each run is its own round; the depth is the longest fit of the first round
     # plus the longest of each chain step
     assert all(r["rounds"] == r["total"] for r in [runs["baseline"], *runs["candidates"].values()])
