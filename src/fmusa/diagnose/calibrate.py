@@ -214,7 +214,10 @@ class ModelRunner:
 
 class Lane:
     """Some of a :class:`ModelRunner`'s FMU instances, for one of several fits run at once: runs as the runner's
-    (counted there, under its stage), rounds counted here, since the lanes' rounds overlap."""
+    (counted there, under its stage), rounds counted here, since the lanes' rounds overlap. Finite-difference
+    Jacobians only."""
+
+    has_sensitivities = False
 
     def __init__(self, owner: ModelRunner, plans: list) -> None:
         self.owner, self.plans, self.parallel, self.rounds = owner, plans, len(plans), 0
@@ -459,7 +462,9 @@ def heldout_folds(model: ModelRunner, fit: Fit, drive: str, experiments: Sequenc
             count += int(m.sum())
         return {"train_cost": float(res.cost), "sq": sq, "count": count}
 
-    if model.parallel <= 1 or not hasattr(model, "lanes") or len(masks) < 2:
+    # one after another: one instance, a coupled runner, or an FMU whose Jacobian is one run already
+    if model.parallel <= 1 or not hasattr(model, "lanes") or len(masks) < 2 \
+            or getattr(model, "has_sensitivities", False):
         return [refit(model, m) for m in masks]
     from concurrent.futures import ThreadPoolExecutor
 
