@@ -148,9 +148,9 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
             break
         # first start: the model so far at its optimum, the added effect at its own first start; no held-out
         # refits for an addition that cannot be significant against the model so far
-        gate = _gate(current, th)
-        jobs = [(fmu, f"{name}+{c}", drive, list(experiments), min(max_starts, CHAIN_STARTS), interface,
-                 jacobian_lanes(workers, len(rest)), agree, dict(current.params), gate) for c in rest]
+        gate, lanes, starts = _gate(current, th), jacobian_lanes(workers, len(rest)), min(max_starts, CHAIN_STARTS)
+        jobs = [(fmu, f"{name}+{c}", drive, list(experiments), starts, interface, lanes, agree,
+                 dict(current.params), gate) for c in rest]
         results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress, budget)
         runs.update(results)
         if any(isinstance(r, LeftOut) for r in results.values()):
@@ -160,13 +160,16 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         for c in list(combos):
             if combos[c].rss > current.rss * (1 + 1e-6):       # nested: never worse at its optimum
                 worse = combos[c]
-                refit = _refit_from(fmu, f"{name}+{c}", drive, experiments, min(max_starts, CHAIN_STARTS),
-                                    interface, current, gate, jacobian_lanes(workers, 1), budget)
-                runs[f"{name}+{c} (refit)"] = refit
-                if isinstance(refit, LeftOut):
-                    ended = True
-                    break
-                combos[c] = refit
+                # the refit tries every start; when the fit did already (its first one at the model so far's
+                # optimum), it would make the same runs again to the same end
+                if worse.starts_tried < 1 + starts:
+                    refit = _refit_from(fmu, f"{name}+{c}", drive, experiments, starts, interface, current, gate,
+                                        lanes, budget)
+                    runs[f"{name}+{c} (refit)"] = refit
+                    if isinstance(refit, LeftOut):
+                        ended = True
+                        break
+                    combos[c] = refit
                 if combos[c].rss > current.rss * (1 + 1e-6):
                     removed.append({"step": len(steps) + 1, "effect": c, "model": f"{name}+{c}",
                                     "check": "optimiser",
