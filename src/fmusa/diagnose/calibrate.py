@@ -355,14 +355,14 @@ AGREE_DBIC = 0.1
 
 def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence, sc: Scales,
               max_starts: int = 6, max_nfev: int = 60, held: Sequence[str] = (),
-              start: dict | None = None, agree: int = 0) -> Fit:
+              start: dict | None = None, agree: int = 0, skip: int = 0) -> Fit:
     """Multi-start bounded least squares of the response channel on all experiments jointly.
 
     ``held``: parameters of the model that are not fitted; ``model`` must have been built without them
     (their values in its ``fixed``), and the fit's params, intervals and k leave them out. ``start``: a first
     start in natural units (e.g. from a direct fit of the data), tried before the generic ones. ``agree``:
     stop trying starts once that many have reached the best cost so far (within :data:`AGREE_DBIC`); 0 tries
-    them all."""
+    them all. ``skip``: leave out that many starts from the front (those an earlier fit tried), but never all."""
     params = [p for p in model_parameters(effect, drive, sc) if p.name not in held]
     scale = _response_scale(drive, sc)
     masks = [np.ones(len(e.t), bool) for e in experiments]
@@ -372,6 +372,7 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
     if start:
         starts = [np.array([p.to_x(min(max(float(start.get(p.name, p.starts[0])), p.lower), p.upper))
                             for p in params])] + starts
+    starts = starts[min(skip, len(starts) - 1):]
     model.stage = "fit"
     n_points = sum(len(e.t) for e in experiments)
     costs: list[float] = []
@@ -532,13 +533,13 @@ def unify_equivalent(fits: dict[str, Fit]) -> dict[str, Fit]:
 
 def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
                   max_starts: int = 6, interface: ModelInterface | None = None, parallel: int = 1,
-                  agree: int = 0, start: dict | None = None, gate: dict | None = None) -> Fit:
+                  agree: int = 0, start: dict | None = None, gate: dict | None = None, skip: int = 0) -> Fit:
     """Calibrate one model and score it on held-out data (runs in a worker process).
 
     Under a drive of one constant rate (:func:`effects.constant_rate`) the damping is held at 0: its
     force d*v is a constant there, which the fit would trade against the stiffness (a baseline fitted a
     constant 150 N through d*v with the stiffness -> 0). ``parallel``: FMU instances for the rounds of a
-    Jacobian; ``agree``, ``start``: as in :func:`calibrate`. ``gate``: the model this one extends (``rss``, ``n``,
+    Jacobian; ``agree``, ``start``, ``skip``: as in :func:`calibrate`. ``gate``: the model this one extends (``rss``, ``n``,
     ``k``) and the thresholds (``delta_bic``, ``p_value``), and with ``physics`` the check of its parameters against
     what the tests support: when the fit cannot be significant against that model (:func:`can_be_significant`)
     or is implausible (:func:`plausibility.implausible`), and so cannot be chosen whatever its held-out score,
@@ -554,7 +555,7 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
     model = make_runner(fmu_path, drive, names, fixed, interface, parallel=parallel)
     try:
         fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed),
-                        agree=agree, start=start)
+                        agree=agree, start=start, skip=skip)
         if gate:
             fit.heldout_skipped = _gated(fit, effect, gate, {**fit.params, **fixed}, experiments)
         if not fit.heldout_skipped:

@@ -160,11 +160,11 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         for c in list(combos):
             if combos[c].rss > current.rss * (1 + 1e-6):       # nested: never worse at its optimum
                 worse = combos[c]
-                # the refit tries every start; when the fit did already (its first one at the model so far's
-                # optimum), it would make the same runs again to the same end
+                # the refit tries the starts the fit did not (its first one was the model so far's optimum
+                # already): none left, and it would make the same runs again to the same end
                 if worse.starts_tried < 1 + starts:
                     refit = _refit_from(fmu, f"{name}+{c}", drive, experiments, starts, interface, current, gate,
-                                        lanes, budget)
+                                        jacobian_lanes(workers, 1), budget, skip=worse.starts_tried)
                     runs[f"{name}+{c} (refit)"] = refit
                     if isinstance(refit, LeftOut):
                         ended = True
@@ -267,17 +267,17 @@ def run_depth(stages: dict) -> int:
 
 def _refit_from(fmu: str, model: str, drive: str, experiments: Sequence, max_starts: int,
                 interface: ModelInterface, previous: Fit, gate: dict | None = None, parallel: int = 1,
-                budget: RunBudget | None = None) -> Fit | LeftOut:
-    """The extended ``model`` fitted again, its first start at the optimum of the model it extends (in this
-    process, alone: on ``parallel`` FMU instances, its runs taken from ``budget``; what it spent when that
-    ended)."""
+                budget: RunBudget | None = None, skip: int = 0) -> Fit | LeftOut:
+    """The extended ``model`` fitted again from every start, the first at the optimum of the model it extends,
+    less the first ``skip`` (tried already) (in this process, alone: on ``parallel`` FMU instances, its runs
+    taken from ``budget``; what it spent when that ended)."""
     from fmusa.diagnose import budget as rb
     from fmusa.diagnose.calibrate import fit_candidate
 
     old = rb.set_current(budget) if budget is not None else None
     try:
         return fit_candidate(fmu, model, drive, list(experiments), max_starts, interface, parallel=parallel,
-                             start=dict(previous.params), gate=gate)
+                             start=dict(previous.params), gate=gate, skip=skip)
     except rb.BudgetExhausted as exc:
         return LeftOut(f"{model} (refit)", dict(getattr(exc, "runs", {}) or {}))
     finally:
