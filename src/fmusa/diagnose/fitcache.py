@@ -24,7 +24,7 @@ from fmusa.files import atomic_write
 
 __all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits"]
 
-#: (fmu path, candidate, drive, experiments, max_starts, interface[, parallel, agree, start]): the
+#: (fmu path, candidate, drive, experiments, max_starts, interface[, parallel, agree, start, gate]): the
 #: arguments of fit_candidate.
 FitJob = tuple
 
