@@ -15,7 +15,12 @@ import numpy as np
 
 from fmusa.diagnose.interface import ModelInterface
 
-__all__ = ["CoupledRunner", "coupling_of"]
+__all__ = ["COUPLED_RTOL", "CoupledRunner", "coupling_of"]
+
+#: The coupled runs' integration tolerance (the error estimate of fmusa.cosim's me-grid scheme). Measured on
+#: OpenModelica's Mass_Damper with each effect attached, against scipy at rtol 1e-10: the response within
+#: 5e-6 of its range (the tests' noise is 1.4e-3 of it), at a fifth of the cost of rtol 1e-6.
+COUPLED_RTOL = 1e-4
 
 
 def coupling_of(fmu_path: str | os.PathLike, interface: ModelInterface):
@@ -36,7 +41,7 @@ class CoupledRunner:
     value, held in every run. The model's drive settings (``interface.settings``) are set on the model."""
 
     def __init__(self, fmu_path: str | os.PathLike, drive: str, names: Sequence[str], fixed: dict | None = None,
-                 rtol: float = 1e-6, interface: ModelInterface | None = None) -> None:
+                 rtol: float = COUPLED_RTOL, interface: ModelInterface | None = None) -> None:
         from fmusa.cosim.master import check_coupling
         from fmusa.fmi.info import read_fmu_info
 
