@@ -33,6 +33,15 @@ def coupling_of(fmu_path: str | os.PathLike, interface: ModelInterface):
                     force_sign=att.force_sign, scheme=att.scheme)
 
 
+def set_on_element(element_fmu, interface: ModelInterface, names: Sequence[str]) -> dict[str, bool]:
+    """Per fitted parameter: True when it is set on the element FMU (the element has its variable), False when
+    on the model (a baseline of the user's own, e.g. ``spring.c``)."""
+    from fmusa.fmi.info import read_fmu_info
+
+    element = read_fmu_info(element_fmu)
+    return {n: element.variable(interface.variable(n)) is not None for n in names}
+
+
 class CoupledRunner:
     """The model FMU coupled to the interface element, driven by the experiments' measured drive.
 
@@ -43,16 +52,13 @@ class CoupledRunner:
     def __init__(self, fmu_path: str | os.PathLike, drive: str, names: Sequence[str], fixed: dict | None = None,
                  rtol: float = COUPLED_RTOL, interface: ModelInterface | None = None) -> None:
         from fmusa.cosim.master import check_coupling
-        from fmusa.fmi.info import read_fmu_info
 
         if interface is None or interface.attached is None:
             raise ValueError("CoupledRunner needs a description with effects attached")
         self.interface = interface
         self.coupling = coupling_of(fmu_path, interface)
         check_coupling(self.coupling)
-        element = read_fmu_info(self.coupling.element())
-        self.on_element = {n: element.variable(interface.variable(n)) is not None
-                           for n in list(names) + list(fixed or {})}
+        self.on_element = set_on_element(self.coupling.element(), interface, list(names) + list(fixed or {}))
         self.names = list(names)
         self.fixed = dict(fixed or {})
         self.settings = interface.settings(drive, rtol)

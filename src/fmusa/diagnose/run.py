@@ -414,7 +414,9 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         # the FMU variable of each fitted parameter (the catalogue's names are the keys above); where the effects
         # went and the model description's name
         "model": {"description": interface.name, "effects": "attached" if interface.attached else "inside",
-                  "variables": {n: interface.variable(n) for f in [base, *fits.values()] for n in f.params}},
+                  "variables": {n: interface.variable(n) for f in [base, *fits.values()] for n in f.params},
+                  **({"where": parameter_homes(fmu, interface, [n for f in [base, *fits.values()] for n in f.params])}
+                     if interface.attached else {})},
         "thresholds": _thresholds(thresholds),
         "units": units,
         "warnings": [dict(w) for w in units["warnings"]],
@@ -436,6 +438,14 @@ def _plain(x: Any) -> Any:
     if isinstance(x, np.bool_):
         return bool(x)
     return x
+
+
+def parameter_homes(fmu: str, interface: ModelInterface, names: Sequence[str]) -> dict[str, str]:
+    """Effects attached: which FMU each fitted parameter is set on ("element" or "model"), for the report."""
+    from fmusa.diagnose.attached import coupling_of, set_on_element
+
+    return {n: "element" if on else "model"
+            for n, on in set_on_element(coupling_of(fmu, interface).element(), interface, names).items()}
 
 
 def write_json(diag: dict, path: str | os.PathLike) -> None:

@@ -1,0 +1,105 @@
+"""An attached diagnosis runs like every diagnosis: its fits in the worker pool (spawned processes), each fit
+saved and reused by a rerun (no coupled run the second time), and its report and console speak in the user's
+FMU's names: the element's parameters as ``element.NAME``, not the effect catalogue's names.
+
+The model is OpenModelica's Mass_Damper export (../shared/vendor-fmus/OM1193_Mass_Damper.fmu, or
+$FMUSA_SHARED_DIR/vendor-fmus) with the interface element attached at its force input; the measured test is
+made by tests/attached_reference.py (scipy on the equations written out, no code of the coupling master).
+"""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+import attached_reference as ar  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("FMUSA_SHARED_DIR") or ROOT.parent / "shared")
+OM = SHARED / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
+ELEMENT = ROOT / "dist" / "InterfaceElement.fmu"
+
+pytestmark = [pytest.mark.skipif(not ELEMENT.is_file(), reason="dist/InterfaceElement.fmu is not built (make fmu)"),
+              pytest.mark.skipif(not OM.is_file(), reason=f"{OM} is not there (set FMUSA_SHARED_DIR)")]
+
+
+def short_study(tmp: Path, effect: str = "backlash_gap", measured: bool = True) -> Path:
+    """A short force test (load to 900 N in 0.2 s, unload to -450 N, 1.2 s at 40 Hz) with the effect hidden, and
+    its study file: the effect the one candidate, one start (``measured=False``: a file of zeros, for checks
+    that read no data)."""
+    csv = tmp / "test.csv"
+    if measured:
+        ar.synthesize(effect, ramp=0.2, hold=0.2)[0].to_csv(csv, index=False)
+    else:
+        csv.write_text("time,displacement,force\n0,0,0\n0.025,0,1\n0.05,0,2\n", encoding="utf-8")
+    f = tmp / "study.yaml"
+    f.write_text(f"""name: mass_damper
+fmu: {OM}
+model:
+  drives:
+    force: {{input: f, response: y}}
+  fixed: {{spring.s_rel0: {ar.S_REL0}}}
+baseline:
+  stiffness: {{variable: c, bounds: [1.0e3, 2.0e4]}}
+  damping: {{variable: d, bounds: [0.0, 200.0]}}
+effects:
+  where: attached
+  element: {ELEMENT}
+  force_input: f
+  displacement_output: y
+  velocity_output: mass.v
+  candidates: [{effect}]
+tests:
+  drive: force
+  files: [{csv}]
+diagnosis:
+  starts: 1
+  chain: 1
+""")
+    return f
+
+
+def test_parameters_are_named_as_the_fmus_name_them(tmp_path):
+    """Which FMU each fitted parameter is set on, and the name the report and the console give it."""
+    from fmusa.diagnose.report import fmu_name
+    from fmusa.diagnose.run import parameter_homes
+    from fmusa.diagnose.study import load_diagnosis_study
+
+    st = load_diagnosis_study(short_study(tmp_path, measured=False))
+    names = ["c_y", "d_y", "gap"]
+    homes = parameter_homes(str(OM), st.interface, names)
+    assert homes == {"c_y": "element", "d_y": "element", "gap": "element"}
+    diag = {"model": {"variables": {n: st.interface.variable(n) for n in names}, "where": homes}}
+    assert [fmu_name(diag, n) for n in names] == ["element.c", "element.d", "element.gap"]
+    # a parameter of the model itself keeps the model's name; without a mapping, the name given
+    diag["model"]["variables"]["c_y"], diag["model"]["where"]["c_y"] = "spring.c", "model"
+    assert fmu_name(diag, "c_y") == "spring.c" and fmu_name({}, "c_y") == "c_y"
+
+
+@pytest.mark.slow   # two fits of ~100 coupled runs each
+def test_attached_diagnosis_in_the_pool_resumed_and_named(tmp_path, capsys):
+    from fmusa.cli import main
+
+    study = short_study(tmp_path)
+    out = tmp_path / "out"
+    assert main(["diagnose", str(study), "--out", str(out), "--workers", "2"]) == 0
+    first = capsys.readouterr().out
+    import json
+    d1 = json.loads((out / "diagnosis.json").read_text(encoding="utf-8"))
+    assert d1["effect"] == "backlash_gap", d1["effect"]
+    assert d1["runs"]["total"] > 0 and d1["coupling"]["scheme"] == "me-grid"
+    # the user's names: the element's parameters, never the catalogue's (c_y, d_y, gap) alone
+    report = (out / "report.md").read_text(encoding="utf-8")
+    for name in ("element.c", "element.d", "element.gap"):
+        assert f"`{name}`" in report, name
+    for name in ("c_y", "d_y", "`gap`"):
+        assert name not in report, name
+    assert "element.gap = " in first and "gap = " not in first.replace("element.gap = ", ""), first
+    # the rerun takes every fit from DIR/fits: no coupled run, the same answer
+    assert main(["diagnose", str(study), "--out", str(out), "--workers", "2"]) == 0
+    d2 = json.loads((out / "diagnosis.json").read_text(encoding="utf-8"))
+    assert d2["runs"]["total"] == 0, d2["runs"]
+    assert d2["extended"]["params"] == d1["extended"]["params"]
