@@ -107,3 +107,25 @@ def test_me_grid_cheaper_than_me_implicit_same_answer(om):
         assert r.scheme == scheme and err < (1e-5 if scheme == "me-grid" else 1e-6), (scheme, err, r.notes)
         calls[scheme] = r.calls
     assert calls["me-grid"] < 0.5 * calls["me-implicit"], calls
+
+
+def test_event_indicators_choose_me_implicit(tmp_path):
+    """A model exchange export with an event indicator (the body FMU of tests/fmus/cosim_body built with one: its
+    displacement, crossed at every swing through rest): auto runs the adaptive me-implicit, which locates state
+    events, and gets the closed form of the free swing; me-grid, which does not locate them, is refused."""
+    from cosim_fmus import build_body
+    from fmusa.cosim import CouplingError, check_coupling
+
+    if not ELEMENT.is_file():
+        pytest.fail("dist/InterfaceElement.fmu is missing: run `make fmu`")
+    fmu = build_body(tmp_path, ("model-exchange",), False, indicators=True)
+    body, element = {"m": 1.0, "k": 100.0, "b": 1.0, "x0": 0.01}, {"c": 1e4, "d": 20.0}
+    times = np.linspace(0.0, 0.2, 41)
+    r = simulate_coupled(Coupling(fmu, ELEMENT, "f", "x", "v"), body, element, 0.2, times, ["x"])
+    A = np.array([[0.0, 1.0], [-(1e4 + 100.0), -(20.0 + 1.0)]])
+    exact = np.array([(expm(A * t) @ [0.01, 0.0])[0] for t in times])
+    assert r.scheme == "me-implicit"
+    assert np.sum(np.diff(np.sign(exact)) != 0) >= 3          # it swings through rest: the indicator crosses
+    assert np.max(np.abs(r.frame["x"].to_numpy() - exact)) < 1e-4 * 0.01
+    with pytest.raises(CouplingError, match="event indicators"):
+        check_coupling(Coupling(fmu, ELEMENT, "f", "x", "v", scheme="me-grid"))

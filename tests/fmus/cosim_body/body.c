@@ -6,6 +6,7 @@
  *   - Model Exchange: states (x, v), derivatives (v, a), no events;
  *   - Co-Simulation: fmi2DoStep integrates with RK4 on sub-steps of at most min(h, 0.02 / max(sqrt(k/m), b/m))
  *     with the input affine over the step (fmi2SetRealInputDerivatives);
+ *   - with -DWITH_INDICATOR, one event indicator (the displacement x) for model exchange;
  *   - with -DWITH_STATE, fmi2GetFMUstate / fmi2SetFMUstate / fmi2FreeFMUstate (a copy of the instance);
  *     without it they fail, as the model description then says canGetAndSetFMUstate="false".
  * Value references: 0 m, 1 k, 2 b, 3 x0 (parameters), 4 f (input), 5 x, 6 v (outputs, states), 7 a (der(v)).
@@ -141,7 +142,13 @@ fmi2Status fmi2SetContinuousStates(fmi2Component comp, const fmi2Real x[], size_
 { Body *c = comp; if (n != 2) return fmi2Error; c->x = x[0]; c->v = x[1]; return fmi2OK; }
 fmi2Status fmi2GetDerivatives(fmi2Component comp, fmi2Real d[], size_t n)
 { Body *c = comp; if (n != 2) return fmi2Error; rate(c, c->t, c->x, c->v, &d[0], &d[1]); return fmi2OK; }
+#ifdef WITH_INDICATOR
+/* one event indicator, the displacement (a crossing of the rest position: no event action, only its location) */
+fmi2Status fmi2GetEventIndicators(fmi2Component c, fmi2Real z[], size_t n)
+{ if (n != 1) return fmi2Error; z[0] = ((Body *)c)->x; return fmi2OK; }
+#else
 fmi2Status fmi2GetEventIndicators(fmi2Component c, fmi2Real z[], size_t n) { (void)c; (void)z; return n ? fmi2Error : fmi2OK; }
+#endif
 fmi2Status fmi2GetContinuousStates(fmi2Component comp, fmi2Real x[], size_t n)
 { Body *c = comp; if (n != 2) return fmi2Error; x[0] = c->x; x[1] = c->v; return fmi2OK; }
 fmi2Status fmi2GetNominalsOfContinuousStates(fmi2Component c, fmi2Real x[], size_t n)
