@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -220,16 +221,47 @@ def checked_coupling(coupling: Coupling):
 
 # ---------------------------------------------------------------------------------------------- FMUs
 
+_UNPACKED: dict[tuple, Path] = {}
+_UNPACK_ROOT: list[Path] = []
+_UNPACK_LOCK = threading.Lock()
+
+
+def _unpacked(info, interface: str) -> Path:
+    """The FMU unpacked (built from its sources where it has no binary for this platform) for running, once per
+    process and version of the file: a coupled run makes fresh instances every time, and a fresh copy of the
+    binary per run costs time and leaves every copy loaded in the process. Removed when the process ends."""
+    import atexit
+    import tempfile
+
+    from fmusa.fmi.archive import extract_fmu
+    from fmusa.fmi.build import prepare_fmu
+
+    src = Path(info.path).resolve()
+    st = src.stat()
+    key = (str(src), st.st_mtime_ns, st.st_size, interface)
+    with _UNPACK_LOCK:
+        hit = _UNPACKED.get(key)
+        if hit is not None and hit.exists():
+            return hit
+        if not _UNPACK_ROOT:
+            root = Path(tempfile.mkdtemp(prefix="fmusa-cosim-"))
+            atexit.register(shutil.rmtree, root, True)
+            _UNPACK_ROOT.append(root)
+        work = _UNPACK_ROOT[0] / str(len(_UNPACKED))
+        work.mkdir()
+        path = prepare_fmu(info.path, interface, work)
+        unzip = Path(path) if Path(path).is_dir() else Path(extract_fmu(path, work / "unpacked", to_run=True))
+        _UNPACKED[key] = unzip
+        return unzip
+
+
 class _Fmu:
     """One FMI 2.0 instance (ME or CS) through fmpy, counting the calls made to it."""
 
-    def __init__(self, info, interface: str, name: str, workdir: Path) -> None:
+    def __init__(self, info, interface: str, name: str) -> None:
         from fmpy.fmi2 import FMU2Model, FMU2Slave
-        from fmusa.fmi.archive import extract_fmu
-        from fmusa.fmi.build import prepare_fmu
 
-        path = prepare_fmu(info.path, interface, workdir)
-        unzip = path if Path(path).is_dir() else extract_fmu(path, workdir / name, to_run=True)
+        unzip = _unpacked(info, interface)
         md = info.model_description
         cls = FMU2Model if interface == "model-exchange" else FMU2Slave
         self.fmu = cls(guid=md.guid, unzipDirectory=str(unzip), modelIdentifier=info.interfaces[interface],
@@ -412,12 +444,12 @@ def _over_time(deadline: float | None, t: float) -> None:
 
 
 def _run_me(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs, model_inputs,
-            rtol, workdir: Path, deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
+            rtol, deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
     from ctypes import c_double
     from scipy.integrate import Radau
 
-    m = _Fmu(minfo, "model-exchange", "model", workdir)
-    e = _Fmu(einfo, "model-exchange", "element", workdir)
+    m = _Fmu(minfo, "model-exchange", "model")
+    e = _Fmu(einfo, "model-exchange", "element")
     try:
         itf = _Interface(coupling, m, e)
         where = _check_outputs(outputs, m, e)
@@ -570,13 +602,13 @@ def _run_me(coupling, minfo, einfo, model_params, element_params, stop_time, out
 
 
 def _run_me_grid(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs,
-                 model_inputs, rtol, workdir: Path, deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
+                 model_inputs, rtol, deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
     """Both FMUs as model exchange, their states one ODE integrated by fixed-step Radau IIA on the output grid
     (:mod:`fmusa.cosim.grid`); time events end a segment; no event indicators (:func:`choose_scheme`)."""
     from fmusa.cosim.grid import integrate_on_grid
 
-    m = _Fmu(minfo, "model-exchange", "model", workdir)
-    e = _Fmu(einfo, "model-exchange", "element", workdir)
+    m = _Fmu(minfo, "model-exchange", "model")
+    e = _Fmu(einfo, "model-exchange", "element")
     try:
         itf = _Interface(coupling, m, e)
         where = _check_outputs(outputs, m, e)
@@ -747,10 +779,10 @@ def _cs_grid(stop_time: float, step: float, output_times: np.ndarray) -> np.ndar
 
 
 def _run_cs(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs, model_inputs,
-            rtol, step: float, iterate: bool, workdir: Path, max_iter: int = 30,
+            rtol, step: float, iterate: bool, max_iter: int = 30,
             deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
-    m = _Fmu(minfo, "co-simulation", "model", workdir)
-    e = _Fmu(einfo, "co-simulation", "element", workdir)
+    m = _Fmu(minfo, "co-simulation", "model")
+    e = _Fmu(einfo, "co-simulation", "element")
     try:
         itf = _Interface(coupling, m, e)
         where = _check_outputs(outputs, m, e)
@@ -900,57 +932,53 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
     if times.ndim != 1 or len(times) == 0 or np.any(np.diff(times) <= 0) or times[0] < 0 or times[-1] > stop_time:
         raise CouplingError("output_times must increase strictly, within [0, stop_time]")
     minfo, einfo, scheme = checked_coupling(coupling)
-    import tempfile
-    workdir = Path(tempfile.mkdtemp(prefix="fmusa-cosim-"))
     wall0, cpu0 = time.perf_counter(), time.process_time()
     deadline = wall0 + float(max_wall_s) if max_wall_s else None
     args = (coupling, minfo, einfo, dict(model_params), dict(element_params), float(stop_time), times,
             list(outputs), model_inputs, float(rtol))
-    try:
-        if scheme == "me-grid":
-            frame, calls, info = _run_me_grid(*args, workdir, deadline)
-            return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
-                                 notes=[f"{info['steps']} Radau IIA steps on the output grid (rtol {rtol:g}; "
-                                        f"{info['rejected']} steps cut in two, the smallest a sample "
-                                        f"interval / {info['max_substeps']}; {info['rhs']} evaluations, "
-                                        f"{info['jacobians']} Jacobians)"])
-        if scheme == "me-implicit":
-            frame, calls, info = _run_me(*args, workdir, deadline)
-            return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
-                                 notes=[f"{info['steps']} implicit steps (Radau, rtol {rtol:g})"])
-        iterate = scheme == "cs-iterate"
-        h = float(step) if step else float(np.min(np.diff(np.r_[0.0, times[times > 0]]))
-                                           if np.any(times > 0) else stop_time / 100)
-        calls, runs, prev, diff, info = 0, 0, None, None, {}
-        notes = []
-        for k in range(max_halvings + 1):
-            try:
-                frame, c, info = _run_cs(*args, h, iterate, workdir, deadline=deadline)
-            except CouplingError as exc:
-                if "diverged" not in str(exc) and "did not converge" not in str(exc):
-                    raise
-                frame, c = None, 0
-                notes.append(f"step {h:.3g} s: {exc}")
-            calls += c
-            runs += 1
-            if frame is not None and prev is not None:
-                diff = _difference(prev, frame)
-                notes.append(f"step {h:.3g} s vs {2 * h:.3g} s: relative difference {diff:.3g}")
-                if diff <= coupling_tol:
-                    return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0,
-                                         time.process_time() - cpu0, step=h, runs=runs, difference=diff,
-                                         iterations=info.get("iterations", 0), notes=notes)
-            prev = frame
-            h /= 2
-        msg = (f"the coupled {scheme} run did not converge: halving the macro step {max_halvings} times left a "
-               f"relative difference of {diff if diff is not None else math.inf:.3g} between the last two runs "
-               f"(tolerance {coupling_tol:g}); export the model with Model Exchange (me-implicit) or with "
-               f"canGetAndSetFMUstate (cs-iterate), or give a smaller step")
-        if strict or prev is None:
-            raise CouplingError(msg)
-        warnings.warn(msg, stacklevel=2)
-        return CoupledResult(prev, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
-                             step=2 * h, runs=runs, converged=False, difference=diff,
-                             iterations=info.get("iterations", 0), notes=notes)
-    finally:
-        shutil.rmtree(workdir, ignore_errors=True)
+    if scheme == "me-grid":
+        frame, calls, info = _run_me_grid(*args, deadline)
+        return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
+                             notes=[f"{info['steps']} Radau IIA steps on the output grid (rtol {rtol:g}; "
+                                    f"{info['rejected']} steps cut in two, the smallest a sample "
+                                    f"interval / {info['max_substeps']}; {info['rhs']} evaluations, "
+                                    f"{info['jacobians']} Jacobians)"])
+    if scheme == "me-implicit":
+        frame, calls, info = _run_me(*args, deadline)
+        return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
+                             notes=[f"{info['steps']} implicit steps (Radau, rtol {rtol:g})"])
+    iterate = scheme == "cs-iterate"
+    h = float(step) if step else float(np.min(np.diff(np.r_[0.0, times[times > 0]]))
+                                       if np.any(times > 0) else stop_time / 100)
+    calls, runs, prev, diff, info = 0, 0, None, None, {}
+    notes = []
+    for k in range(max_halvings + 1):
+        try:
+            frame, c, info = _run_cs(*args, h, iterate, deadline=deadline)
+        except CouplingError as exc:
+            if "diverged" not in str(exc) and "did not converge" not in str(exc):
+                raise
+            frame, c = None, 0
+            notes.append(f"step {h:.3g} s: {exc}")
+        calls += c
+        runs += 1
+        if frame is not None and prev is not None:
+            diff = _difference(prev, frame)
+            notes.append(f"step {h:.3g} s vs {2 * h:.3g} s: relative difference {diff:.3g}")
+            if diff <= coupling_tol:
+                return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0,
+                                     time.process_time() - cpu0, step=h, runs=runs, difference=diff,
+                                     iterations=info.get("iterations", 0), notes=notes)
+        prev = frame
+        h /= 2
+    msg = (f"the coupled {scheme} run did not converge: halving the macro step {max_halvings} times left a "
+           f"relative difference of {diff if diff is not None else math.inf:.3g} between the last two runs "
+           f"(tolerance {coupling_tol:g}); export the model with Model Exchange (me-implicit) or with "
+           f"canGetAndSetFMUstate (cs-iterate), or give a smaller step")
+    if strict or prev is None:
+        raise CouplingError(msg)
+    warnings.warn(msg, stacklevel=2)
+    return CoupledResult(prev, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
+                         step=2 * h, runs=runs, converged=False, difference=diff,
+                         iterations=info.get("iterations", 0), notes=notes)
+
