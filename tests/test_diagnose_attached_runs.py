@@ -103,3 +103,20 @@ def test_attached_diagnosis_in_the_pool_resumed_and_named(tmp_path, capsys):
     d2 = json.loads((out / "diagnosis.json").read_text(encoding="utf-8"))
     assert d2["runs"]["total"] == 0, d2["runs"]
     assert d2["extended"]["params"] == d1["extended"]["params"]
+
+
+def test_coupled_run_past_its_time_limit_fails_as_a_run(tmp_path):
+    """A coupled run that passes its time limit is a failed run (a RuntimeError the fit backs off from, naming
+    the limit), as a sweep's run past its limit is; not a hung diagnosis."""
+    from fmusa.diagnose.attached import COUPLED_MAX_WALL_S, CoupledRunner
+    from fmusa.diagnose.measured import Experiment
+    from fmusa.diagnose.study import load_diagnosis_study
+
+    st = load_diagnosis_study(short_study(tmp_path, measured=False))
+    runner = CoupledRunner(str(OM), "force", ["c_y", "d_y"], {}, interface=st.interface, max_wall_s=1e-6)
+    assert COUPLED_MAX_WALL_S > 0 and CoupledRunner.__init__.__defaults__[-1] == COUPLED_MAX_WALL_S
+    import numpy as np
+    t = np.arange(0.0, 1.0, 0.025)
+    e = Experiment(name="t", path=tmp_path / "t.csv", drive="force", t=t, displacement=0 * t, force=100 * t)
+    with pytest.raises(RuntimeError, match="time limit"):
+        runner.predict([5e3, 20.0], [e])

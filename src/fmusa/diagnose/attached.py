@@ -15,12 +15,15 @@ import numpy as np
 
 from fmusa.diagnose.interface import ModelInterface
 
-__all__ = ["COUPLED_RTOL", "CoupledRunner", "coupling_of"]
+__all__ = ["COUPLED_MAX_WALL_S", "COUPLED_RTOL", "CoupledRunner", "coupling_of"]
 
 #: The coupled runs' integration tolerance (the error estimate of fmusa.cosim's me-grid scheme). Measured on
 #: OpenModelica's Mass_Damper with each effect attached, against scipy at rtol 1e-10: the response within
 #: 5e-6 of its range (the tests' noise is 1.4e-3 of it), at a fifth of the cost of rtol 1e-6.
 COUPLED_RTOL = 1e-4
+#: A coupled run's time limit [s of wall time], as a sweep's run has one: past it the run fails, and the fit backs
+#: off from that point as from any failed run (a stiff corner that asks for ever smaller steps cannot stall it).
+COUPLED_MAX_WALL_S = 60.0
 
 
 def coupling_of(fmu_path: str | os.PathLike, interface: ModelInterface):
@@ -50,7 +53,8 @@ class CoupledRunner:
     value, held in every run. The model's drive settings (``interface.settings``) are set on the model."""
 
     def __init__(self, fmu_path: str | os.PathLike, drive: str, names: Sequence[str], fixed: dict | None = None,
-                 rtol: float = COUPLED_RTOL, interface: ModelInterface | None = None) -> None:
+                 rtol: float = COUPLED_RTOL, interface: ModelInterface | None = None,
+                 max_wall_s: float = COUPLED_MAX_WALL_S) -> None:
         from fmusa.cosim.master import check_coupling
 
         if interface is None or interface.attached is None:
@@ -67,6 +71,7 @@ class CoupledRunner:
         self.in_scale = float(interface.input_scale.get(drive, 1.0))
         self.out_scale = float(interface.output_scale.get(drive, 1.0))
         self.rtol = rtol
+        self.max_wall_s = max_wall_s
         #: the last coupled run's scheme, FMU calls and wall time, for what a coupled run costs
         self.last = None
         #: coupled runs made, by stage ("fit", "heldout", ...), one per experiment simulated; one lane
@@ -116,7 +121,7 @@ class CoupledRunner:
 
             try:
                 res = simulate_coupled(self.coupling, model, element, float(t[-1]), t, [self.output],
-                                       model_inputs=drive, rtol=self.rtol)
+                                       model_inputs=drive, rtol=self.rtol, max_wall_s=self.max_wall_s)
             except Exception as exc:   # the fit backs off from a failed run (calibrate._residual_fn)
                 raise RuntimeError(f"coupled run failed: {exc}") from exc
             self.last = res
