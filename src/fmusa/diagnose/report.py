@@ -126,7 +126,7 @@ def _named_text(diag: Mapping) -> str:
     if mp and mp in ep:
         v, u = natural(mp, ep[mp]["value"])
         lo, hi = (natural(mp, c)[0] for c in ep[mp]["ci95"])
-        out += (f"Main parameter: `{fmu_name(diag, mp)}` ({PARAM_MEANING.get(mp, '')}) = {fmt(v, 4)} {u} "
+        out += (f"Main parameter: {fmu_name(diag, mp)} ({PARAM_MEANING.get(mp, '')}) = {fmt(v, 4)} {u} "
                 f"(95 % interval {fmt(lo)} to {fmt(hi)} {u}).\n\n")
     return out
 
