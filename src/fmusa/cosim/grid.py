@@ -79,7 +79,7 @@ def integrate_on_grid(rhs: Callable[[float, np.ndarray], np.ndarray], x0: np.nda
         stats.jacobians += 1
         J = np.empty((n, n))
         for j in range(n):
-            dy = 1e-7 * max(abs(y[j]), peak[j])
+            dy = 1e-7 * max(abs(y[j]), peak[j], 1e-300 ** 0.5)
             yj = y.copy()
             yj[j] += dy
             J[:, j] = (f(t, yj) - fy) / dy

@@ -3,9 +3,13 @@
 The model gives the interface's relative displacement ``s`` and its rate ``v`` (outputs); the element turns
 them into the force or torque ``F`` it carries; the model takes ``force_sign * F`` at its force input (added to
 the drive when the drive uses the same input). Interfaces are stiff (8.2e5 N/m on a 0.29 g screw: 5e4 rad/s),
-so an explicit exchange at a fixed step goes unstable or wrong without a sound. Three schemes, chosen by what
+so an explicit exchange at a fixed step goes unstable or wrong without a sound. Four schemes, chosen by what
 the model's FMU can do (``auto``: the first that applies):
 
+- ``me-grid``: both FMUs as model exchange, their states one ODE integrated by fixed-step Radau IIA that lands
+  on every output time (:mod:`fmusa.cosim.grid`: RADAU5's error estimate against ``rtol`` at every step, a
+  failing step cut in two, one Jacobian reused); time events end a segment. For FMUs without event indicators
+  (state events need the next scheme). The hot path calls the FMUs through ctypes directly.
 - ``me-implicit``: both FMUs as model exchange, their states one ODE integrated implicitly (scipy's Radau,
   error controlled on every state); inputs set before each derivative call; step ends, time events and
   state events (event indicators, located on the dense output) handled as FMI 2.0 asks.
