@@ -54,9 +54,11 @@ def body_description(interfaces: tuple[str, ...], state: bool, indicators: int =
 """
 
 
-def build_body(root: Path, interfaces: tuple[str, ...], state: bool, indicators: bool = False) -> Path:
-    """body.c built (with -DWITH_STATE when ``state``, -DWITH_INDICATOR when ``indicators``: one event indicator)
-    and zipped as root/Body.fmu declaring ``interfaces``."""
+def build_body(root: Path, interfaces: tuple[str, ...], state: bool, indicators: bool = False,
+               global_state: bool = False) -> Path:
+    """body.c built (with -DWITH_STATE when ``state``, -DWITH_INDICATOR when ``indicators``: one event indicator,
+    -DWITH_GLOBAL when ``global_state``: instances of one loaded binary that do not start alike) and zipped as
+    root/Body.fmu declaring ``interfaces``."""
     if not sys.platform.startswith("linux"):
         pytest.skip("the test FMUs are built as linux64 binaries")
     if shutil.which("gcc") is None:
@@ -65,7 +67,7 @@ def build_body(root: Path, interfaces: tuple[str, ...], state: bool, indicators:
     so = tree / "binaries" / "linux64" / "body.so"
     so.parent.mkdir(parents=True, exist_ok=True)
     cmd = ["gcc", "-std=c99", "-Wall", "-O2", "-shared", "-fPIC", *(["-DWITH_STATE"] if state else []),
-           *(["-DWITH_INDICATOR"] if indicators else []),
+           *(["-DWITH_INDICATOR"] if indicators else []), *(["-DWITH_GLOBAL"] if global_state else []),
            "-I", str(FMI_HEADERS), str(BODY), "-o", str(so), "-lm"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:

@@ -120,3 +120,61 @@ def test_coupled_run_past_its_time_limit_fails_as_a_run(tmp_path):
     e = Experiment(name="t", path=tmp_path / "t.csv", drive="force", t=t, displacement=0 * t, force=100 * t)
     with pytest.raises(RuntimeError, match="time limit"):
         runner.predict([5e3, 20.0], [e])
+
+
+BODY_STUDY = """name: body
+fmu: {fmu}
+model:
+  drives:
+    force: {{input: f, response: x}}
+baseline:
+  stiffness: {{variable: c, bounds: [1.0e2, 1.0e5]}}
+  damping: {{variable: d, bounds: [0.0, 100.0]}}
+effects:
+  where: attached
+  element: {element}
+  force_input: f
+  displacement_output: x
+  velocity_output: v
+  candidates: [backlash_gap]
+tests:
+  drive: force
+  files: [{csv}]
+"""
+
+
+@pytest.mark.parametrize("flawed", [False, True])
+def test_reuse_check_of_the_coupled_runs(tmp_path, flawed):
+    """The first coupled run of a runner is made twice on new instances of the binaries loaded once (the reuse
+    check, as FMURunner's): a clean export passes and keeps the loaded binary; an export whose instances share
+    a static counter (tests/fmus/cosim_body built with -DWITH_GLOBAL: each new instance starts 1 mm further) is
+    caught, and from then on every run loads a fresh copy, so that every run gives the first run's numbers."""
+    import numpy as np
+
+    from cosim_fmus import build_body
+    from fmusa.diagnose.attached import CoupledRunner
+    from fmusa.diagnose.measured import Experiment
+    from fmusa.diagnose.study import load_diagnosis_study
+
+    fmu = build_body(tmp_path, ("model-exchange",), False, global_state=flawed)
+    csv = tmp_path / "t.csv"
+    csv.write_text("time,displacement,force\n0,0,0\n0.025,0,1\n0.05,0,2\n", encoding="utf-8")
+    (tmp_path / "s.yaml").write_text(BODY_STUDY.format(fmu=fmu, element=ELEMENT, csv=csv), encoding="utf-8")
+    st = load_diagnosis_study(tmp_path / "s.yaml")
+    runner = CoupledRunner(str(fmu), "force", ["c_y", "d_y"], {}, interface=st.interface)
+    # fmpy unloads a binary when its last instance is freed, which resets a library's static state; a process
+    # where something else keeps the library loaded (here: this test, as another instance or a host would)
+    # carries it over from run to run
+    import ctypes
+
+    from fmusa.cosim.master import _unpacked
+    from fmusa.fmi.info import read_fmu_info
+    held = ctypes.CDLL(str(_unpacked(read_fmu_info(fmu), "model-exchange") / "binaries" / "linux64" / "body.so"))
+    t = np.linspace(0.0, 0.2, 21)
+    e = Experiment(name="t", path=csv, drive="force", t=t, displacement=0 * t, force=10 * t)
+    first = runner.predict([1e3, 5.0], [e])[0]
+    assert runner.reuse and runner.fresh_binary is flawed, runner.reuse
+    assert runner.runs["fit"] == 2                    # the check's run is counted
+    for _ in range(2):
+        assert np.array_equal(runner.predict([1e3, 5.0], [e])[0], first)
+    assert held is not None

@@ -230,10 +230,11 @@ _UNPACK_ROOT: list[Path] = []
 _UNPACK_LOCK = threading.Lock()
 
 
-def _unpacked(info, interface: str) -> Path:
+def _unpacked(info, interface: str, fresh: bool = False) -> Path:
     """The FMU unpacked (built from its sources where it has no binary for this platform) for running, once per
     process and version of the file: a coupled run makes fresh instances every time, and a fresh copy of the
-    binary per run costs time and leaves every copy loaded in the process. Removed when the process ends."""
+    binary per run costs time and leaves every copy loaded in the process. ``fresh``: a new copy all the same,
+    for a binary whose instances share state through the loaded library. Removed when the process ends."""
     import atexit
     import tempfile
 
@@ -245,27 +246,27 @@ def _unpacked(info, interface: str) -> Path:
     key = (str(src), st.st_mtime_ns, st.st_size, interface)
     with _UNPACK_LOCK:
         hit = _UNPACKED.get(key)
-        if hit is not None and hit.exists():
+        if hit is not None and hit.exists() and not fresh:
             return hit
         if not _UNPACK_ROOT:
             root = Path(tempfile.mkdtemp(prefix="fmusa-cosim-"))
             atexit.register(shutil.rmtree, root, True)
             _UNPACK_ROOT.append(root)
-        work = _UNPACK_ROOT[0] / str(len(_UNPACKED))
-        work.mkdir()
+        work = Path(tempfile.mkdtemp(dir=_UNPACK_ROOT[0]))
         path = prepare_fmu(info.path, interface, work)
         unzip = Path(path) if Path(path).is_dir() else Path(extract_fmu(path, work / "unpacked", to_run=True))
-        _UNPACKED[key] = unzip
+        if not fresh:
+            _UNPACKED[key] = unzip
         return unzip
 
 
 class _Fmu:
     """One FMI 2.0 instance (ME or CS) through fmpy, counting the calls made to it."""
 
-    def __init__(self, info, interface: str, name: str) -> None:
+    def __init__(self, info, interface: str, name: str, fresh: bool = False) -> None:
         from fmpy.fmi2 import FMU2Model, FMU2Slave
 
-        unzip = _unpacked(info, interface)
+        unzip = _unpacked(info, interface, fresh)
         md = info.model_description
         cls = FMU2Model if interface == "model-exchange" else FMU2Slave
         self.fmu = cls(guid=md.guid, unzipDirectory=str(unzip), modelIdentifier=info.interfaces[interface],
@@ -448,12 +449,12 @@ def _over_time(deadline: float | None, t: float) -> None:
 
 
 def _run_me(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs, model_inputs,
-            rtol, deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
+            rtol, deadline: float | None = None, fresh: bool = False) -> tuple[pd.DataFrame, int, dict]:
     from ctypes import c_double
     from scipy.integrate import Radau
 
-    m = _Fmu(minfo, "model-exchange", "model")
-    e = _Fmu(einfo, "model-exchange", "element")
+    m = _Fmu(minfo, "model-exchange", "model", fresh)
+    e = _Fmu(einfo, "model-exchange", "element", fresh)
     try:
         itf = _Interface(coupling, m, e)
         where = _check_outputs(outputs, m, e)
@@ -606,13 +607,14 @@ def _run_me(coupling, minfo, einfo, model_params, element_params, stop_time, out
 
 
 def _run_me_grid(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs,
-                 model_inputs, rtol, deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
+                 model_inputs, rtol, deadline: float | None = None,
+                 fresh: bool = False) -> tuple[pd.DataFrame, int, dict]:
     """Both FMUs as model exchange, their states one ODE integrated by fixed-step Radau IIA on the output grid
     (:mod:`fmusa.cosim.grid`); time events end a segment; no event indicators (:func:`choose_scheme`)."""
     from fmusa.cosim.grid import integrate_on_grid
 
-    m = _Fmu(minfo, "model-exchange", "model")
-    e = _Fmu(einfo, "model-exchange", "element")
+    m = _Fmu(minfo, "model-exchange", "model", fresh)
+    e = _Fmu(einfo, "model-exchange", "element", fresh)
     try:
         itf = _Interface(coupling, m, e)
         where = _check_outputs(outputs, m, e)
@@ -784,9 +786,9 @@ def _cs_grid(stop_time: float, step: float, output_times: np.ndarray) -> np.ndar
 
 def _run_cs(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs, model_inputs,
             rtol, step: float, iterate: bool, max_iter: int = 30,
-            deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
-    m = _Fmu(minfo, "co-simulation", "model")
-    e = _Fmu(einfo, "co-simulation", "element")
+            deadline: float | None = None, fresh: bool = False) -> tuple[pd.DataFrame, int, dict]:
+    m = _Fmu(minfo, "co-simulation", "model", fresh)
+    e = _Fmu(einfo, "co-simulation", "element", fresh)
     try:
         itf = _Interface(coupling, m, e)
         where = _check_outputs(outputs, m, e)
@@ -920,7 +922,8 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
                      stop_time: float, output_times: np.ndarray, outputs: Sequence[str],
                      model_inputs: Callable[[float], dict[str, float]] | None = None,
                      rtol: float = 1e-6, step: float | None = None, coupling_tol: float = 1e-3,
-                     max_halvings: int = 10, strict: bool = True, max_wall_s: float | None = None) -> CoupledResult:
+                     max_halvings: int = 10, strict: bool = True, max_wall_s: float | None = None,
+                     fresh_binary: bool = False) -> CoupledResult:
     """Run the model and the element together from 0 to ``stop_time``; the outputs (model variables, or
     ``element.NAME``) and the element's force ``F`` at ``output_times``.
 
@@ -928,7 +931,8 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
     the interface force. ``step`` is the first macro step of the CS schemes (default: the output spacing); they
     halve it until two runs agree within ``coupling_tol`` (relative to each column's largest value).
     ``max_wall_s`` bounds the wall time of the whole (every run of the verification): past it
-    :class:`CouplingTimeLimitError`.
+    :class:`CouplingTimeLimitError`. The FMUs' binaries are loaded once per process and each run makes fresh
+    instances; ``fresh_binary`` loads a fresh copy for this run (for a binary whose instances share state).
     """
     if not (stop_time > 0 and math.isfinite(stop_time)):
         raise CouplingError(f"stop_time = {stop_time}: use a positive, finite time")
@@ -941,14 +945,14 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
     args = (coupling, minfo, einfo, dict(model_params), dict(element_params), float(stop_time), times,
             list(outputs), model_inputs, float(rtol))
     if scheme == "me-grid":
-        frame, calls, info = _run_me_grid(*args, deadline)
+        frame, calls, info = _run_me_grid(*args, deadline, fresh_binary)
         return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
                              notes=[f"{info['steps']} Radau IIA steps on the output grid (rtol {rtol:g}; "
                                     f"{info['rejected']} steps cut in two, the smallest a sample "
                                     f"interval / {info['max_substeps']}; {info['rhs']} evaluations, "
                                     f"{info['jacobians']} Jacobians)"])
     if scheme == "me-implicit":
-        frame, calls, info = _run_me(*args, deadline)
+        frame, calls, info = _run_me(*args, deadline, fresh_binary)
         return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
                              notes=[f"{info['steps']} implicit steps (Radau, rtol {rtol:g})"])
     iterate = scheme == "cs-iterate"
@@ -958,7 +962,7 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
     notes = []
     for k in range(max_halvings + 1):
         try:
-            frame, c, info = _run_cs(*args, h, iterate, deadline=deadline)
+            frame, c, info = _run_cs(*args, h, iterate, deadline=deadline, fresh=fresh_binary)
         except CouplingError as exc:
             if "diverged" not in str(exc) and "did not converge" not in str(exc):
                 raise

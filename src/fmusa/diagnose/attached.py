@@ -72,6 +72,10 @@ class CoupledRunner:
         self.out_scale = float(interface.output_scale.get(drive, 1.0))
         self.rtol = rtol
         self.max_wall_s = max_wall_s
+        #: the reuse check's verdict ("" before the first run): instances of the FMUs' binaries loaded once per
+        #: process give the same run twice, or every run loads fresh copies (:attr:`fresh_binary`)
+        self.reuse = ""
+        self.fresh_binary = False
         #: the last coupled run's scheme, FMU calls and wall time, for what a coupled run costs
         self.last = None
         #: coupled runs made, by stage ("fit", "heldout", ...), one per experiment simulated; one lane
@@ -119,14 +123,38 @@ class CoupledRunner:
             def drive(time: float, t=t, u=u, name=name) -> dict[str, float]:
                 return {name: float(np.interp(time, t, u))}
 
+            def run(fresh: bool, t=t, drive=drive):
+                return simulate_coupled(self.coupling, model, element, float(t[-1]), t, [self.output],
+                                        model_inputs=drive, rtol=self.rtol, max_wall_s=self.max_wall_s,
+                                        fresh_binary=fresh)
+
             try:
-                res = simulate_coupled(self.coupling, model, element, float(t[-1]), t, [self.output],
-                                       model_inputs=drive, rtol=self.rtol, max_wall_s=self.max_wall_s)
+                res = run(self.fresh_binary)
+                if not self.reuse:
+                    res = self._check_reuse(res, run)
             except Exception as exc:   # the fit backs off from a failed run (calibrate._residual_fn)
                 raise RuntimeError(f"coupled run failed: {exc}") from exc
             self.last = res
             out.append(res.frame[self.output].to_numpy(float) * self.out_scale)
         return out
+
+    def _check_reuse(self, first, run):
+        """The reuse check of the first coupled run (as FMURunner checks an instance it reuses): the same run
+        again on new instances of the binaries this process has loaded must give the same numbers; when it does
+        not (an export whose instances share state through its library, which persists while the library stays
+        loaded: fmpy unloads it with its last instance, another instance or a host may keep it), every run
+        loads fresh copies, and the run is made again that way. Counted as a run."""
+        self._count(1)
+        again = run(False)
+        a, b = first.frame.to_numpy(float), again.frame.to_numpy(float)
+        if a.shape == b.shape and np.array_equal(a, b):
+            self.reuse = "instances of the binaries loaded once per process give the same run twice"
+            return first
+        diff = float(np.max(np.abs(a - b))) if a.shape == b.shape else float("inf")
+        self.fresh_binary = True
+        self.reuse = (f"a second run on new instances of the loaded binaries differed (by {diff:.3g}): every "
+                      f"coupled run loads fresh copies of the FMUs' binaries")
+        return run(True)
 
     def close(self) -> None:
         """Nothing held between runs (each coupled run makes and frees its own instances)."""

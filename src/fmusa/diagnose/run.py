@@ -509,7 +509,7 @@ def write_extended_ssp(path: Path, fmu: str, interface: ModelInterface, drive: s
 
 def coupled_cost(fmu: str, interface: ModelInterface, drive: str, diag: dict, experiment) -> dict:
     """One coupled run of the extended model on the first experiment, for what the diagnosis states about the
-    coupling: the scheme the master chose, its FMU calls and its wall and CPU time."""
+    coupling: the scheme the master chose, its FMU calls and its wall and CPU time, and the reuse check's verdict."""
     from fmusa.diagnose.calibrate import make_runner
 
     params = dict(diag["extended"]["params"])
@@ -517,4 +517,5 @@ def coupled_cost(fmu: str, interface: ModelInterface, drive: str, diag: dict, ex
     runner.predict(list(params.values()), [experiment])
     r = runner.last
     return {"scheme": r.scheme, "calls": int(r.calls), "wall_s": float(r.wall_s), "cpu_s": float(r.cpu_s),
-            "notes": list(r.notes), "experiment": experiment.name, "points": len(experiment.t)}
+            "notes": list(r.notes), "experiment": experiment.name, "points": len(experiment.t),
+            "reuse": runner.reuse}
