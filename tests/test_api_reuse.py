@@ -8,6 +8,7 @@ cached per FMU digest: a second runner does not check again.
 """
 from __future__ import annotations
 
+import os
 import warnings
 from pathlib import Path
 
@@ -18,7 +19,8 @@ import pytest
 from faulty_fmu import build_faulty, closed_form
 from fmusa.fmi.runner import FMURunner, FMUReuseWarning
 
-TORSION_BAR = Path(__file__).resolve().parents[2] / "shared" / "vendor-fmus" / "20sim464_TorsionBar.fmu"
+SHARED = Path(os.environ.get("FMUSA_SHARED_DIR") or Path(__file__).resolve().parents[2] / "shared")
+TORSION_BAR = SHARED / "vendor-fmus" / "20sim464_TorsionBar.fmu"
 
 
 @pytest.fixture(autouse=True)

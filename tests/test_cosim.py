@@ -15,6 +15,7 @@ master or the FMUs:
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,8 @@ from cosim_fmus import build_body
 from fmusa.cosim import Coupling, CouplingError, CouplingTimeLimitError, check_coupling, simulate_coupled
 
 ROOT = Path(__file__).resolve().parents[1]
-OM = ROOT.parent / "shared" / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
+SHARED = Path(os.environ.get("FMUSA_SHARED_DIR") or ROOT.parent / "shared")
+OM = SHARED / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
 ELEMENT = ROOT / "dist" / "InterfaceElement.fmu"
 
 ELEMENT_DEFAULTS = dict(c=823224.0, d=488.0, gap=0.0, nl_ratio=1.0, nl_y_b=5e-4, yield_ratio=1.0, yield_F=100.0,

@@ -6,6 +6,7 @@ coupling whose force enters the model with a sign; the archive is read and schem
 """
 from __future__ import annotations
 
+import os
 import zipfile
 from pathlib import Path
 
@@ -18,7 +19,8 @@ from fmusa.cosim.ssp import validate_ssd, write_ssp
 
 ROOT = Path(__file__).resolve().parents[1]
 ELEMENT = ROOT / "dist" / "InterfaceElement.fmu"
-OM = ROOT.parent / "shared" / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
+SHARED = Path(os.environ.get("FMUSA_SHARED_DIR") or ROOT.parent / "shared")
+OM = SHARED / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
 MODEL = {"m": 1.0, "k": 100.0, "b": 1.0, "x0": 0.01}
 ELEMENT_PARAMS = {"c": 1e4, "d": 20.0, "yield_ratio": 0.2, "yield_F": 40.0}
 T = 0.3

@@ -352,7 +352,7 @@ def test_pages_state_the_fmi_versions_fmusa_runs() -> None:
             said = {v for v in m.groups() if v}
             assert said == supported, f"{where}: {m.group(0)!r}, but fmusa runs FMI {sorted(supported)}"
     assert " or ".join(SUPPORTED_FMI_VERSIONS) in texts["fmusa --help"]
-    fmi3 = ROOT.parent / "shared" / "vendor-fmus" / "MapleSim2024_CoupledClutches_FMI3.fmu"
+    fmi3 = Path(os.environ.get("FMUSA_SHARED_DIR") or ROOT.parent / "shared") / "vendor-fmus" / "MapleSim2024_CoupledClutches_FMI3.fmu"
     if fmi3.is_file():
         assert read_fmu_info(fmi3).fmi_version == "3.0"
     if FMU.is_file():
@@ -430,3 +430,39 @@ def test_the_benchmarks_page_lists_a_measurement_with_its_machine(tmp_path) -> N
             if key.endswith(("_s", "_ms", "_per_s", "_median")) or key.startswith("bench_"):
                 src = (ROOT / "src" / "fmusa" / "bench.py").read_text(encoding="utf-8")
                 assert key in src or key.removeprefix("bench_") in src, f"{page_file.name}: `{key}` is no bench key"
+
+
+def test_the_key_pages_fail_when_docs_fields_and_loader_part() -> None:
+    """The check both key pages run (study_keys.check_section) fails on each kind of drift: an undocumented
+    field, a docstring entry without a field, a loader that allows other keys (a check that cannot fail
+    would let the pages drift silently)."""
+    import dataclasses
+    study_keys = _gen_module("study_keys")
+
+    @dataclasses.dataclass
+    class Documented:
+        """A section.
+
+        :param a: the first key.
+        :param b: the second key.
+        """
+        a: int = 1
+        b: int = 2
+
+    study_keys.check_section(Documented, frozenset(), "s", ["a", "b"], "Documented", "SECTIONS")
+    with pytest.raises(study_keys.DocsDriftError, match="allows"):
+        study_keys.check_section(Documented, frozenset(), "s", ["a", "b", "c"], "Documented", "SECTIONS")
+    with pytest.raises(study_keys.DocsDriftError, match="are not fields"):
+        study_keys.check_section(Documented, frozenset({"b"}), "s", ["a"], "Documented", "SECTIONS")
+
+    @dataclasses.dataclass
+    class Undocumented:
+        """A section.
+
+        :param a: the first key.
+        """
+        a: int = 1
+        b: int = 2
+
+    with pytest.raises(study_keys.DocsDriftError, match="b have no"):
+        study_keys.check_section(Undocumented, frozenset(), "s", ["a", "b"], "Undocumented", "SECTIONS")

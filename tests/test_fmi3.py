@@ -12,6 +12,7 @@ fmpy's own ``simulate_fmu`` on a fresh instance (CS: 1e-9 relative; ME: within t
 from __future__ import annotations
 
 import math
+import os
 import shutil
 import subprocess
 import sys
@@ -31,7 +32,7 @@ from fmusa.study.loader import load_study
 
 SRC = Path(__file__).resolve().parent / "fmus" / "fmi3_decay"
 FMI_HEADERS = Path(fmpy.__file__).resolve().parent / "c-code"
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+SHARED = Path(os.environ.get("FMUSA_SHARED_DIR") or Path(__file__).resolve().parents[1].parent / "shared")
 CLUTCHES = SHARED / "vendor-fmus" / "MapleSim2024_CoupledClutches_FMI3.fmu"
 
 K, X0, W = [1.0, 2.0], [1.0, -0.5], [[1.0, 0.0], [0.0, 1.0]]   # the model description's start values

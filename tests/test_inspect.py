@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 import subprocess
 import sys
 import zipfile
@@ -14,6 +15,9 @@ from fmusa.cli import main
 
 import contract as fmu_contract
 from fmus.me_spring.build import build_spring_fmu
+
+#: ../shared beside the repository, or $FMUSA_SHARED_DIR
+SHARED = Path(os.environ.get("FMUSA_SHARED_DIR") or Path(__file__).resolve().parents[2] / "shared")
 
 
 @pytest.fixture(scope="module")
@@ -211,7 +215,7 @@ def test_inspect_says_a_binary_that_cannot_load_cannot_run(capsys, fmu_path, tmp
     assert code == 0
     runs = _header(out)["runs here"]
     assert runs.startswith("no: the linux64 binary does not load: ") and "Fix:" in runs, runs
-    jm = Path(__file__).resolve().parents[2] / "shared" / "vendor-fmus" / "JModelica115_ControlledTemperature.fmu"
+    jm = SHARED / "vendor-fmus" / "JModelica115_ControlledTemperature.fmu"
     if jm.is_file():
         code, out, _ = _inspect(capsys, jm)
         runs = _header(out)["runs here"]
@@ -221,7 +225,7 @@ def test_inspect_says_a_binary_that_cannot_load_cannot_run(capsys, fmu_path, tmp
 def test_inspect_sources_are_summarised(capsys, tmp_path, monkeypatch):
     """An export with many sources (OpenModelica lists about 65) gets a count and three names, not a line of
     every file; --full lists them all."""
-    om = Path(__file__).resolve().parents[2] / "shared" / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
+    om = SHARED / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
     if not om.is_file():
         pytest.skip(f"{om} is not there")
     monkeypatch.setenv("COLUMNS", "300")

@@ -54,3 +54,30 @@ def test_no_machine_path_in_tracked_files() -> None:
 def test_the_pattern(line: str, bad: bool) -> None:
     """The check finds what it is for (a test that cannot fail is no test) and spares relative paths."""
     assert bool(MACHINE_PATH.search(line)) is bad
+
+
+#: a test that builds the shared folder's path from the repository's location
+SHARED_PATH = re.compile(r"""(?:parents\[\d\]|parent|ROOT\.parent)\s*/\s*["']shared["']""")
+
+
+def shared_path_problems(text: str) -> list[int]:
+    """Lines that build ``../shared`` without ``$FMUSA_SHARED_DIR`` beside them (CI, or a git worktree
+    elsewhere, lays the shared folder where the environment variable says)."""
+    return [n for n, line in enumerate(text.splitlines(), 1)
+            if SHARED_PATH.search(line) and "FMUSA_SHARED_DIR" not in line]
+
+
+def test_tests_find_the_shared_folder_through_the_environment() -> None:
+    hits = []
+    for path in (ROOT / "tests").rglob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        hits += [f"{path.relative_to(ROOT).as_posix()}:{n}" for n in shared_path_problems(text)]
+    assert not hits, ("tests that ignore $FMUSA_SHARED_DIR (write "
+                      "`Path(os.environ.get(\"FMUSA_SHARED_DIR\") or ROOT.parent / \"shared\")`):\n" + "\n".join(hits))
+
+
+def test_the_shared_path_pattern() -> None:
+    # in pieces, so that this file passes itself
+    assert shared_path_problems('OM = ROOT.parent / "' + 'shared" / "vendor-fmus"') == [1]
+    assert shared_path_problems("x = Path(__file__).resolve().parents[2] / '" + "shared'") == [1]
+    assert shared_path_problems('S = Path(os.environ.get("FMUSA_SHARED_DIR") or ROOT.parent / "shared")') == []
