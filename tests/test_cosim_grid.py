@@ -129,3 +129,25 @@ def test_event_indicators_choose_me_implicit(tmp_path):
     assert np.max(np.abs(r.frame["x"].to_numpy() - exact)) < 1e-4 * 0.01
     with pytest.raises(CouplingError, match="event indicators"):
         check_coupling(Coupling(fmu, ELEMENT, "f", "x", "v", scheme="me-grid"))
+
+
+def test_model_binary_stays_loaded_between_coupled_runs(om):
+    """Coupled runs load each FMU's binary once per process and keep it: OpenModelica's runtime makes a
+    thread-local key each time its library is loaded (and never deletes it), so loading it anew for every run
+    ran out of keys after about a thousand runs and crashed the process. After a run the export's binary is
+    still mapped, and more runs map no other copy."""
+    import sys
+    if not sys.platform.startswith("linux"):
+        pytest.skip("reads /proc/self/maps")
+    cp = Coupling(om, ELEMENT, force_input="f", displacement_output="y", velocity_output="mass.v", scheme="me-grid")
+    times = np.linspace(0.0, 0.05, 3)
+
+    def run_and_map() -> set[str]:
+        simulate_coupled(cp, {"spring.s_rel0": 0.5}, {"c": 1e3, "d": 1.0}, 0.05, times, ["y"],
+                         model_inputs=lambda t: {"f": 1.0})
+        maps = Path("/proc/self/maps").read_text()
+        return {line.split()[-1] for line in maps.splitlines() if line.endswith("Mass_Damper.so")}
+
+    first = run_and_map()
+    assert first, "the export's binary was unloaded after the run"
+    assert run_and_map() == first and run_and_map() == first

@@ -257,7 +257,29 @@ def _unpacked(info, interface: str, fresh: bool = False) -> Path:
         unzip = Path(path) if Path(path).is_dir() else Path(extract_fmu(path, work / "unpacked", to_run=True))
         if not fresh:
             _UNPACKED[key] = unzip
+            _hold_loaded(unzip, info.interfaces.get(interface, ""))
         return unzip
+
+
+_HELD: list = []
+
+
+def _hold_loaded(unzip: Path, identifier: str) -> None:
+    """Keep the unpacked binary loaded for the rest of the process. fmpy unloads a binary when its instance is
+    freed, and a coupled run frees its instances: a binary that makes a thread-local key each time it is loaded
+    and never deletes it (OpenModelica's runtime does: pthread_key_create) runs out of keys after about a
+    thousand runs and then writes into another library's slot (measured: the interpreter's own, a segfault).
+    Loaded once and kept, its initialisation runs once."""
+    import ctypes
+
+    from fmpy import platform, sharedLibraryExtension
+
+    lib = Path(unzip) / "binaries" / platform / f"{identifier}{sharedLibraryExtension}"
+    if identifier and lib.is_file():
+        try:
+            _HELD.append(ctypes.CDLL(str(lib)))
+        except OSError:       # fmpy will say why it cannot load it
+            pass
 
 
 class _Fmu:
