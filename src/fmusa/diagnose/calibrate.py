@@ -98,6 +98,12 @@ class ModelRunner:
         #: FMU runs made, by stage ("fit", "heldout", ...), one per experiment simulated
         self.runs: dict[str, int] = {}
         self.stage = "fit"
+        self._sens_outputs = sensitivity_outputs(self.runner.model_description, self.output,
+                                                 [interface.variable(n) for n in names])
+        self._sens: tuple | None = None
+        #: the FMU gives the response's derivatives by the fitted parameters in the same run
+        #: (:meth:`predict_with_jacobian`)
+        self.has_sensitivities = bool(self._sens_outputs)
 
     def _open(self) -> tuple:
         """One more instance of the FMU with its driven plan."""
@@ -131,6 +137,38 @@ class ModelRunner:
         self._count(len(experiments))
         return self._simulate(self.plan, values, experiments)
 
+    def predict_with_jacobian(self, values: Sequence[float], experiments: Sequence) -> tuple[list, list]:
+        """:meth:`predict` and, from the same run, the derivatives of each experiment's response by the fitted
+        parameters in natural units (samples x parameters), from the FMU's forward sensitivities (one run per
+        experiment, as :meth:`predict`). Only when :attr:`has_sensitivities`."""
+        if self._sens is None:
+            from fmusa.fmi.plans import DrivenPlan
+            from fmusa.fmi.runner import FMURunner
+
+            fmu_path, drive, names, fixed, rtol, interface = self._args
+            md_vars = {v.name: v for v in self.runner.model_description.modelVariables}
+            select = {f"sens_p[{k + 1}]": md_vars[interface.variable(n)].valueReference for k, n in enumerate(names)}
+            runner = FMURunner(fmu_path, instance_name="diagnose")
+            try:
+                plan = DrivenPlan(runner, [interface.variable(n) for n in names],
+                                  {**interface.settings(drive, rtol), **fixed, **select}, self.input_name,
+                                  [self.output] + self._sens_outputs)
+            except Exception:
+                runner.close()
+                raise
+            self._sens = (runner, plan)
+        self._count(len(experiments))
+        plan = self._sens[1]
+        preds, jacs = [], []
+        for e in experiments:
+            u = np.asarray(e.drive_signal)
+            data = plan(values, e.t, u if self.in_scale == 1.0 else u / self.in_scale)
+            if self.out_scale != 1.0:
+                data = data * self.out_scale
+            preds.append(data[:, 0])
+            jacs.append(data[:, 1:])
+        return preds, jacs
+
     def predict_many(self, points: Sequence[Sequence[float]], experiments: Sequence) -> list:
         """:meth:`predict` at every point, as one round on up to ``parallel`` FMU instances: per point the
         predictions, or the RuntimeError its simulation raised."""
@@ -163,7 +201,26 @@ class ModelRunner:
     def close(self) -> None:
         for runner, _ in self._extra:
             runner.close()
+        if self._sens is not None:
+            self._sens[0].close()
         self.runner.close()
+
+
+def sensitivity_outputs(model_description, output: str, parameters: Sequence[str]) -> list[str]:
+    """The FMU's outputs of the derivatives of ``output`` by each of ``parameters``, when it declares forward
+    sensitivities (Integer parameters ``sens_p[k]`` selecting a Real parameter by value reference, Real
+    outputs ``sens_<output>[k]``, k = 1.. as many as the parameters): [] when it does not, or offers fewer."""
+    md_vars = {v.name: v for v in model_description.modelVariables}
+    out = []
+    for k in range(1, len(parameters) + 1):
+        sel, der = md_vars.get(f"sens_p[{k}]"), md_vars.get(f"sens_{output}[{k}]")
+        if sel is None or der is None or sel.type != "Integer" or sel.causality != "parameter" \
+                or der.type != "Real" or der.causality != "output":
+            return []
+        out.append(der.name)
+    if any(md_vars.get(p) is None or md_vars[p].type != "Real" for p in parameters):
+        return []
+    return out
 
 
 # ---------------------------------------------------------------------- calibration
@@ -188,6 +245,9 @@ class Residuals:
         self.model, self.params, self.experiments, self.masks, self.scale = model, params, experiments, masks, scale
         self.lo, self.hi, self.rel_step = lo, hi, rel_step
         self._last: tuple[np.ndarray, np.ndarray] | None = None
+        #: the Jacobian comes with the residuals from one run (the FMU's forward sensitivities)
+        self.exact = bool(getattr(model, "has_sensitivities", False))
+        self._last_jac: tuple[np.ndarray, np.ndarray] | None = None
 
     def _values(self, x: np.ndarray) -> list[float]:
         return [p.from_x(xi) for p, xi in zip(self.params, x)]
@@ -203,6 +263,8 @@ class Residuals:
         return r if np.all(np.abs(r) <= 1e3) else np.full(n, 1e3)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
+        if self.exact:
+            return self._with_jacobian(np.array(x, float))
         try:
             preds = self.model.predict(self._values(x), self.experiments)
         except RuntimeError as exc:
@@ -211,8 +273,34 @@ class Residuals:
         self._last = (np.array(x, float), f)
         return f
 
+    def _with_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """The residuals and their Jacobian on the optimiser's scale from one run with the FMU's forward
+        sensitivities: d r / d x_j = (d prediction / d p_j) (d p_j / d x_j) / scale on the masked points, d p / d x
+        = p for a log-scaled parameter. A failed run gives the large constant residuals and a zero Jacobian."""
+        values = self._values(x)
+        try:
+            preds, jacs = self.model.predict_with_jacobian(values, self.experiments)
+        except RuntimeError as exc:
+            preds, jacs = exc, None
+        f = self._scaled(preds)
+        failed = jacs is None or bool(np.all(f == 1e3))
+        if failed:
+            J = np.zeros((len(f), len(x)))
+        else:
+            dpdx = np.array([v if p.log else 1.0 for p, v in zip(self.params, values)])
+            J = np.concatenate([jac[m] for jac, m in zip(jacs, self.masks)]) * (dpdx / self.scale)
+            if not np.all(np.isfinite(J)):
+                J = np.zeros((len(f), len(x)))
+        self._last = (x, f)
+        self._last_jac = (x, J)
+        return f
+
     def jac(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, float)
+        if self.exact:
+            if self._last_jac is None or not np.array_equal(self._last_jac[0], x):
+                self._with_jacobian(x.copy())
+            return self._last_jac[1]
         f0 = self._last[1] if self._last is not None and np.array_equal(self._last[0], x) else self(x)
         h = self.rel_step * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
         out = (x + h < self.lo) | (x + h > self.hi)
@@ -251,8 +339,9 @@ FTOL = XTOL = 1e-10
 def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None = None) -> optimize.OptimizeResult:
     """One bounded trust-region fit from x0 (nudged inside the bounds, which trf requires)."""
     x0 = np.clip(x0, lo + 1e-12 * (hi - lo), hi - 1e-12 * (hi - lo))
-    # one FMU instance: scipy's own forward differences (the same runs, one after another)
-    jac = fn.jac if fn.model.parallel > 1 else "2-point"
+    # the FMU's forward sensitivities: the Jacobian of the run that gave the residuals; otherwise, on one FMU
+    # instance, scipy's own forward differences (the same runs, one after another)
+    jac = fn.jac if fn.exact or fn.model.parallel > 1 else "2-point"
     return optimize.least_squares(fn, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
                                   diff_step=fn.rel_step, max_nfev=max_nfev, xtol=tol or XTOL, ftol=tol or FTOL)
 
