@@ -159,7 +159,7 @@ sweep: $(STAMP) $(FMU)
 	$(VENV)/bin/fmusa sweep studies/paper.yaml --out out/paper
 
 test: $(STAMP) $(FMU) $(EL_FMU) $(MODELICA_STAMP)
-	$(VENV)/bin/pytest -q -p no:cacheprovider tests
+	$(VENV)/bin/pytest -q -p no:cacheprovider --durations=30 tests
 
 # The whole identifiability table through the FMU (`make test` runs a representative subset of its cells).
 identifiability: $(STAMP) $(FMU)

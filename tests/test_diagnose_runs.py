@@ -119,3 +119,57 @@ def test_a_jacobian_round_in_parallel_is_the_same_as_one_run_after_another(fmu_p
             model.close()
     assert np.array_equal(jacs[0], jacs[1])
     assert np.all(np.isfinite(jacs[0])) and np.linalg.matrix_rank(jacs[0]) == len(params)
+
+
+def test_a_chain_fit_that_cannot_be_significant_makes_no_heldout_runs(counted):
+    """The chain's additions that fail the in-sample tests against the model so far (or its physics check)
+    cannot be its next step, so they make no held-out refits; the others make them. Every fit states its
+    rounds, and the diagnosis the rounds it waited for one after another (its depth)."""
+    from fmusa.diagnose.calibrate import Fit, can_be_significant
+    from fmusa.diagnose.rank import Thresholds
+
+    d, _ = counted
+    runs, th = d["runs"], Thresholds()
+    assert runs["chain"]
+    for name, r in runs["chain"].items():
+        assert (r["heldout"] == 0) == bool(r.get("heldout_skipped")), (name, r)
+    skipped = [n for n, r in runs["chain"].items() if r.get("heldout_skipped")]
+    assert skipped, "the offset data leave no significant second effect: its held-out refits must be skipped"
+    # the named chain never holds a skipped fit, and what was skipped fails the in-sample tests or physics
+    assert not set(skipped) & {s["model"] for s in d["chain"][1:]}
+    first = d["extended"]
+    base = Fit(effect="", params={}, ci95={}, rss=first["rmse"] ** 2 * first["n"], n=first["n"], k=first["k"],
+               rmse=first["rmse"])
+    assert can_be_significant(base, base, th.delta_bic, th.p_value)      # no gain: cannot be significant
+    from fmusa.diagnose.runs_report import runs_section
+
+    assert "no held-out refits: it cannot be the chain's next step" in runs_section(d)
+    # with one FMU instance per fit, each run is its own round; the depth is the longest fit of the first round
+    # plus the longest of each chain step
+    assert all(r["rounds"] == r["total"] for r in [runs["baseline"], *runs["candidates"].values()])
+    first_round = max(r["rounds"] for r in [runs["baseline"], *runs["candidates"].values()])
+    assert runs["depth"] == first_round + max(r["rounds"] for r in runs["chain"].values())
+
+
+def test_heldout_refits_at_once_are_the_same_as_one_after_another(fmu_path, experiment):
+    """The held-out refits run at once on several FMU instances give the same folds as one after another,
+    with the same runs, in fewer rounds."""
+    from fmusa.diagnose.calibrate import calibrate, heldout_folds
+    from fmusa.diagnose.effects import data_scales, model_parameters
+
+    sc = data_scales([experiment])
+    names = [p.name for p in model_parameters("sensor_offset", "force", sc)]
+    fit, out = None, []
+    for lanes in (1, 4):
+        model = ModelRunner(fmu_path, "force", names, parallel=lanes)
+        try:
+            if fit is None:
+                fit = calibrate(model, "sensor_offset", "force", [experiment], sc, max_starts=1)
+            model.runs, model.rounds = {}, {}
+            out.append((heldout_folds(model, fit, "force", [experiment], sc), dict(model.runs), dict(model.rounds)))
+        finally:
+            model.close()
+    (one, runs1, rounds1), (four, runs4, rounds4) = out
+    assert one == four and len(one) == 4
+    assert runs1 == runs4 and rounds1["heldout"] == runs1["heldout"]
+    assert rounds4["heldout"] < runs4["heldout"] / 2

@@ -430,3 +430,39 @@ def test_the_benchmarks_page_lists_a_measurement_with_its_machine(tmp_path) -> N
             if key.endswith(("_s", "_ms", "_per_s", "_median")) or key.startswith("bench_"):
                 src = (ROOT / "src" / "fmusa" / "bench.py").read_text(encoding="utf-8")
                 assert key in src or key.removeprefix("bench_") in src, f"{page_file.name}: `{key}` is no bench key"
+
+
+def test_the_key_pages_fail_when_docs_fields_and_loader_part() -> None:
+    """The check both key pages run (study_keys.check_section) fails on each kind of drift: an undocumented
+    field, a docstring entry without a field, a loader that allows other keys (a check that cannot fail
+    would let the pages drift silently)."""
+    import dataclasses
+    study_keys = _gen_module("study_keys")
+
+    @dataclasses.dataclass
+    class Documented:
+        """A section.
+
+        :param a: the first key.
+        :param b: the second key.
+        """
+        a: int = 1
+        b: int = 2
+
+    study_keys.check_section(Documented, frozenset(), "s", ["a", "b"], "Documented", "SECTIONS")
+    with pytest.raises(study_keys.DocsDriftError, match="allows"):
+        study_keys.check_section(Documented, frozenset(), "s", ["a", "b", "c"], "Documented", "SECTIONS")
+    with pytest.raises(study_keys.DocsDriftError, match="are not fields"):
+        study_keys.check_section(Documented, frozenset({"b"}), "s", ["a"], "Documented", "SECTIONS")
+
+    @dataclasses.dataclass
+    class Undocumented:
+        """A section.
+
+        :param a: the first key.
+        """
+        a: int = 1
+        b: int = 2
+
+    with pytest.raises(study_keys.DocsDriftError, match="b have no"):
+        study_keys.check_section(Undocumented, frozenset(), "s", ["a", "b"], "Undocumented", "SECTIONS")

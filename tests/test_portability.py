@@ -234,9 +234,14 @@ def test_a_study_runs_and_resumes_in_a_windows_like_python(tmp_path, fmu_path):
     text = _small_paper_text()
     out = tmp_path / "sim"
     out.mkdir()
+    # A temporary folder of its own: its extraction folders are locked with the simulated msvcrt (POSIX
+    # record locks), which another fmusa on this machine, locking with flock, cannot see.
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
     r = subprocess.run([sys.executable, "-c", SIMULATED_STUDY, text, str(fmu_path), str(out)],
                        capture_output=True, text=True, encoding="utf-8", timeout=600, cwd=str(ROOT),
-                       env=_env(PYTHONPATH=f"{site}{os.pathsep}{SRC}", FMUSA_FMU=str(fmu_path)))
+                       env=_env(PYTHONPATH=f"{site}{os.pathsep}{SRC}", FMUSA_FMU=str(fmu_path), TMPDIR=str(tmp),
+                                TEMP=str(tmp), TMP=str(tmp)))
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     res = json.loads(r.stdout.split("@@")[-1])
     assert res["start_method"] == "spawn"

@@ -11,10 +11,9 @@ import re
 import tempfile
 from pathlib import Path
 
-import yaml
-
 import study_keys
-from study_keys import DocsDriftError, entries, intro, keys_of, markdown, param_entries, yaml_type
+from study_keys import (DocsDriftError, check_section, entries, intro, keys_of,  # noqa: F401 (DocsDriftError: re-exported)
+                        keys_the_loader_allows, markdown, yaml_type)
 
 from fmusa.diagnose import study as ds
 
@@ -47,7 +46,7 @@ def probe_study(csv: Path) -> dict:
 
 
 def loader_keys(section: str) -> list[str]:
-    """The keys the loader allows in ``section``, read from its error for an unknown key there."""
+    """The keys the diagnosis loader allows in ``section``."""
     with tempfile.TemporaryDirectory() as tmp:
         csv = Path(tmp) / "t.csv"
         csv.write_text("time,displacement,force\n0,0,0\n")
@@ -55,33 +54,14 @@ def loader_keys(section: str) -> list[str]:
         node: dict = study
         for part in section.split(".") if section else []:
             node = node[{"<drive>": "displacement", "<role>": "stiffness"}.get(part, part)]
-        node[study_keys.PROBE_KEY] = 1
-        try:
-            ds.parse_diagnosis_study(yaml.safe_dump(study, sort_keys=False))
-        except ds.StudyError as exc:
-            m = re.search(r"key '" + study_keys.PROBE_KEY + r"' is not allowed.*\(allowed: ([^)]*)\)", str(exc))
-            if m:
-                return [k.strip() for k in m.group(1).split(",")]
-            raise DocsDriftError(f"the diagnosis loader did not reject an unknown key in '{section or 'top level'}'"
-                                 f" as expected: {exc}; update docs/_gen/diagnosis_keys.py") from None
-    raise DocsDriftError(f"the diagnosis loader accepted the unknown key in '{section or 'top level'}'")
+        return keys_the_loader_allows(ds.parse_diagnosis_study, ds.StudyError, study, node, section,
+                                      "update docs/_gen/diagnosis_keys.py's probe_study")
 
 
 def check(section: str, cls: type, excluded: frozenset[str]) -> None:
     """Raise :class:`DocsDriftError` when the docstring, the fields and the loader disagree."""
-    fields = [f.name for f in keys_of(cls, excluded)]
-    docs = entries(cls)
-    where = f"fmusa.diagnose.study.{cls.__name__}"
-    missing = [k for k in fields if k not in docs]
-    if missing:
-        raise DocsDriftError(f"{where}: field(s) {', '.join(missing)} have no ':param <key>: text' entry")
-    extra = [k for k in param_entries(cls) if k not in fields]
-    if extra:
-        raise DocsDriftError(f"{where}: docstring entries {', '.join(extra)} are not fields; remove them")
-    allowed = loader_keys(section)
-    if sorted(allowed) != sorted(fields):
-        raise DocsDriftError(f"{where}: the loader allows {sorted(allowed)} in '{section or 'top level'}' but the "
-                             f"dataclass has {sorted(fields)}")
+    check_section(cls, excluded, section, loader_keys(section), f"fmusa.diagnose.study.{cls.__name__}",
+                  "docs/_gen/diagnosis_keys.py SECTIONS")
 
 
 def render() -> str:

@@ -14,6 +14,7 @@ import copy
 import dataclasses
 import re
 from dataclasses import MISSING
+from typing import Callable
 
 import yaml
 
@@ -167,8 +168,46 @@ def _default(f: dataclasses.Field) -> str | None:
     return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("...").strip()
 
 
-def loader_keys(section: str) -> list[str] | None:
-    """The keys the loader allows in ``section``, read from its error for an unknown key there."""
+def keys_the_loader_allows(parse: Callable[[str], object], error: type[Exception], study: dict, node: dict,
+                           section: str, hint: str) -> list[str]:
+    """The keys a loader allows in one section: ``node`` (a mapping inside ``study``) gets an unknown key,
+    ``parse`` reads the study, and the "(allowed: ...)" of its ``error`` is returned. ``hint`` names what to
+    update when the loader does not answer that way."""
+    node[PROBE_KEY] = 1
+    where = section or "top level"
+    try:
+        parse(yaml.safe_dump(study, sort_keys=False))
+    except error as exc:
+        m = re.search(r"key '" + PROBE_KEY + r"' is not allowed.*\(allowed: ([^)]*)\)", str(exc))
+        if m:
+            return [k.strip() for k in m.group(1).split(",")]
+        raise DocsDriftError(f"the loader did not reject an unknown key in '{where}' as expected: {exc}; "
+                             f"{hint}") from None
+    raise DocsDriftError(f"the loader accepted the unknown key {PROBE_KEY!r} in '{where}'")
+
+
+def check_section(cls: type, excluded: frozenset[str], section: str, allowed: list[str] | None, where: str,
+                  fix: str) -> None:
+    """Raise :class:`DocsDriftError` when the docstring of ``cls``, its fields and the keys the loader
+    ``allowed`` disagree (``where`` names the class, ``fix`` where a non-key field is listed)."""
+    fields = [f.name for f in keys_of(cls, excluded)]
+    docs = entries(cls)
+    missing = [k for k in fields if k not in docs]
+    if missing:
+        raise DocsDriftError(f"{where}: field(s) {', '.join(missing)} have no ':param <key>: text' entry in the "
+                             f"class docstring (nor a '#: text' comment above the field); add one (the "
+                             f"reference page is made from it)")
+    extra = [k for k in param_entries(cls) if k not in fields]
+    if extra:
+        raise DocsDriftError(f"{where}: docstring entries {', '.join(extra)} are not fields; remove them")
+    if allowed is not None and sorted(allowed) != sorted(fields):
+        raise DocsDriftError(f"{where}: the loader allows {sorted(allowed)} in '{section or 'top level'}' but "
+                             f"the dataclass has {sorted(fields)}; give the dataclass (and its docstring) "
+                             f"the loader's keys, or list a non-key field in {fix}")
+
+
+def loader_keys(section: str) -> list[str]:
+    """The keys the study loader allows in ``section``."""
     from fmusa.api import parse_study
     from fmusa.study.schema import StudyError
     study = copy.deepcopy(PROBE_STUDY)
@@ -183,36 +222,14 @@ def loader_keys(section: str) -> list[str] | None:
             node = node[0]
     if section == "fixed.<name>":
         node = study["fixed"]["t_ramp"]
-    node[PROBE_KEY] = 1                             # type: ignore[index]
-    try:
-        parse_study(yaml.safe_dump(study, sort_keys=False))
-    except StudyError as exc:
-        m = re.search(r"key '" + PROBE_KEY + r"' is not allowed.*\(allowed: ([^)]*)\)", str(exc))
-        if m:
-            return [k.strip() for k in m.group(1).split(",")]
-        raise DocsDriftError(f"the loader did not reject an unknown key in '{section or 'top level'}' as "
-                             f"expected: {exc}; update docs/_gen/study_keys.py's PROBE_STUDY") from None
-    raise DocsDriftError(f"the loader accepted the unknown key {PROBE_KEY!r} in '{section or 'top level'}'")
+    return keys_the_loader_allows(parse_study, StudyError, study, node, section,  # type: ignore[arg-type]
+                                  "update docs/_gen/study_keys.py's PROBE_STUDY")
 
 
 def check(section: str, cls: type, excluded: frozenset[str]) -> None:
     """Raise :class:`DocsDriftError` when the docstring, the fields and the loader disagree."""
-    fields = [f.name for f in keys_of(cls, excluded)]
-    docs = entries(cls)
-    where = f"fmusa.study.schema.{cls.__name__}"
-    missing = [k for k in fields if k not in docs]
-    if missing:
-        raise DocsDriftError(f"{where}: field(s) {', '.join(missing)} have no ':param <key>: text' entry in the "
-                             f"class docstring (nor a '#: text' comment above the field); add one (the "
-                             f"study-file reference page is made from it)")
-    extra = [k for k in param_entries(cls) if k not in fields]
-    if extra:
-        raise DocsDriftError(f"{where}: docstring entries {', '.join(extra)} are not fields; remove them")
-    allowed = loader_keys(section)
-    if allowed is not None and sorted(allowed) != sorted(fields):
-        raise DocsDriftError(f"{where}: the loader allows {sorted(allowed)} in '{section or 'top level'}' but "
-                             f"the dataclass has {sorted(fields)}; give the dataclass (and its docstring) "
-                             f"the loader's keys, or list a non-key field in docs/_gen/study_keys.py SECTIONS")
+    check_section(cls, excluded, section, loader_keys(section), f"fmusa.study.schema.{cls.__name__}",
+                  "docs/_gen/study_keys.py SECTIONS")
 
 
 def render() -> str:

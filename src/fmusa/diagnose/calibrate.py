@@ -23,7 +23,7 @@ from fmusa.diagnose.interface import ModelInterface
 from fmusa.diagnose.models import resolve
 from fmusa.diagnose.intervals import interval_report
 
-__all__ = ["Fit", "ModelRunner", "calibrate", "MIN_EXPERIMENTS_LEFT_OUT", "heldout_masks", "heldout_folds",
+__all__ = ["Fit", "ModelRunner", "Lane", "calibrate", "nested_p_value", "can_be_significant", "MIN_EXPERIMENTS_LEFT_OUT", "heldout_masks", "heldout_folds",
            "pooled_heldout", "heldout_rmse", "unify_equivalent", "fit_candidate", "make_runner"]
 
 
@@ -59,6 +59,11 @@ class Fit:
     cached: bool = False
     #: how ci95 was made (:func:`intervals.interval_report`): method, phi, n_eff, and the Gauss–Newton intervals
     intervals: dict = field(default_factory=dict)
+    #: rounds of FMU runs waited for one after another, by stage (a round: one run, or one Jacobian's columns
+    #: or several held-out refits' runs at once on several FMU instances): the fit's wall time on a slow FMU
+    rounds: dict[str, int] = field(default_factory=dict)
+    #: why the held-out refits were not made (a fit that cannot be significant: :func:`can_be_significant`)
+    heldout_skipped: str = ""
 
     @property
     def aic(self) -> float:
@@ -67,6 +72,27 @@ class Fit:
     @property
     def bic(self) -> float:
         return self.n * math.log(self.rss / self.n) + self.k * math.log(self.n)
+
+
+def nested_p_value(base: Fit, ext: Fit) -> float:
+    """F test of the extra parameters of a nested model (white-noise assumption)."""
+    dk = ext.k - base.k
+    dof = ext.n - ext.k
+    if dk <= 0 or dof <= 0 or ext.rss <= 0:
+        return 1.0
+    F = max(base.rss - ext.rss, 0.0) / dk / (ext.rss / dof)
+    return float(stats.f.sf(F, dk, dof))
+
+
+def can_be_significant(ext: Fit, base: Fit, delta_bic: float, p_value: float) -> str:
+    """Empty when ``ext`` passes the two in-sample tests of significance against ``base`` (ΔBIC below
+    ``delta_bic``, nested F test's p below ``p_value``), else why not: a fit that fails either cannot be
+    significant whatever its held-out score (:func:`rank.rank_candidates` needs all three)."""
+    d_bic, p = ext.bic - base.bic, nested_p_value(base, ext)
+    if d_bic < delta_bic and p < p_value:
+        return ""
+    return (f"cannot be significant against the model it extends (ΔBIC {d_bic:.3g}, needs < {delta_bic:g}; "
+            f"p {p:.3g}, needs < {p_value:g}): its held-out score would not change that")
 
 
 # ---------------------------------------------------------------------- simulation
@@ -97,6 +123,8 @@ class ModelRunner:
         self._extra: list[tuple] = []
         #: FMU runs made, by stage ("fit", "heldout", ...), one per experiment simulated
         self.runs: dict[str, int] = {}
+        #: rounds waited for one after another, by stage (:attr:`Fit.rounds`)
+        self.rounds: dict[str, int] = {}
         self.stage = "fit"
         self._sens_outputs = sensitivity_outputs(self.runner.model_description, self.output,
                                                  [interface.variable(n) for n in names])
@@ -104,6 +132,9 @@ class ModelRunner:
         #: the FMU gives the response's derivatives by the fitted parameters in the same run
         #: (:meth:`predict_with_jacobian`)
         self.has_sensitivities = bool(self._sens_outputs)
+        import threading
+
+        self._lock = threading.Lock()
 
     def _open(self) -> tuple:
         """One more instance of the FMU with its driven plan."""
@@ -121,10 +152,13 @@ class ModelRunner:
             raise
         return runner, plan
 
-    def _count(self, n: int) -> None:
+    def _count(self, n: int, rounds: int = 1) -> None:
         from fmusa.diagnose.budget import take
 
-        take(self.runs, self.stage, n)
+        with self._lock:      # the held-out refits count from several threads at once
+            take(self.runs, self.stage, n)
+            if rounds:
+                self.rounds[self.stage] = self.rounds.get(self.stage, 0) + rounds
 
     def _simulate(self, plan, values: Sequence[float], experiments: Sequence) -> list[np.ndarray]:
         if self.in_scale == 1.0 and self.out_scale == 1.0:
@@ -172,8 +206,16 @@ class ModelRunner:
     def predict_many(self, points: Sequence[Sequence[float]], experiments: Sequence) -> list:
         """:meth:`predict` at every point, as one round on up to ``parallel`` FMU instances: per point the
         predictions, or the RuntimeError its simulation raised."""
-        self._count(len(points) * len(experiments))
+        self._count(len(points) * len(experiments), -(-len(points) // max(1, self.parallel)))
+        return self._round(self._plans(min(self.parallel, len(points))), points, experiments)
 
+    def _plans(self, n: int) -> list:
+        """The driven plans of ``n`` instances of the FMU (opened when first needed)."""
+        while len(self._extra) < n - 1:
+            self._extra.append(self._open())
+        return [self.plan] + [p for _, p in self._extra[:max(0, n - 1)]]
+
+    def _round(self, plans: list, points: Sequence[Sequence[float]], experiments: Sequence) -> list:
         def run(plan, pts):
             out = []
             for v in pts:
@@ -183,20 +225,24 @@ class ModelRunner:
                     out.append(exc)
             return out
 
-        lanes = min(self.parallel, len(points))
+        lanes = min(len(plans), len(points))
         if lanes <= 1:
-            return run(self.plan, points)
-        while len(self._extra) < lanes - 1:
-            self._extra.append(self._open())
-        plans = [self.plan] + [p for _, p in self._extra[:lanes - 1]]
+            return run(plans[0], points)
         from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(lanes) as ex:
-            parts = list(ex.map(run, plans, [list(points[i::lanes]) for i in range(lanes)]))
+            parts = list(ex.map(run, plans[:lanes], [list(points[i::lanes]) for i in range(lanes)]))
         out: list = [None] * len(points)
         for i, part in enumerate(parts):
             out[i::lanes] = part
         return out
+
+    def lanes(self, n: int) -> list["Lane"]:
+        """This runner's instances shared out among ``n`` fits run at once in threads (the held-out refits):
+        each lane one instance or more, its runs counted here, its rounds on its own (:attr:`Lane.rounds`)."""
+        n = max(1, min(n, self.parallel))
+        plans = self._plans(self.parallel)
+        return [Lane(self, plans[i::n]) for i in range(n)]
 
     def close(self) -> None:
         for runner, _ in self._extra:
@@ -221,6 +267,27 @@ def sensitivity_outputs(model_description, output: str, parameters: Sequence[str
     if any(md_vars.get(p) is None or md_vars[p].type != "Real" for p in parameters):
         return []
     return out
+
+
+class Lane:
+    """Some of a :class:`ModelRunner`'s FMU instances, for one of several fits run at once: runs as the runner's
+    (counted there, under its stage), rounds counted here, since the lanes' rounds overlap. Finite-difference
+    Jacobians only."""
+
+    has_sensitivities = False
+
+    def __init__(self, owner: ModelRunner, plans: list) -> None:
+        self.owner, self.plans, self.parallel, self.rounds = owner, plans, len(plans), 0
+
+    def predict(self, values: Sequence[float], experiments: Sequence) -> list[np.ndarray]:
+        self.owner._count(len(experiments), 0)
+        self.rounds += 1
+        return self.owner._simulate(self.plans[0], values, experiments)
+
+    def predict_many(self, points: Sequence[Sequence[float]], experiments: Sequence) -> list:
+        self.owner._count(len(points) * len(experiments), 0)
+        self.rounds += -(-len(points) // self.parallel)
+        return self.owner._round(self.plans, points, experiments)
 
 
 # ---------------------------------------------------------------------- calibration
@@ -333,7 +400,7 @@ def _bounds(params: list[Param]) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: the trust-region loop's stopping tolerances on the cost and the step (scipy's ftol, xtol)
-FTOL = XTOL = 1e-10
+FTOL = XTOL = 1e-6
 
 
 def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None = None) -> optimize.OptimizeResult:
@@ -377,14 +444,14 @@ AGREE_DBIC = 0.1
 
 def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence, sc: Scales,
               max_starts: int = 6, max_nfev: int = 60, held: Sequence[str] = (),
-              start: dict | None = None, agree: int = 0) -> Fit:
+              start: dict | None = None, agree: int = 0, skip: int = 0) -> Fit:
     """Multi-start bounded least squares of the response channel on all experiments jointly.
 
     ``held``: parameters of the model that are not fitted; ``model`` must have been built without them
     (their values in its ``fixed``), and the fit's params, intervals and k leave them out. ``start``: a first
     start in natural units (e.g. from a direct fit of the data), tried before the generic ones. ``agree``:
     stop trying starts once that many have reached the best cost so far (within :data:`AGREE_DBIC`); 0 tries
-    them all."""
+    them all. ``skip``: leave out that many starts from the front (those an earlier fit tried), but never all."""
     params = [p for p in model_parameters(effect, drive, sc) if p.name not in held]
     scale = _response_scale(drive, sc)
     masks = [np.ones(len(e.t), bool) for e in experiments]
@@ -394,6 +461,7 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
     if start:
         starts = [np.array([p.to_x(min(max(float(start.get(p.name, p.starts[0])), p.lower), p.upper))
                             for p in params])] + starts
+    starts = starts[min(skip, len(starts) - 1):]
     model.stage = "fit"
     n_points = sum(len(e.t) for e in experiments)
     costs: list[float] = []
@@ -464,24 +532,44 @@ def heldout_folds(model: ModelRunner, fit: Fit, drive: str, experiments: Sequenc
     their count.
 
     Each refit starts from the all-data optimum (one start, to keep the cost at a few fits); ``held`` as in
-    :func:`calibrate`."""
+    :func:`calibrate`. With several FMU instances (``model.parallel`` > 1) the refits run at once in threads,
+    the instances shared out among them (:meth:`ModelRunner.lanes`): a slow FMU waits for the slowest refit,
+    not for all of them one after another. Each refit is the same computation whichever lane runs it."""
     params = [p for p in model_parameters(fit.effect, drive, sc) if p.name not in held]
     scale = _response_scale(drive, sc)
     lo, hi = _bounds(params)
     x_full = np.array([p.to_x(min(max(fit.params[p.name], p.lower), p.upper)) for p in params])
-    folds = []
     model.stage = "heldout"
-    for held in heldout_masks(experiments):
-        train = [~m for m in held]
-        fn = Residuals(model, params, experiments, train, scale, lo, hi)
+    masks = heldout_masks(experiments)
+
+    def refit(runner, held_out) -> dict:
+        fn = Residuals(runner, params, experiments, [~m for m in held_out], scale, lo, hi)
         res = _least_squares(fn, x_full, lo, hi, max_nfev)
-        values = [p.from_x(x) for p, x in zip(params, res.x)]
-        preds = model.predict(values, experiments)
+        preds = runner.predict([p.from_x(x) for p, x in zip(params, res.x)], experiments)
         sq, count = 0.0, 0
-        for pr, e, m in zip(preds, experiments, held):
+        for pr, e, m in zip(preds, experiments, held_out):
             sq += float(np.sum((pr - e.response_signal)[m] ** 2))
             count += int(m.sum())
-        folds.append({"train_cost": float(res.cost), "sq": sq, "count": count})
+        return {"train_cost": float(res.cost), "sq": sq, "count": count}
+
+    # one after another: one instance, a coupled runner, or an FMU whose Jacobian is one run already
+    if model.parallel <= 1 or not hasattr(model, "lanes") or len(masks) < 2 \
+            or getattr(model, "has_sensitivities", False):
+        return [refit(model, m) for m in masks]
+    from concurrent.futures import ThreadPoolExecutor
+
+    lanes = model.lanes(len(masks))
+
+    def run_lane(i: int) -> list[dict]:
+        return [refit(lanes[i], m) for m in masks[i::len(lanes)]]
+
+    with ThreadPoolExecutor(len(lanes)) as ex:
+        parts = list(ex.map(run_lane, range(len(lanes))))
+    with model._lock:
+        model.rounds["heldout"] = model.rounds.get("heldout", 0) + max(lane.rounds for lane in lanes)
+    folds: list = [None] * len(masks)
+    for i, part in enumerate(parts):
+        folds[i::len(lanes)] = part
     return folds
 
 
@@ -534,13 +622,17 @@ def unify_equivalent(fits: dict[str, Fit]) -> dict[str, Fit]:
 
 def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
                   max_starts: int = 6, interface: ModelInterface | None = None, parallel: int = 1,
-                  agree: int = 0, start: dict | None = None) -> Fit:
+                  agree: int = 0, start: dict | None = None, gate: dict | None = None, skip: int = 0) -> Fit:
     """Calibrate one model and score it on held-out data (runs in a worker process).
 
     Under a drive of one constant rate (:func:`effects.constant_rate`) the damping is held at 0: its
     force d*v is a constant there, which the fit would trade against the stiffness (a baseline fitted a
     constant 150 N through d*v with the stiffness -> 0). ``parallel``: FMU instances for the rounds of a
-    Jacobian; ``agree``, ``start``: as in :func:`calibrate`. The fit's ``runs`` counts its FMU runs by stage; when
+    Jacobian; ``agree``, ``start``, ``skip``: as in :func:`calibrate`. ``gate``: the model this one extends (``rss``, ``n``,
+    ``k``) and the thresholds (``delta_bic``, ``p_value``), and with ``physics`` the check of its parameters against
+    what the tests support: when the fit cannot be significant against that model (:func:`can_be_significant`)
+    or is implausible (:func:`plausibility.implausible`), and so cannot be chosen whatever its held-out score,
+    its held-out refits are not made (``heldout_skipped`` says why, the held-out RMSE is NaN). The fit's ``runs`` counts its FMU runs by stage; when
     the run budget ends, :class:`~fmusa.diagnose.budget.BudgetExhausted` carries them out in ``runs``."""
     from fmusa.diagnose.budget import BudgetExhausted
 
@@ -552,10 +644,14 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
     model = make_runner(fmu_path, drive, names, fixed, interface, parallel=parallel)
     try:
         fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed),
-                        agree=agree, start=start)
-        fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc, held=tuple(fixed))
-        fit.heldout_rmse = pooled_heldout(fit.heldout_folds)
+                        agree=agree, start=start, skip=skip)
+        if gate:
+            fit.heldout_skipped = _gated(fit, effect, gate, {**fit.params, **fixed}, experiments)
+        if not fit.heldout_skipped:
+            fit.heldout_folds = heldout_folds(model, fit, drive, experiments, sc, held=tuple(fixed))
+            fit.heldout_rmse = pooled_heldout(fit.heldout_folds)
         fit.runs = dict(model.runs)
+        fit.rounds = dict(getattr(model, "rounds", {}) or {})
     except Exception as exc:   # the runs spent go with the error (BudgetExhausted, or a fit that failed)
         exc.runs = dict(model.runs)
         raise
@@ -568,6 +664,18 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
                     **{k: v for k, v in fit.ci95.items() if k != STIFFNESS}}
         fit.held = {DAMPING: {"value": 0.0, "why": const["why"], "identifying_test": const["identifying_test"]}}
     return fit
+
+
+def _gated(fit: Fit, effect: str, gate: dict, params: dict, experiments: Sequence) -> str:
+    """Why a fit's held-out refits are not worth their runs (see :func:`fit_candidate`), or empty."""
+    base = Fit(effect="", params={}, ci95={}, rss=gate["rss"], n=gate["n"], k=gate["k"], rmse=0.0)
+    why = can_be_significant(fit, base, gate["delta_bic"], gate["p_value"])
+    if why or not gate.get("physics"):
+        return why
+    from fmusa.diagnose.plausibility import implausible, support_of
+
+    bad = implausible(effect, params, support_of(experiments))
+    return ("implausible: " + "; ".join(b["why"] for b in bad)) if bad else ""
 
 
 def make_runner(fmu_path: str, drive: str, names: Sequence[str], fixed: dict, interface: ModelInterface,

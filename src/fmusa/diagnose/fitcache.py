@@ -24,7 +24,7 @@ from fmusa.files import atomic_write
 
 __all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits"]
 
-#: (fmu path, candidate, drive, experiments, max_starts, interface[, parallel, agree, start]): the
+#: (fmu path, candidate, drive, experiments, max_starts, interface[, parallel, agree, start, gate]): the
 #: arguments of fit_candidate.
 FitJob = tuple
 
@@ -80,6 +80,7 @@ def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
         if replace(interface, name="") != default:
             h.update(repr(replace(interface, name="")).encode())
     h.update(b"|chain-start")     # the chain's fits start from the model so far
+    h.update(b"|tol1e-6|chain-starts2")    # stopping tolerances 1e-6; the chain's generic starts capped
     if agree:       # starts stopped once they agree: another fit than all of them
         h.update(f"|agree{agree}".encode())
     h.update(Path(fmu).read_bytes() if Path(fmu).is_file() else str(fmu).encode())
@@ -95,7 +96,8 @@ def fit_to_json(f: Fit, key: str) -> dict:
             "rss": f.rss, "n": f.n, "k": f.k, "rmse": f.rmse, "heldout_rmse": f.heldout_rmse,
             "predictions": [p.tolist() for p in f.predictions], "starts_tried": f.starts_tried, "nfev": f.nfev,
             "heldout_folds": list(f.heldout_folds), "at_bounds": list(f.at_bounds), "held": dict(f.held),
-            "runs": dict(f.runs), "start_costs": list(f.start_costs),
+            "runs": dict(f.runs), "start_costs": list(f.start_costs), "rounds": dict(f.rounds),
+            "heldout_skipped": f.heldout_skipped,
             "intervals": {k: ({n: list(v) for n, v in x.items()} if k == "gauss_newton" else x)
                           for k, x in f.intervals.items()}}
 
@@ -108,6 +110,7 @@ def fit_from_json(d: dict) -> Fit:
                nfev=d["nfev"], heldout_folds=list(d.get("heldout_folds") or []),
                at_bounds=list(d.get("at_bounds") or []), held=dict(d.get("held") or {}),
                runs=dict(d.get("runs") or {}), start_costs=list(d.get("start_costs") or []),
+               rounds=dict(d.get("rounds") or {}), heldout_skipped=str(d.get("heldout_skipped") or ""),
                intervals={k: ({n: tuple(v) for n, v in x.items()} if k == "gauss_newton" else x)
                           for k, x in (d.get("intervals") or {}).items()})
 

@@ -14,9 +14,8 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy import stats
 
-from fmusa.diagnose.calibrate import Fit
+from fmusa.diagnose.calibrate import Fit, nested_p_value
 from fmusa.diagnose.effects import BASELINE_LOOK_ALIKES, equivalent_by_construction, separating_test
 
 __all__ = ["Thresholds", "nested_p_value", "effect_size", "rank_candidates", "choose_effect", "PROTOCOL_FEATURES",
@@ -68,16 +67,6 @@ def equivalent_by_fit(a: Fit, b: Fit, th: Thresholds = Thresholds()) -> dict | N
     if noise > 0 and rms < th.same_prediction * noise:
         return {"prediction_rms_difference": rms, "noise": noise}
     return None
-
-
-def nested_p_value(base: Fit, ext: Fit) -> float:
-    """F test of the extra parameters of a nested model (white-noise assumption)."""
-    dk = ext.k - base.k
-    dof = ext.n - ext.k
-    if dk <= 0 or dof <= 0 or ext.rss <= 0:
-        return 1.0
-    F = max(base.rss - ext.rss, 0.0) / dk / (ext.rss / dof)
-    return float(stats.f.sf(F, dk, dof))
 
 
 def effect_size(base: Fit, ext: Fit, response_range: float, noise: float | None = None,

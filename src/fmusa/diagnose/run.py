@@ -98,6 +98,9 @@ MAX_CHAIN = 3
 #: a fit stops trying starts once this many reached its best cost
 AGREE_STARTS = 2
 
+#: the chain's fits try at most this many generic starts after their first (the model so far at its optimum)
+CHAIN_STARTS = 2
+
 
 def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect: str, candidates: Sequence[str],
                  experiments: Sequence, drive: str, fmu: str, max_starts: int, interface: ModelInterface,
@@ -115,7 +118,12 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
     that fits worse than the model it extends is an optimiser failure and is refitted from that model's
     optimum, and dropped when it stays worse. Each of these is appended to ``removed`` with the reason.
     ``runs``: filled with each step's fits (candidate name -> Fit or LeftOut; a refit under its own name), for
-    the run count; when the run budget ends within a step, the chain stops there."""
+    the run count; when the run budget ends within a step, the chain stops there.
+
+    To spend fewer runs, each fit tries its first start (the model so far at its optimum) and at most
+    :data:`CHAIN_STARTS` generic ones, and an addition that fails the in-sample tests against the model so
+    far or the physics check gets no held-out refits (:func:`calibrate.fit_candidate`'s ``gate``): neither
+    can be the next step whatever its held-out score."""
     runs = {} if runs is None else runs
     if effect == "none":
         return []
@@ -138,19 +146,30 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
                 rest.remove(c)
         if not rest:
             break
-        # first start: the model so far at its optimum, the added effect at its own first start
-        jobs = [(fmu, f"{name}+{c}", drive, list(experiments), max_starts, interface,
-                 jacobian_lanes(workers, len(rest)), agree, dict(current.params)) for c in rest]
+        # first start: the model so far at its optimum, the added effect at its own first start; no held-out
+        # refits for an addition that cannot be significant against the model so far
+        gate, lanes, starts = _gate(current, th), jacobian_lanes(workers, len(rest)), min(max_starts, CHAIN_STARTS)
+        jobs = [(fmu, f"{name}+{c}", drive, list(experiments), starts, interface, lanes, agree,
+                 dict(current.params), gate) for c in rest]
         results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress, budget)
         runs.update(results)
         if any(isinstance(r, LeftOut) for r in results.values()):
             break       # a step is chosen among all its candidates or not at all
         combos = {c: results[f"{name}+{c}"] for c in rest if isinstance(results.get(f"{name}+{c}"), Fit)}
+        ended = False
         for c in list(combos):
             if combos[c].rss > current.rss * (1 + 1e-6):       # nested: never worse at its optimum
                 worse = combos[c]
-                combos[c] = _refit_from(fmu, f"{name}+{c}", drive, experiments, max_starts, interface, current)
-                runs[f"{name}+{c} (refit)"] = combos[c]
+                # the refit tries the starts the fit did not (its first one was the model so far's optimum
+                # already): none left, and it would make the same runs again to the same end
+                if worse.starts_tried < 1 + starts:
+                    refit = _refit_from(fmu, f"{name}+{c}", drive, experiments, starts, interface, current, gate,
+                                        jacobian_lanes(workers, 1), budget, skip=worse.starts_tried)
+                    runs[f"{name}+{c} (refit)"] = refit
+                    if isinstance(refit, LeftOut):
+                        ended = True
+                        break
+                    combos[c] = refit
                 if combos[c].rss > current.rss * (1 + 1e-6):
                     removed.append({"step": len(steps) + 1, "effect": c, "model": f"{name}+{c}",
                                     "check": "optimiser",
@@ -158,6 +177,8 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
                                               f"(RMSE {current.rmse:.4g}), also refitted from that model's optimum "
                                               f"(RMSE {combos[c].rmse:.4g}): an optimiser failure"})
                     del combos[c]
+        if ended:
+            break       # the run budget ended within the step: no step chosen among part of its candidates
         for c in list(combos):
             bad = implausible(f"{name}+{c}", combos[c].params, support)
             if bad:
@@ -182,6 +203,14 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
     return steps
 
 
+def _gate(current: Fit, th: Thresholds) -> dict:
+    """What a fit extending ``current`` must pass for its held-out refits to be worth their runs: the in-sample
+    tests against ``current`` (:func:`calibrate.can_be_significant`) and the physics check the chain makes
+    (:func:`plausibility.implausible`); a fit failing either is never the chain's next step."""
+    return {"rss": current.rss, "n": current.n, "k": current.k, "delta_bic": th.delta_bic, "p_value": th.p_value,
+            "physics": True}
+
+
 def jacobian_lanes(workers: int, jobs: int) -> int:
     """FMU instances per fit for the rounds of its Jacobian: the workers left over when there are fewer
     fits running at once than workers (a slow FMU then waits one run per round, not one per column)."""
@@ -189,10 +218,11 @@ def jacobian_lanes(workers: int, jobs: int) -> int:
 
 
 def _stage_runs(r) -> dict:
-    """One fit's runs, as the run count states them."""
+    """One fit's runs, as the run count states them (with a fit's rounds: runs waited for one after another)."""
     if isinstance(r, Fit):
         fit, held = r.runs.get("fit", 0), r.runs.get("heldout", 0)
-        return {"fit": fit, "heldout": held, "total": fit + held,
+        return {"fit": fit, "heldout": held, "total": fit + held, "rounds": sum(r.rounds.values()),
+                **({"heldout_skipped": True} if r.heldout_skipped else {}),
                 **({"cached": True} if r.cached else {})}
     if isinstance(r, LeftOut):
         fit, held = r.runs.get("fit", 0), r.runs.get("heldout", 0)
@@ -214,15 +244,45 @@ def run_count(results: dict, chain_results: dict, budget: RunBudget) -> dict:
                                        *stages["chain"].values()] if not s.get("cached"))
     left = [n for n, r in {**results, **chain_results}.items() if isinstance(r, LeftOut)]
     return {"total": budget.used, "counted_by_fits": by_fits, "budget": budget.limit,
-            "budget_ended": bool(left), "left_out": left, **stages}
+            "budget_ended": bool(left), "left_out": left, "depth": run_depth(stages), **stages}
+
+
+def run_depth(stages: dict) -> int:
+    """Rounds of FMU runs the diagnosis waited for one after another when every fit of a round has a worker
+    of its own: the longest fit of the first round (the baseline and the candidates), plus the longest of
+    each step of the chain, plus the chain's refits (made one after another). Times the seconds of one run,
+    the least wall time a slow FMU can take however many workers there are."""
+    def rounds(r: dict) -> int:
+        return 0 if r.get("cached") else int(r.get("rounds", 0))
+
+    depth = max([rounds(stages["baseline"])] + [rounds(r) for r in stages["candidates"].values()])
+    steps: dict[int, int] = {}
+    for n, r in stages["chain"].items():
+        if n.endswith("(refit)"):
+            depth += rounds(r)
+        else:
+            steps[n.count("+")] = max(steps.get(n.count("+"), 0), rounds(r))
+    return depth + sum(steps.values())
 
 
 def _refit_from(fmu: str, model: str, drive: str, experiments: Sequence, max_starts: int,
-                interface: ModelInterface, previous: Fit) -> Fit:
-    """The extended ``model`` fitted again, its first start at the optimum of the model it extends."""
+                interface: ModelInterface, previous: Fit, gate: dict | None = None, parallel: int = 1,
+                budget: RunBudget | None = None, skip: int = 0) -> Fit | LeftOut:
+    """The extended ``model`` fitted again from every start, the first at the optimum of the model it extends,
+    less the first ``skip`` (tried already) (in this process, alone: on ``parallel`` FMU instances, its runs
+    taken from ``budget``; what it spent when that ended)."""
+    from fmusa.diagnose import budget as rb
     from fmusa.diagnose.calibrate import fit_candidate
 
-    return fit_candidate(fmu, model, drive, list(experiments), max_starts, interface, start=dict(previous.params))
+    old = rb.set_current(budget) if budget is not None else None
+    try:
+        return fit_candidate(fmu, model, drive, list(experiments), max_starts, interface, parallel=parallel,
+                             start=dict(previous.params), gate=gate, skip=skip)
+    except rb.BudgetExhausted as exc:
+        return LeftOut(f"{model} (refit)", dict(getattr(exc, "runs", {}) or {}))
+    finally:
+        if budget is not None:
+            rb.set_current(old)
 
 
 def _screened_ranking(base: Fit, fits: dict, th: Thresholds, experiments: Sequence) -> tuple[list[dict], list]:

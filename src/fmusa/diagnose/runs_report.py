@@ -10,7 +10,8 @@ __all__ = ["runs_section", "budget_notice"]
 def _row(stage: str, r: Mapping) -> list[str]:
     note = ("reused from an earlier diagnosis (not counted now)" if r.get("cached")
             else "left out: the run budget ended" if r.get("left_out")
-            else "failed" if r.get("failed") else "")
+            else "failed" if r.get("failed")
+            else "no held-out refits: it cannot be the chain's next step" if r.get("heldout_skipped") else "")
     return [stage, str(r.get("fit", 0)), str(r.get("heldout", 0)), str(r.get("total", 0)), note]
 
 

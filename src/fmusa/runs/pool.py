@@ -182,6 +182,25 @@ def start_process(proc, method: str) -> None:
             spawn.get_preparation_data = full
 
 
+def worker_memory_mb(pid: int) -> float:
+    """The memory process ``pid`` holds alone, in MB: its unique set size (what it would free by ending,
+    e.g. a leaking FMU's allocations), its resident size where the system cannot tell, 0 when gone. A worker
+    forked from a large study process shares that process's pages; its resident size counts them, and a
+    fresh worker would seem over a memory limit before its first run."""
+    try:
+        import psutil
+        proc = psutil.Process(pid)
+    except Exception:  # noqa: BLE001 - gone, or no psutil: nothing to act on
+        return 0.0
+    try:
+        return proc.memory_full_info().uss / 1e6
+    except Exception:  # noqa: BLE001 - not allowed or not offered here: the resident size
+        try:
+            return proc.memory_info().rss / 1e6
+        except Exception:  # noqa: BLE001
+            return 0.0
+
+
 class _Worker:
     """One supervised worker process and the runs it has been given but not answered yet."""
 
@@ -252,12 +271,8 @@ class _Worker:
         return k, max(since, self.given_at)
 
     def memory_mb(self) -> float:
-        """The worker's resident memory in MB (0 when it cannot be read)."""
-        try:
-            import psutil
-            return psutil.Process(self.proc.pid).memory_info().rss / 1e6
-        except Exception:  # noqa: BLE001 - gone, or not allowed: nothing to act on
-            return 0.0
+        """The memory the worker alone holds, in MB (0 when it cannot be read): see :func:`worker_memory_mb`."""
+        return worker_memory_mb(self.proc.pid)
 
     def _forget(self) -> None:
         ends = _worker_side.PARENT_ENDS

@@ -4,8 +4,9 @@ An FMU without monitors (a vendor export) gives its outputs only at the communic
 ``scenario.step`` = h seconds. A peak (``reduce: max``, ``min``, ``max_abs``) is then the largest *sample*,
 not the largest value: the true peak at t* lies within h/2 of the nearest sample, so for a smooth peak the
 sampled one is low by at most |y''|/2·(h/2)² = **h²/8·|y''|**. A settling time (``reduce: settle``) is the
-first sample inside the band: up to **one interval h** late. Means and final values are not affected this
-way (a mean is a trapezoid integral, a final value is sampled exactly).
+first sample inside the band: up to **one interval h** late, unless a return outside the band hides
+between two later samples (refinement looks for those too: :func:`hidden_excursions`). Means and final
+values are not affected this way (a mean is a trapezoid integral, a final value is sampled exactly).
 
 ``scenario.refine_peaks`` resolves both: after each run, the intervals next to the peak sample and the one
 before the settling sample are re-run with ``refine_factor`` (f) times finer communication steps (one
@@ -24,7 +25,7 @@ import numpy as np
 
 from fmusa.runs.metrics import PEAK_REDUCTIONS, SAMPLED_REDUCTIONS, MetricRule, peak_index, reduce_series, settle_index
 
-__all__ = ["refine_intervals", "refined_times", "refine_run", "peak_curvature", "sampling_check"]
+__all__ = ["refine_intervals", "hidden_excursions", "refined_times", "refine_run", "peak_curvature", "sampling_check"]
 
 
 def refine_intervals(t: np.ndarray, data: np.ndarray, rules: Sequence[MetricRule]) -> list[int]:
@@ -41,7 +42,34 @@ def refine_intervals(t: np.ndarray, data: np.ndarray, rules: Sequence[MetricRule
             k = settle_index(x, r.settle_tol)
             if k is not None and k > 0:
                 out.add(k - 1)
+            if k is not None:
+                out.update(hidden_excursions(t, x, r.settle_tol, k))
     return sorted(out)
+
+
+#: how much the sampled curvature is trusted: a hump between two samples is judged with twice its estimate
+CURVATURE_MARGIN = 2.0
+
+
+def hidden_excursions(t: np.ndarray, x: np.ndarray, tol: float, start: int) -> list[int]:
+    """Intervals from sample ``start`` on that can hide a return outside the band |x| <= tol between two
+    samples inside it: where |x| is concave, a hump between samples rises above their chord by at most
+    |x''|·h²/8 (|x''| from the second differences, with a margin). Refining only the interval before the
+    settling sample would miss such a late excursion, and the settling time with it."""
+    t = np.asarray(t, dtype=float)
+    a = np.abs(np.asarray(x, dtype=float))
+    n = len(t)
+    if n < 3 or start >= n - 1:
+        return []
+    h = np.diff(t)
+    slope = np.diff(a) / h
+    concave = np.zeros(n)
+    concave[1:-1] = np.maximum(-2.0 * np.diff(slope) / (h[:-1] + h[1:]), 0.0)   # -a'' where a is concave
+    bend = np.maximum(concave[:-1], concave[1:])                                  # per interval, both ends
+    rise = CURVATURE_MARGIN * bend * h ** 2 / 8.0
+    top = np.maximum(a[:-1], a[1:]) + rise
+    idx = np.flatnonzero(top > tol)
+    return [int(i) for i in idx if i >= start]
 
 
 def refined_times(t: np.ndarray, intervals: Sequence[int], factor: int) -> np.ndarray:

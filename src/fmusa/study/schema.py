@@ -513,7 +513,8 @@ class Execution:
     start_method: str | None = None
     #: a worker is replaced by a fresh one after this many runs (None: never)
     worker_max_runs: int | None = None
-    #: a worker is replaced past this resident memory in MB (None: never); its run in progress is retried
+    #: a worker is replaced once the memory it holds alone (its unique set size) passes this many MB (None:
+    #: never); its run in progress is retried
     worker_max_memory_mb: float | None = None
     #: times a run whose worker died (crash, memory) is tried again on a fresh worker
     retries: int = 1
