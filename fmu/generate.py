@@ -57,7 +57,7 @@ FMUS = {
 #: integrates them): up to ``parameters`` Real parameters, each selected by its value reference in the Integer
 #: parameter ``sens_p[k]`` (0: none), and the derivative of each named output by each of them, the output
 #: ``sens_<output>[k]``. The variables follow the model's own, so its value references are unchanged.
-SENSITIVITIES = {"ScrewVertebra": dict(parameters=5, outputs=("F_meas", "y_meas"))}
+SENSITIVITIES = {"ScrewVertebra": dict(parameters=8, outputs=("F_meas", "y_meas"))}
 TYPES = ("Real", "Integer", "Boolean")
 # The type attributes a public declaration may set (others, such as min or fixed, are not carried to the XML).
 ATTRIBUTES = ("unit", "start")

@@ -12,6 +12,10 @@
 
 #define V(name) (mi->v[VR_##name])
 
+#if SV_NSENS > SOLVER_SMAX
+#error "fmu/generate.py SENSITIVITIES offers more parameters than the solver's SOLVER_SMAX columns"
+#endif
+
 static const VarInfo VARS[] = {
 #define X(name, vr, type, caus, start) {name, vr, type, caus, start},
     VARIABLES(X)
