@@ -35,7 +35,7 @@ _VARIABLES = """
   </ModelStructure>"""
 
 
-def body_description(interfaces: tuple[str, ...], state: bool) -> str:
+def body_description(interfaces: tuple[str, ...], state: bool, indicators: int = 0) -> str:
     parts = []
     flag = "true" if state else "false"
     if "model-exchange" in interfaces:
@@ -47,15 +47,18 @@ def body_description(interfaces: tuple[str, ...], state: bool) -> str:
                      f'canGetAndSetFMUstate="{flag}" canSerializeFMUstate="false"/>')
     return f"""<?xml version="1.0" encoding="UTF-8"?>
 <fmiModelDescription fmiVersion="2.0" modelName="Body" guid="{{2f1c7e3a-9b4d-4c1e-8a2f-cosimbody0001}}"
-  generationTool="hand-written (tests/fmus/cosim_body)" variableNamingConvention="flat" numberOfEventIndicators="0">
+  generationTool="hand-written (tests/fmus/cosim_body)" variableNamingConvention="flat" numberOfEventIndicators="{indicators}">
 {chr(10).join(parts)}
   <DefaultExperiment startTime="0" stopTime="1"/>{_VARIABLES}
 </fmiModelDescription>
 """
 
 
-def build_body(root: Path, interfaces: tuple[str, ...], state: bool) -> Path:
-    """body.c built (with -DWITH_STATE when ``state``) and zipped as root/Body.fmu declaring ``interfaces``."""
+def build_body(root: Path, interfaces: tuple[str, ...], state: bool, indicators: bool = False,
+               global_state: bool = False) -> Path:
+    """body.c built (with -DWITH_STATE when ``state``, -DWITH_INDICATOR when ``indicators``: one event indicator,
+    -DWITH_GLOBAL when ``global_state``: instances of one loaded binary that do not start alike) and zipped as
+    root/Body.fmu declaring ``interfaces``."""
     if not sys.platform.startswith("linux"):
         pytest.skip("the test FMUs are built as linux64 binaries")
     if shutil.which("gcc") is None:
@@ -64,11 +67,13 @@ def build_body(root: Path, interfaces: tuple[str, ...], state: bool) -> Path:
     so = tree / "binaries" / "linux64" / "body.so"
     so.parent.mkdir(parents=True, exist_ok=True)
     cmd = ["gcc", "-std=c99", "-Wall", "-O2", "-shared", "-fPIC", *(["-DWITH_STATE"] if state else []),
+           *(["-DWITH_INDICATOR"] if indicators else []), *(["-DWITH_GLOBAL"] if global_state else []),
            "-I", str(FMI_HEADERS), str(BODY), "-o", str(so), "-lm"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         pytest.fail(f"building the body FMU failed:\n{' '.join(cmd)}\n{proc.stderr}")
-    (tree / "modelDescription.xml").write_text(body_description(interfaces, state), encoding="utf-8")
+    (tree / "modelDescription.xml").write_text(body_description(interfaces, state, int(indicators)),
+                                               encoding="utf-8")
     fmu = root / "Body.fmu"
     with zipfile.ZipFile(fmu, "w", zipfile.ZIP_DEFLATED) as z:
         for f in sorted(tree.rglob("*")):

@@ -103,7 +103,9 @@ def test_coupled_run_is_the_reference(tmp_path, effect):
     pred = runner.predict(list(truth.values()), [exp])[0]
     ref = ar.simulate(truth, *ar.protocol(), exp.t)
     err = np.max(np.abs(pred - ref)) / np.ptp(ref)
-    assert err < 1e-6, (effect, err, runner.last.scheme)
+    # the coupled runs' tolerance (COUPLED_RTOL 1e-4, me-grid): measured at most 5e-6 of the range
+    assert runner.last.scheme == "me-grid"
+    assert err < 1e-5, (effect, err, runner.last.scheme)
 
 
 @pytest.mark.slow
@@ -124,7 +126,7 @@ def test_attached_effect_is_named(tmp_path, effect):
         assert abs(fit[k] - v) <= 0.05 * abs(v), (k, fit[k], v)
     assert d["gain"]["heldout_rmse_ratio"] < 0.5
     assert (tmp_path / "out" / "diagnosis.json").is_file()
-    assert d["coupling"]["scheme"] == "me-implicit"
+    assert d["coupling"]["scheme"] == "me-grid"
     # a test the diagnosis never saw (another peak and other durations): the extended model predicts it better
     ratio = heldout_gain(st, d, effect)
     assert ratio < 0.5, ratio

@@ -686,11 +686,13 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
 
 
 def _print_diagnosis(args: argparse.Namespace, diag: dict) -> int:
-    """The verdict on the terminal, and where the files are."""
+    """The verdict on the terminal, and where the files are (parameters under the FMU's variable names)."""
+    from fmusa.diagnose.report import fmu_name
+
     g = diag["gain"]
     print(f"effect: {diag['effect']}")
     if diag["effect"] != "none":
-        ps = ", ".join(f"{k} = {v['value']:.4g}{'' if v['unit'] in ('', '1') else ' ' + v['unit']} "
+        ps = ", ".join(f"{fmu_name(diag, k)} = {v['value']:.4g}{'' if v['unit'] in ('', '1') else ' ' + v['unit']} "
                        f"[{v['ci95'][0]:.4g}, {v['ci95'][1]:.4g}]"
                        for k, v in diag["effect_params"].items())
         print(f"  {ps}")
@@ -700,7 +702,7 @@ def _print_diagnosis(args: argparse.Namespace, diag: dict) -> int:
     if len(final.get("effects") or []) > 1:
         print(f"final model: baseline + {' + '.join(final['effects'])} (RMSE {final['rmse']:.4g}, held-out "
               f"{final['heldout_rmse']:.4g}; intervals: {(final.get('intervals') or {}).get('method', '?')})")
-        print("  " + ", ".join(f"{k} = {v['value']:.4g}{'' if v['unit'] in ('', '1') else ' ' + v['unit']} "
+        print("  " + ", ".join(f"{fmu_name(diag, k)} = {v['value']:.4g}{'' if v['unit'] in ('', '1') else ' ' + v['unit']} "
                                f"[{v['ci95'][0]:.4g}, {v['ci95'][1]:.4g}]" for k, v in final["params"].items()))
     for r in diag.get("chain_removed") or []:
         print(f"  not added: {r['effect']} (step {r['step']}): {r['reason']}")

@@ -3,9 +3,13 @@
 The model gives the interface's relative displacement ``s`` and its rate ``v`` (outputs); the element turns
 them into the force or torque ``F`` it carries; the model takes ``force_sign * F`` at its force input (added to
 the drive when the drive uses the same input). Interfaces are stiff (8.2e5 N/m on a 0.29 g screw: 5e4 rad/s),
-so an explicit exchange at a fixed step goes unstable or wrong without a sound. Three schemes, chosen by what
+so an explicit exchange at a fixed step goes unstable or wrong without a sound. Four schemes, chosen by what
 the model's FMU can do (``auto``: the first that applies):
 
+- ``me-grid``: both FMUs as model exchange, their states one ODE integrated by fixed-step Radau IIA that lands
+  on every output time (:mod:`fmusa.cosim.grid`: RADAU5's error estimate against ``rtol`` at every step, a
+  failing step cut in two, one Jacobian reused); time events end a segment. For FMUs without event indicators
+  (state events need the next scheme). The hot path calls the FMUs through ctypes directly.
 - ``me-implicit``: both FMUs as model exchange, their states one ODE integrated implicitly (scipy's Radau,
   error controlled on every state); inputs set before each derivative call; step ends, time events and
   state events (event indicators, located on the dense output) handled as FMI 2.0 asks.
@@ -26,6 +30,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -42,7 +47,7 @@ ELEMENT_NAME = "InterfaceElement.fmu"
 ENV_ELEMENT = "FMUSA_ELEMENT_FMU"
 #: The element FMU's interface: inputs (displacement, rate), output (force or torque).
 ELEMENT_S, ELEMENT_V, ELEMENT_F = "s", "v", "F"
-SCHEMES = ("auto", "me-implicit", "cs-iterate", "cs-halving")
+SCHEMES = ("auto", "me-grid", "me-implicit", "cs-iterate", "cs-halving")
 
 
 class CouplingError(FmusaError, RuntimeError):
@@ -138,7 +143,10 @@ def choose_scheme(model_info, element_info, requested: str = "auto") -> str:
         raise CouplingError(f"unknown coupling scheme {requested!r}; use one of {', '.join(SCHEMES)}")
     m = _capabilities(model_info)
     e = _capabilities(element_info)
-    can = {"me-implicit": _runnable(model_info, "model-exchange") and _runnable(element_info, "model-exchange"),
+    me = _runnable(model_info, "model-exchange") and _runnable(element_info, "model-exchange")
+    no_indicators = me and not (model_info.model_description.numberOfEventIndicators
+                                or element_info.model_description.numberOfEventIndicators)
+    can = {"me-grid": no_indicators, "me-implicit": me,
            "cs-iterate": _runnable(model_info, "co-simulation") and m["cs_state"]
            and _runnable(element_info, "co-simulation") and e["cs_state"],
            "cs-halving": _runnable(model_info, "co-simulation") and _runnable(element_info, "co-simulation")}
@@ -150,7 +158,9 @@ def choose_scheme(model_info, element_info, requested: str = "auto") -> str:
                             f"nor as co-simulation on this machine (no binary for this platform and no sources); "
                             f"export it with a binary for this platform")
     if not can[requested]:
-        why = {"me-implicit": "both FMUs need a model exchange interface with a binary (or sources) for this "
+        why = {"me-grid": "both FMUs need a model exchange interface with a binary (or sources) for this platform "
+                          "and no event indicators (state events need me-implicit, which locates them)",
+               "me-implicit": "both FMUs need a model exchange interface with a binary (or sources) for this "
                               "platform; export the model with Model Exchange",
                "cs-iterate": "both FMUs need co-simulation with canGetAndSetFMUstate = true; export the model "
                              "with FMU state support (Dymola: 'Include code for getting/setting the FMU state'),"
@@ -215,16 +225,70 @@ def checked_coupling(coupling: Coupling):
 
 # ---------------------------------------------------------------------------------------------- FMUs
 
+_UNPACKED: dict[tuple, Path] = {}
+_UNPACK_ROOT: list[Path] = []
+_UNPACK_LOCK = threading.Lock()
+
+
+def _unpacked(info, interface: str, fresh: bool = False) -> Path:
+    """The FMU unpacked (built from its sources where it has no binary for this platform) for running, once per
+    process and version of the file: a coupled run makes fresh instances every time, and a fresh copy of the
+    binary per run costs time and leaves every copy loaded in the process. ``fresh``: a new copy all the same,
+    for a binary whose instances share state through the loaded library. Removed when the process ends."""
+    import atexit
+    import tempfile
+
+    from fmusa.fmi.archive import extract_fmu
+    from fmusa.fmi.build import prepare_fmu
+
+    src = Path(info.path).resolve()
+    st = src.stat()
+    key = (str(src), st.st_mtime_ns, st.st_size, interface)
+    with _UNPACK_LOCK:
+        hit = _UNPACKED.get(key)
+        if hit is not None and hit.exists() and not fresh:
+            return hit
+        if not _UNPACK_ROOT:
+            root = Path(tempfile.mkdtemp(prefix="fmusa-cosim-"))
+            atexit.register(shutil.rmtree, root, True)
+            _UNPACK_ROOT.append(root)
+        work = Path(tempfile.mkdtemp(dir=_UNPACK_ROOT[0]))
+        path = prepare_fmu(info.path, interface, work)
+        unzip = Path(path) if Path(path).is_dir() else Path(extract_fmu(path, work / "unpacked", to_run=True))
+        if not fresh:
+            _UNPACKED[key] = unzip
+            _hold_loaded(unzip, info.interfaces.get(interface, ""))
+        return unzip
+
+
+_HELD: list = []
+
+
+def _hold_loaded(unzip: Path, identifier: str) -> None:
+    """Keep the unpacked binary loaded for the rest of the process. fmpy unloads a binary when its instance is
+    freed, and a coupled run frees its instances: a binary that makes a thread-local key each time it is loaded
+    and never deletes it (OpenModelica's runtime does: pthread_key_create) runs out of keys after about a
+    thousand runs and then writes into another library's slot (measured: the interpreter's own, a segfault).
+    Loaded once and kept, its initialisation runs once."""
+    import ctypes
+
+    from fmpy import platform, sharedLibraryExtension
+
+    lib = Path(unzip) / "binaries" / platform / f"{identifier}{sharedLibraryExtension}"
+    if identifier and lib.is_file():
+        try:
+            _HELD.append(ctypes.CDLL(str(lib)))
+        except OSError:       # fmpy will say why it cannot load it
+            pass
+
+
 class _Fmu:
     """One FMI 2.0 instance (ME or CS) through fmpy, counting the calls made to it."""
 
-    def __init__(self, info, interface: str, name: str, workdir: Path) -> None:
+    def __init__(self, info, interface: str, name: str, fresh: bool = False) -> None:
         from fmpy.fmi2 import FMU2Model, FMU2Slave
-        from fmusa.fmi.archive import extract_fmu
-        from fmusa.fmi.build import prepare_fmu
 
-        path = prepare_fmu(info.path, interface, workdir)
-        unzip = path if Path(path).is_dir() else extract_fmu(path, workdir / name, to_run=True)
+        unzip = _unpacked(info, interface, fresh)
         md = info.model_description
         cls = FMU2Model if interface == "model-exchange" else FMU2Slave
         self.fmu = cls(guid=md.guid, unzipDirectory=str(unzip), modelIdentifier=info.interfaces[interface],
@@ -282,6 +346,66 @@ class _Fmu:
             except Exception:
                 pass
             self.instantiated = False
+
+
+class _Direct:
+    """The FMI functions of the model exchange hot path called straight through ctypes, with buffers made once:
+    fmpy's wrappers build new arrays and look the function up on every call, which is most of a coupled run's
+    time. Counts its calls into the FMU's count; an error status raises :class:`CouplingError`."""
+
+    def __init__(self, fmu: _Fmu) -> None:
+        from ctypes import POINTER, c_double, c_int, c_size_t, c_uint, c_void_p
+
+        self.fmu = fmu
+        self.component = fmu.fmu.component
+        dll = fmu.fmu.dll
+        pd_, pu = POINTER(c_double), POINTER(c_uint)
+        sig = {"fmi2SetTime": [c_void_p, c_double], "fmi2SetContinuousStates": [c_void_p, pd_, c_size_t],
+               "fmi2GetDerivatives": [c_void_p, pd_, c_size_t], "fmi2GetReal": [c_void_p, pu, c_size_t, pd_],
+               "fmi2SetReal": [c_void_p, pu, c_size_t, pd_]}
+        self.fn = {}
+        for name, argtypes in sig.items():
+            f = dll[name]            # a new function object: fmpy's own keeps its settings
+            f.argtypes, f.restype = argtypes, c_int
+            self.fn[name] = f
+        n = max(fmu.nx, 1)
+        self.x, self.dx = (c_double * n)(), (c_double * n)()
+        self.x_np = np.frombuffer(self.x, dtype=float)
+        self.dx_np = np.frombuffer(self.dx, dtype=float)
+        self._c_double, self._c_uint = c_double, c_uint
+
+    def _check(self, name: str, status: int) -> None:
+        if status > 1:   # fmi2Warning is fine, fmi2Discard and worse are not
+            raise CouplingError(f"{self.fmu.info.model_name} ({self.fmu.name}): {name} returned status {status}")
+
+    def refs(self, vrs: Sequence[int]):
+        """A value-reference buffer and a value buffer for get_real/set_real."""
+        return (self._c_uint * len(vrs))(*vrs), (self._c_double * len(vrs))()
+
+    def set_time(self, t: float) -> None:
+        self.fmu.calls += 1
+        self._check("fmi2SetTime", self.fn["fmi2SetTime"](self.component, t))
+
+    def set_states(self, x: np.ndarray) -> None:
+        self.fmu.calls += 1
+        self.x_np[:x.size] = x
+        self._check("fmi2SetContinuousStates", self.fn["fmi2SetContinuousStates"](self.component, self.x, x.size))
+
+    def derivatives(self, out: np.ndarray) -> None:
+        self.fmu.calls += 1
+        n = out.size
+        self._check("fmi2GetDerivatives", self.fn["fmi2GetDerivatives"](self.component, self.dx, n))
+        out[:] = self.dx_np[:n]
+
+    def get_real(self, buffers) -> None:
+        vr, val = buffers
+        self.fmu.calls += 1
+        self._check("fmi2GetReal", self.fn["fmi2GetReal"](self.component, vr, len(vr), val))
+
+    def set_real(self, buffers) -> None:
+        vr, val = buffers
+        self.fmu.calls += 1
+        self._check("fmi2SetReal", self.fn["fmi2SetReal"](self.component, vr, len(vr), val))
 
 
 def _check_outputs(outputs: Sequence[str], model: _Fmu, element: _Fmu) -> list[tuple[str, _Fmu, int]]:
@@ -347,12 +471,12 @@ def _over_time(deadline: float | None, t: float) -> None:
 
 
 def _run_me(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs, model_inputs,
-            rtol, workdir: Path, deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
+            rtol, deadline: float | None = None, fresh: bool = False) -> tuple[pd.DataFrame, int, dict]:
     from ctypes import c_double
     from scipy.integrate import Radau
 
-    m = _Fmu(minfo, "model-exchange", "model", workdir)
-    e = _Fmu(einfo, "model-exchange", "element", workdir)
+    m = _Fmu(minfo, "model-exchange", "model", fresh)
+    e = _Fmu(einfo, "model-exchange", "element", fresh)
     try:
         itf = _Interface(coupling, m, e)
         where = _check_outputs(outputs, m, e)
@@ -504,6 +628,176 @@ def _run_me(coupling, minfo, einfo, model_params, element_params, stop_time, out
         e.free()
 
 
+def _run_me_grid(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs,
+                 model_inputs, rtol, deadline: float | None = None,
+                 fresh: bool = False) -> tuple[pd.DataFrame, int, dict]:
+    """Both FMUs as model exchange, their states one ODE integrated by fixed-step Radau IIA on the output grid
+    (:mod:`fmusa.cosim.grid`); time events end a segment; no event indicators (:func:`choose_scheme`)."""
+    from fmusa.cosim.grid import integrate_on_grid
+
+    m = _Fmu(minfo, "model-exchange", "model", fresh)
+    e = _Fmu(einfo, "model-exchange", "element", fresh)
+    try:
+        itf = _Interface(coupling, m, e)
+        where = _check_outputs(outputs, m, e)
+        u0, f0 = _drive(model_inputs, 0.0, coupling.force_input)
+        _start(m, model_params, rtol, stop_time, {**u0, coupling.force_input: f0})
+        _start(e, element_params, rtol, stop_time, {})
+        t_ev = min(_event_iteration(m), _event_iteration(e))
+        m.call("enterContinuousTimeMode")
+        e.call("enterContinuousTimeMode")
+        dm, de = _Direct(m), _Direct(e)
+        nm, ne = m.nx, e.nx
+        n = nm + ne
+        motion, element_in, element_out = dm.refs([itf.s, itf.v]), de.refs([itf.es, itf.ev]), de.refs([itf.eF])
+        force = dm.refs([itf.f])
+        drive_refs: dict[tuple, tuple] = {}
+        reads = [(name, dm if fmu is m else de, (dm if fmu is m else de).refs([vr])) for name, fmu, vr in where]
+        sv, fs = coupling.velocity_sign, coupling.force_sign
+        out = np.empty(n)
+        last = {"F": 0.0}
+
+        # the hot path: raw ctypes functions and buffers bound to locals, the calls counted per evaluation
+        cm, ce = dm.component, de.component
+        m_time, e_time = dm.fn["fmi2SetTime"], de.fn["fmi2SetTime"]
+        m_states, e_states = dm.fn["fmi2SetContinuousStates"], de.fn["fmi2SetContinuousStates"]
+        m_get, m_set, e_get, e_set = dm.fn["fmi2GetReal"], dm.fn["fmi2SetReal"], de.fn["fmi2GetReal"], de.fn["fmi2SetReal"]
+        m_der, e_der = dm.fn["fmi2GetDerivatives"], de.fn["fmi2GetDerivatives"]
+        (mo_vr, mo_val), (ei_vr, ei_val) = motion, element_in
+        (eo_vr, eo_val), (f_vr, f_val) = element_out, force
+        xm_np, xe_np, dxm_np, dxe_np = dm.x_np[:nm], de.x_np[:ne], dm.dx_np[:nm], de.dx_np[:ne]
+        per_eval_m, per_eval_e = 4 + bool(nm), 3 + bool(ne)
+
+        def fail(what: str, t: float) -> None:
+            raise CouplingError(f"{what} returned an error status at t = {t:.9g} in the coupled run")
+
+        def evaluate(t: float, x: np.ndarray) -> None:
+            """Both FMUs at (t, x), the interface closed."""
+            st = m_time(cm, t) | e_time(ce, t)
+            if nm:
+                xm_np[:] = x[:nm]
+                st |= m_states(cm, dm.x, nm)
+            if ne:
+                xe_np[:] = x[nm:]
+                st |= e_states(ce, de.x, ne)
+            u, fd = _drive(model_inputs, t, coupling.force_input)
+            if u:
+                key = tuple(u)
+                if key not in drive_refs:
+                    drive_refs[key] = dm.refs(m.vr(list(u)))
+                vr, val = drive_refs[key]
+                val[:] = [float(u[k]) for k in key]
+                st |= m_set(cm, vr, len(vr), val)
+                m.calls += 1
+            st |= m_get(cm, mo_vr, 2, mo_val)
+            ei_val[0], ei_val[1] = mo_val[0], sv * mo_val[1]
+            st |= e_set(ce, ei_vr, 2, ei_val)
+            st |= e_get(ce, eo_vr, 1, eo_val)
+            F = eo_val[0]
+            f_val[0] = fd + fs * F
+            st |= m_set(cm, f_vr, 1, f_val)
+            m.calls += per_eval_m - 1
+            e.calls += per_eval_e - 1
+            if st > 1:     # fmi2Warning (1) is fine; any worse status is named by the slow path
+                fail("an FMU", t)
+            last["F"] = F
+
+        def rhs(t: float, x: np.ndarray) -> np.ndarray:
+            evaluate(t, x)
+            st = 0
+            if nm:
+                st |= m_der(cm, dm.dx, nm)
+                out[:nm] = dxm_np
+            if ne:
+                st |= e_der(ce, de.dx, ne)
+                out[nm:] = dxe_np
+            m.calls += bool(nm)
+            e.calls += bool(ne)
+            if st > 1:
+                fail("fmi2GetDerivatives", t)
+            if not np.all(np.isfinite(out)):
+                raise CouplingError(f"the coupled derivatives are not finite at t = {t:.9g}")
+            return out.copy()
+
+        def states() -> np.ndarray:
+            from ctypes import c_double
+            x = np.empty(n)
+            for fmu, lo, k in ((m, 0, nm), (e, nm, ne)):
+                if k:
+                    buf = (c_double * k)()
+                    fmu.call("getContinuousStates", buf, k)
+                    x[lo:lo + k] = buf[:k]
+            return x
+
+        def nominals() -> np.ndarray:
+            from ctypes import c_double
+            x = np.ones(n)
+            for fmu, lo, k in ((m, 0, nm), (e, nm, ne)):
+                if k:
+                    buf = (c_double * k)()
+                    fmu.call("getNominalsOfContinuousStates", buf, k)
+                    x[lo:lo + k] = np.abs(buf[:k])
+            return x
+
+        times = np.asarray(output_times, dtype=float)
+        rows: list[list[float]] = []
+        k_out = 0
+
+        def record(t: float) -> None:
+            """The outputs at t, when t is an output time (the FMUs were last evaluated at t)."""
+            nonlocal k_out
+            while k_out < len(times) and times[k_out] <= t + 1e-12 * max(1.0, abs(t)):
+                if abs(times[k_out] - t) <= 1e-12 * max(1.0, abs(t)):
+                    row = [t]
+                    for _, d, buf in reads:
+                        d.get_real(buf)
+                        row.append(buf[1][0])
+                    rows.append(row + [last["F"]])
+                k_out += 1
+
+        asked = {"event": False}
+
+        def on_step(t: float, x: np.ndarray) -> bool:
+            record(t)
+            step_m = m.call("completedIntegratorStep", 1)
+            step_e = e.call("completedIntegratorStep", 1)
+            if step_m[1] or step_e[1]:
+                raise CouplingError(f"an FMU asked to terminate the simulation at t = {t:.9g}")
+            asked["event"] = bool(step_m[0] or step_e[0])
+            return asked["event"]
+
+        x = states()
+        floor = 1e-3 * nominals()
+        t = 0.0
+        evaluate(0.0, x)
+        record(0.0)
+        totals = {"steps": 0, "rejected": 0, "rhs": 0, "jacobians": 0, "max_substeps": 1, "worst_error": 0.0}
+        while t < stop_time * (1 - 1e-14):
+            t_end = min(stop_time, t_ev)
+            grid = np.union1d([t, t_end], times[(times > t) & (times < t_end)])
+            t, x, st = integrate_on_grid(rhs, x, grid, rtol, floor, on_step=on_step,
+                                         check=lambda tt: _over_time(deadline, tt))
+            for key in ("steps", "rejected", "rhs", "jacobians"):
+                totals[key] += getattr(st, key)
+            totals["max_substeps"] = max(totals["max_substeps"], st.max_substeps)
+            totals["worst_error"] = max(totals["worst_error"], st.worst_error)
+            if asked["event"] or (math.isfinite(t_ev) and t >= t_ev * (1 - 1e-14)):
+                evaluate(t, x)
+                m.call("enterEventMode")
+                e.call("enterEventMode")
+                nxt = min(_event_iteration(m), _event_iteration(e))
+                m.call("enterContinuousTimeMode")
+                e.call("enterContinuousTimeMode")
+                x = states()
+                t_ev = nxt if nxt > t else math.inf
+                asked["event"] = False
+        frame = pd.DataFrame(rows, columns=["time", *outputs, "F"])
+        return frame, m.calls + e.calls, totals
+    finally:
+        m.free()
+        e.free()
+
+
 # ---------------------------------------------------------------------------------------------- CS
 
 def _cs_grid(stop_time: float, step: float, output_times: np.ndarray) -> np.ndarray:
@@ -513,10 +807,10 @@ def _cs_grid(stop_time: float, step: float, output_times: np.ndarray) -> np.ndar
 
 
 def _run_cs(coupling, minfo, einfo, model_params, element_params, stop_time, output_times, outputs, model_inputs,
-            rtol, step: float, iterate: bool, workdir: Path, max_iter: int = 30,
-            deadline: float | None = None) -> tuple[pd.DataFrame, int, dict]:
-    m = _Fmu(minfo, "co-simulation", "model", workdir)
-    e = _Fmu(einfo, "co-simulation", "element", workdir)
+            rtol, step: float, iterate: bool, max_iter: int = 30,
+            deadline: float | None = None, fresh: bool = False) -> tuple[pd.DataFrame, int, dict]:
+    m = _Fmu(minfo, "co-simulation", "model", fresh)
+    e = _Fmu(einfo, "co-simulation", "element", fresh)
     try:
         itf = _Interface(coupling, m, e)
         where = _check_outputs(outputs, m, e)
@@ -650,7 +944,8 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
                      stop_time: float, output_times: np.ndarray, outputs: Sequence[str],
                      model_inputs: Callable[[float], dict[str, float]] | None = None,
                      rtol: float = 1e-6, step: float | None = None, coupling_tol: float = 1e-3,
-                     max_halvings: int = 10, strict: bool = True, max_wall_s: float | None = None) -> CoupledResult:
+                     max_halvings: int = 10, strict: bool = True, max_wall_s: float | None = None,
+                     fresh_binary: bool = False) -> CoupledResult:
     """Run the model and the element together from 0 to ``stop_time``; the outputs (model variables, or
     ``element.NAME``) and the element's force ``F`` at ``output_times``.
 
@@ -658,7 +953,8 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
     the interface force. ``step`` is the first macro step of the CS schemes (default: the output spacing); they
     halve it until two runs agree within ``coupling_tol`` (relative to each column's largest value).
     ``max_wall_s`` bounds the wall time of the whole (every run of the verification): past it
-    :class:`CouplingTimeLimitError`.
+    :class:`CouplingTimeLimitError`. The FMUs' binaries are loaded once per process and each run makes fresh
+    instances; ``fresh_binary`` loads a fresh copy for this run (for a binary whose instances share state).
     """
     if not (stop_time > 0 and math.isfinite(stop_time)):
         raise CouplingError(f"stop_time = {stop_time}: use a positive, finite time")
@@ -666,50 +962,53 @@ def simulate_coupled(coupling: Coupling, model_params: dict[str, float], element
     if times.ndim != 1 or len(times) == 0 or np.any(np.diff(times) <= 0) or times[0] < 0 or times[-1] > stop_time:
         raise CouplingError("output_times must increase strictly, within [0, stop_time]")
     minfo, einfo, scheme = checked_coupling(coupling)
-    import tempfile
-    workdir = Path(tempfile.mkdtemp(prefix="fmusa-cosim-"))
     wall0, cpu0 = time.perf_counter(), time.process_time()
     deadline = wall0 + float(max_wall_s) if max_wall_s else None
     args = (coupling, minfo, einfo, dict(model_params), dict(element_params), float(stop_time), times,
             list(outputs), model_inputs, float(rtol))
-    try:
-        if scheme == "me-implicit":
-            frame, calls, info = _run_me(*args, workdir, deadline)
-            return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
-                                 notes=[f"{info['steps']} implicit steps (Radau, rtol {rtol:g})"])
-        iterate = scheme == "cs-iterate"
-        h = float(step) if step else float(np.min(np.diff(np.r_[0.0, times[times > 0]]))
-                                           if np.any(times > 0) else stop_time / 100)
-        calls, runs, prev, diff, info = 0, 0, None, None, {}
-        notes = []
-        for k in range(max_halvings + 1):
-            try:
-                frame, c, info = _run_cs(*args, h, iterate, workdir, deadline=deadline)
-            except CouplingError as exc:
-                if "diverged" not in str(exc) and "did not converge" not in str(exc):
-                    raise
-                frame, c = None, 0
-                notes.append(f"step {h:.3g} s: {exc}")
-            calls += c
-            runs += 1
-            if frame is not None and prev is not None:
-                diff = _difference(prev, frame)
-                notes.append(f"step {h:.3g} s vs {2 * h:.3g} s: relative difference {diff:.3g}")
-                if diff <= coupling_tol:
-                    return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0,
-                                         time.process_time() - cpu0, step=h, runs=runs, difference=diff,
-                                         iterations=info.get("iterations", 0), notes=notes)
-            prev = frame
-            h /= 2
-        msg = (f"the coupled {scheme} run did not converge: halving the macro step {max_halvings} times left a "
-               f"relative difference of {diff if diff is not None else math.inf:.3g} between the last two runs "
-               f"(tolerance {coupling_tol:g}); export the model with Model Exchange (me-implicit) or with "
-               f"canGetAndSetFMUstate (cs-iterate), or give a smaller step")
-        if strict or prev is None:
-            raise CouplingError(msg)
-        warnings.warn(msg, stacklevel=2)
-        return CoupledResult(prev, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
-                             step=2 * h, runs=runs, converged=False, difference=diff,
-                             iterations=info.get("iterations", 0), notes=notes)
-    finally:
-        shutil.rmtree(workdir, ignore_errors=True)
+    if scheme == "me-grid":
+        frame, calls, info = _run_me_grid(*args, deadline, fresh_binary)
+        return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
+                             notes=[f"{info['steps']} Radau IIA steps on the output grid (rtol {rtol:g}; "
+                                    f"{info['rejected']} steps cut in two, the smallest a sample "
+                                    f"interval / {info['max_substeps']}; {info['rhs']} evaluations, "
+                                    f"{info['jacobians']} Jacobians)"])
+    if scheme == "me-implicit":
+        frame, calls, info = _run_me(*args, deadline, fresh_binary)
+        return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
+                             notes=[f"{info['steps']} implicit steps (Radau, rtol {rtol:g})"])
+    iterate = scheme == "cs-iterate"
+    h = float(step) if step else float(np.min(np.diff(np.r_[0.0, times[times > 0]]))
+                                       if np.any(times > 0) else stop_time / 100)
+    calls, runs, prev, diff, info = 0, 0, None, None, {}
+    notes = []
+    for k in range(max_halvings + 1):
+        try:
+            frame, c, info = _run_cs(*args, h, iterate, deadline=deadline, fresh=fresh_binary)
+        except CouplingError as exc:
+            if "diverged" not in str(exc) and "did not converge" not in str(exc):
+                raise
+            frame, c = None, 0
+            notes.append(f"step {h:.3g} s: {exc}")
+        calls += c
+        runs += 1
+        if frame is not None and prev is not None:
+            diff = _difference(prev, frame)
+            notes.append(f"step {h:.3g} s vs {2 * h:.3g} s: relative difference {diff:.3g}")
+            if diff <= coupling_tol:
+                return CoupledResult(frame, scheme, calls, time.perf_counter() - wall0,
+                                     time.process_time() - cpu0, step=h, runs=runs, difference=diff,
+                                     iterations=info.get("iterations", 0), notes=notes)
+        prev = frame
+        h /= 2
+    msg = (f"the coupled {scheme} run did not converge: halving the macro step {max_halvings} times left a "
+           f"relative difference of {diff if diff is not None else math.inf:.3g} between the last two runs "
+           f"(tolerance {coupling_tol:g}); export the model with Model Exchange (me-implicit) or with "
+           f"canGetAndSetFMUstate (cs-iterate), or give a smaller step")
+    if strict or prev is None:
+        raise CouplingError(msg)
+    warnings.warn(msg, stacklevel=2)
+    return CoupledResult(prev, scheme, calls, time.perf_counter() - wall0, time.process_time() - cpu0,
+                         step=2 * h, runs=runs, converged=False, difference=diff,
+                         iterations=info.get("iterations", 0), notes=notes)
+

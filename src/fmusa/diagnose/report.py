@@ -65,6 +65,14 @@ def _ci(name: str, value: float, ci) -> str:
     return s
 
 
+def fmu_name(diag: Mapping, name: str) -> str:
+    """The FMU variable a fitted parameter is, as the user's FMU names it (``element.NAME`` for a parameter of the
+    attached interface element); the catalogue's name where the diagnosis has no mapping."""
+    model = diag.get("model") or {}
+    var = (model.get("variables") or {}).get(name, name)
+    return f"element.{var}" if (model.get("where") or {}).get(name) == "element" else var
+
+
 def _summary_params(summary: Mapping) -> tuple[dict, dict]:
     return dict(summary.get("params") or {}), dict(summary.get("ci95") or {})
 
@@ -118,7 +126,7 @@ def _named_text(diag: Mapping) -> str:
     if mp and mp in ep:
         v, u = natural(mp, ep[mp]["value"])
         lo, hi = (natural(mp, c)[0] for c in ep[mp]["ci95"])
-        out += (f"Main parameter: {mp} ({PARAM_MEANING.get(mp, '')}) = {fmt(v, 4)} {u} "
+        out += (f"Main parameter: {fmu_name(diag, mp)} ({PARAM_MEANING.get(mp, '')}) = {fmt(v, 4)} {u} "
                 f"(95 % interval {fmt(lo)} to {fmt(hi)} {u}).\n\n")
     return out
 
@@ -227,7 +235,7 @@ def _params_section(diag: Mapping) -> str:
         unit = natural(n, 0.0)[1] or "–"
         b = _ci(n, base_p[n], base_ci.get(n)) if n in base_p else "–"
         x = _ci(n, ext_p[n], ext_ci.get(n)) if n in ext_p else "–"
-        rows.append([f"`{n}`", PARAM_MEANING.get(n, ""), unit, b, x])
+        rows.append([f"`{fmu_name(diag, n)}`", PARAM_MEANING.get(n, ""), unit, b, x])
     eff = diag["effect"]
     out = "## Parameters\n\n"
     shown = (("baseline", diag.get("baseline") or {}),) + ((("final model", _final_summary(diag)),)
@@ -241,7 +249,8 @@ def _params_section(diag: Mapping) -> str:
     gn = (_final_summary(diag).get("gauss_newton") or {})
     if gn and "sandwich" in _interval_method(_final_summary(diag)):
         out += ("\nThe Gauss–Newton intervals of the final model, which assume white residuals and are too narrow "
-                "here: " + ", ".join(f"`{n}` {_ci(n, ext_p[n], v)}" for n, v in gn.items() if n in ext_p) + ".\n")
+                "here: " + ", ".join(f"`{fmu_name(diag, n)}` {_ci(n, ext_p[n], v)}" for n, v in gn.items() if n in ext_p)
+                + ".\n")
     return out
 
 
@@ -270,7 +279,7 @@ def _ranking_section(diag: Mapping) -> str:
     rows = []
     for i, r in enumerate(diag.get("ranking") or [], 1):
         eparams = [(k, v) for k, v in (r.get("params") or {}).items() if k not in BASELINE]
-        ptxt = ", ".join(f"{k} = {fmt(natural(k, v)[0])}{(' ' + natural(k, v)[1]) if natural(k, v)[1] else ''}"
+        ptxt = ", ".join(f"{fmu_name(diag, k)} = {fmt(natural(k, v)[0])}{(' ' + natural(k, v)[1]) if natural(k, v)[1] else ''}"
                          for k, v in eparams) or "–"
         rows.append([i, f"`{r['effect']}`" + (" ★" if r["effect"] in diag["effect"].split(" ≡ ") else ""),
                      "yes" if r.get("significant") else "no", r.get("k", "–"),
@@ -477,7 +486,7 @@ def _chain_section(diag: Mapping) -> str:
     rows = []
     for i, s in enumerate(steps, 1):
         g = s["gain"]
-        bounds = ", ".join(f"`{b['name']}` ({b['bound']})" for b in s.get("at_bounds") or []) or "none"
+        bounds = ", ".join(f"`{fmu_name(diag, b['name'])}` ({b['bound']})" for b in s.get("at_bounds") or []) or "none"
         rows.append([f"#{i}", f"`{s['effect']}`", f"{fmt(s['rmse'] * f)}", f"{fmt(s['heldout_rmse'] * f)}",
                      ratio_text(g.get("rmse_ratio")), ratio_text(g.get("heldout_rmse_ratio")),
                      delta_text(g.get("delta_bic")), p_text(g.get("p_value")), bounds])
@@ -533,7 +542,7 @@ def _fit_checks_section(diag: Mapping) -> str:
         for b in bounds:
             v, u = natural(b["name"], b["value"])
             lim, _ = natural(b["name"], b["limit"])
-            lines.append(f"- {label[0].upper()}{label[1:]}: the fit stopped at the {b['bound']} bound of `{b['name']}` ({fmt(v)} {u}, "
+            lines.append(f"- {label[0].upper()}{label[1:]}: the fit stopped at the {b['bound']} bound of `{fmu_name(diag, b['name'])}` ({fmt(v)} {u}, "
                          f"bound {fmt(lim)} {u}): no optimum inside the range; the value is a limit, not an "
                          f"estimate.")
     return "## Fit checks\n\n" + "\n".join(lines) + "\n" if lines else ""

@@ -474,7 +474,9 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         # the FMU variable of each fitted parameter (the catalogue's names are the keys above); where the effects
         # went and the model description's name
         "model": {"description": interface.name, "effects": "attached" if interface.attached else "inside",
-                  "variables": {n: interface.variable(n) for f in [base, *fits.values()] for n in f.params}},
+                  "variables": {n: interface.variable(n) for f in [base, *fits.values()] for n in f.params},
+                  **({"where": parameter_homes(fmu, interface, [n for f in [base, *fits.values()] for n in f.params])}
+                     if interface.attached else {})},
         "thresholds": _thresholds(thresholds),
         "units": units,
         "warnings": [dict(w) for w in units["warnings"]],
@@ -496,6 +498,14 @@ def _plain(x: Any) -> Any:
     if isinstance(x, np.bool_):
         return bool(x)
     return x
+
+
+def parameter_homes(fmu: str, interface: ModelInterface, names: Sequence[str]) -> dict[str, str]:
+    """Effects attached: which FMU each fitted parameter is set on ("element" or "model"), for the report."""
+    from fmusa.diagnose.attached import coupling_of, set_on_element
+
+    return {n: "element" if on else "model"
+            for n, on in set_on_element(coupling_of(fmu, interface).element(), interface, names).items()}
 
 
 def write_json(diag: dict, path: str | os.PathLike) -> None:
@@ -559,7 +569,7 @@ def write_extended_ssp(path: Path, fmu: str, interface: ModelInterface, drive: s
 
 def coupled_cost(fmu: str, interface: ModelInterface, drive: str, diag: dict, experiment) -> dict:
     """One coupled run of the extended model on the first experiment, for what the diagnosis states about the
-    coupling: the scheme the master chose, its FMU calls and its wall and CPU time."""
+    coupling: the scheme the master chose, its FMU calls and its wall and CPU time, and the reuse check's verdict."""
     from fmusa.diagnose.calibrate import make_runner
 
     params = dict(diag["extended"]["params"])
@@ -567,4 +577,5 @@ def coupled_cost(fmu: str, interface: ModelInterface, drive: str, diag: dict, ex
     runner.predict(list(params.values()), [experiment])
     r = runner.last
     return {"scheme": r.scheme, "calls": int(r.calls), "wall_s": float(r.wall_s), "cpu_s": float(r.cpu_s),
-            "notes": list(r.notes), "experiment": experiment.name, "points": len(experiment.t)}
+            "notes": list(r.notes), "experiment": experiment.name, "points": len(experiment.t),
+            "reuse": runner.reuse}

@@ -6,6 +6,10 @@
  *   - Model Exchange: states (x, v), derivatives (v, a), no events;
  *   - Co-Simulation: fmi2DoStep integrates with RK4 on sub-steps of at most min(h, 0.02 / max(sqrt(k/m), b/m))
  *     with the input affine over the step (fmi2SetRealInputDerivatives);
+ *   - with -DWITH_INDICATOR, one event indicator (the displacement x) for model exchange;
+ *   - with -DWITH_GLOBAL, a flaw some exports have: a static counter of the instances the loaded library has
+ *     made, which shifts the start x(0) = x0 + 1e-3 * (instances made before), so that a second instance of
+ *     the same loaded binary does not start where the first did;
  *   - with -DWITH_STATE, fmi2GetFMUstate / fmi2SetFMUstate / fmi2FreeFMUstate (a copy of the instance);
  *     without it they fail, as the model description then says canGetAndSetFMUstate="false".
  * Value references: 0 m, 1 k, 2 b, 3 x0 (parameters), 4 f (input), 5 x, 6 v (outputs, states), 7 a (der(v)).
@@ -22,6 +26,13 @@ typedef struct {
     fmi2CallbackLogger log;
     fmi2ComponentEnvironment env;
 } Body;
+
+#ifdef WITH_GLOBAL
+static int instances_made = 0;
+#define GLOBAL_SHIFT (1e-3 * (instances_made - 1))
+#else
+#define GLOBAL_SHIFT 0.0
+#endif
 
 static void rate(const Body *c, double t, double x, double v, double *dx, double *dv)
 {
@@ -41,6 +52,9 @@ fmi2Component fmi2Instantiate(fmi2String name, fmi2Type type, fmi2String guid, f
     (void)name; (void)type; (void)guid; (void)res; (void)vis; (void)log;
     Body *c = calloc(1, sizeof(Body));
     if (!c) return NULL;
+#ifdef WITH_GLOBAL
+    instances_made++;
+#endif
     c->p[0] = 1.0; c->p[1] = 100.0; c->p[2] = 1.0; c->p[3] = 0.0;
     c->log = cb ? cb->logger : NULL;
     c->env = cb ? cb->componentEnvironment : NULL;
@@ -53,7 +67,7 @@ fmi2Status fmi2EnterInitializationMode(fmi2Component c) { (void)c; return fmi2OK
 fmi2Status fmi2ExitInitializationMode(fmi2Component comp)
 {
     Body *c = comp;
-    c->x = c->p[3];
+    c->x = c->p[3] + GLOBAL_SHIFT;
     c->v = 0.0;
     c->t_f = c->t;
     return fmi2OK;
@@ -141,7 +155,13 @@ fmi2Status fmi2SetContinuousStates(fmi2Component comp, const fmi2Real x[], size_
 { Body *c = comp; if (n != 2) return fmi2Error; c->x = x[0]; c->v = x[1]; return fmi2OK; }
 fmi2Status fmi2GetDerivatives(fmi2Component comp, fmi2Real d[], size_t n)
 { Body *c = comp; if (n != 2) return fmi2Error; rate(c, c->t, c->x, c->v, &d[0], &d[1]); return fmi2OK; }
+#ifdef WITH_INDICATOR
+/* one event indicator, the displacement (a crossing of the rest position: no event action, only its location) */
+fmi2Status fmi2GetEventIndicators(fmi2Component c, fmi2Real z[], size_t n)
+{ if (n != 1) return fmi2Error; z[0] = ((Body *)c)->x; return fmi2OK; }
+#else
 fmi2Status fmi2GetEventIndicators(fmi2Component c, fmi2Real z[], size_t n) { (void)c; (void)z; return n ? fmi2Error : fmi2OK; }
+#endif
 fmi2Status fmi2GetContinuousStates(fmi2Component comp, fmi2Real x[], size_t n)
 { Body *c = comp; if (n != 2) return fmi2Error; x[0] = c->x; x[1] = c->v; return fmi2OK; }
 fmi2Status fmi2GetNominalsOfContinuousStates(fmi2Component c, fmi2Real x[], size_t n)
