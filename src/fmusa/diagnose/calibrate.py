@@ -132,6 +132,7 @@ class ModelRunner:
         #: the FMU gives the response's derivatives by the fitted parameters in the same run
         #: (:meth:`predict_with_jacobian`)
         self.has_sensitivities = bool(self._sens_outputs)
+        self._sens_pays: bool | None = None
         import threading
 
         self._lock = threading.Lock()
@@ -170,6 +171,22 @@ class ModelRunner:
         """The response channel of every experiment under the given parameter values."""
         self._count(len(experiments))
         return self._simulate(self.plan, values, experiments)
+
+    def sensitivities_pay(self, values: Sequence[float], experiments: Sequence) -> bool:
+        """Whether a run with the forward sensitivities costs less than the 1 + k runs of a forward-difference
+        Jacobian (k parameters): timed once per runner, one run of each kind at ``values`` (both counted). A
+        fast FMU whose sensitivities cost more than the runs they save keeps the finite differences."""
+        if self._sens_pays is None:
+            import time
+
+            self.predict_with_jacobian(values, experiments[:1])      # opens the instance: not timed
+            t0 = time.perf_counter()
+            self.predict(values, experiments[:1])
+            t1 = time.perf_counter()
+            self.predict_with_jacobian(values, experiments[:1])
+            t2 = time.perf_counter()
+            self._sens_pays = (t2 - t1) < (1 + len(self._sens_outputs)) * (t1 - t0)
+        return self._sens_pays
 
     def predict_with_jacobian(self, values: Sequence[float], experiments: Sequence) -> tuple[list, list]:
         """:meth:`predict` and, from the same run, the derivatives of each experiment's response by the fitted
@@ -316,6 +333,12 @@ class Residuals:
         self.exact = bool(getattr(model, "has_sensitivities", False))
         self._last_jac: tuple[np.ndarray, np.ndarray] | None = None
 
+    def decide(self, x: np.ndarray) -> None:
+        """Keep the sensitivities only where a run with them costs less than the finite differences' runs
+        (:meth:`ModelRunner.sensitivities_pay`, timed once per runner)."""
+        if self.exact and hasattr(self.model, "sensitivities_pay"):
+            self.exact = self.model.sensitivities_pay(self._values(x), self.experiments)
+
     def _values(self, x: np.ndarray) -> list[float]:
         return [p.from_x(xi) for p, xi in zip(self.params, x)]
 
@@ -406,6 +429,7 @@ FTOL = XTOL = 1e-6
 def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None = None) -> optimize.OptimizeResult:
     """One bounded trust-region fit from x0 (nudged inside the bounds, which trf requires)."""
     x0 = np.clip(x0, lo + 1e-12 * (hi - lo), hi - 1e-12 * (hi - lo))
+    fn.decide(x0)
     # the FMU's forward sensitivities: the Jacobian of the run that gave the residuals; otherwise, on one FMU
     # instance, scipy's own forward differences (the same runs, one after another)
     jac = fn.jac if fn.exact or fn.model.parallel > 1 else "2-point"
