@@ -75,7 +75,7 @@ modelica-venv: $(MODELICA_STAMP)
 $(FMU_BUILD)/modelDescription.xml $(FMU_BUILD)/sources/variables.h &: fmu/generate.py modelica/ScrewVertebra.mo | $(STAMP)
 	$(VPY) fmu/generate.py $(FMU_BUILD)
 
-$(FMU_GEN) &: fmu/codegen.py modelica/ScrewVertebra.mo | $(STAMP)
+$(FMU_GEN) &: fmu/codegen.py fmu/generate.py modelica/ScrewVertebra.mo | $(STAMP)
 	$(VPY) fmu/codegen.py $(FMU_BUILD)/sources
 
 # The headers come from the installed fmpy: order-only on the venv, so reinstalling it does not

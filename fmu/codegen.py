@@ -31,6 +31,9 @@ from pymoca import ast
 from pymoca.backends.casadi.generator import generate
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from generate import SENSITIVITIES  # noqa: E402  (the one statement of the FMU's sensitivity variables)
+
 MO_FILE = HERE.parent / "modelica" / "ScrewVertebra.mo"
 MODEL = "ScrewVertebra"
 
@@ -453,6 +456,7 @@ class Variant:
             sys.exit(f"outputs {missing} are neither states nor algebraic variables of the model")
         self.out = ca.vertcat(*[zs[n] for n in self.out_names])
         self.drive = drive
+        self.zs = zs
 
     def functions(self, dae: Dae) -> list:
         ins = [dae.t, dae.x, dae.p, dae.d, dae.u, dae.ud]
@@ -465,6 +469,42 @@ class Variant:
                             names, ["xd", "J", "Ft"])
         f_out = ca.Function(f"{dae.spec.prefix}{self.name}_out", ins, [ca.densify(self.out)], names, ["out"])
         return [f_rhs, f_lin, f_out]
+
+
+def sensitivity_functions(dae: Dae, v: Variant, outputs: tuple[str, ...]) -> list:
+    """The forward sensitivities of a variant in one parameter direction E (the unit vector of the selected
+    parameter; the FMU calls them once per selected parameter): S' = J S + (df/dp) E for S = dx/dp E, and
+    the output sensitivities (dh/dx) S + (dh/dp) E. The derived parameters are functions of p in the variant's
+    equations (Dae.fix), so these are total derivatives. For the solver's exponential step of S, the time
+    derivative of S' along the states' own motion: d/dt (J S + f_p E) at fixed S, with x' = f and the inputs'
+    rates (``_sens_lin``); ``_sens_rhs`` gives S' alone."""
+    pre, name = dae.spec.prefix, v.name
+    S = ca.SX.sym("S", len(dae.states))
+    E = ca.SX.sym("E", dae.p.numel())
+    Fs = ca.mtimes(v.J, S) + ca.jtimes(v.xd, dae.p, E)
+    Fts = ca.jtimes(Fs, dae.t, ca.SX(1)) + ca.jtimes(Fs, dae.u, dae.ud) + ca.jtimes(Fs, dae.x, v.xd)
+    ins = [dae.t, dae.x, dae.p, dae.d, dae.u, dae.ud, S, E]
+    names = ["t", "x", "p", "d", "u", "ud", "S", "E"]
+    missing = [o for o in outputs if o not in v.zs]
+    if missing:
+        sys.exit(f"SENSITIVITIES names {missing}, which are not outputs of the model")
+    h = ca.vertcat(*[v.zs[o] for o in outputs])
+    dh = ca.mtimes(ca.jacobian(h, dae.x), S) + ca.jtimes(h, dae.p, E)
+    out = [ca.Function(f"{pre}{name}_sens_lin", ins, [ca.densify(Fs), ca.densify(Fts)],
+                       names, ["Fs", "Fts"]),
+           ca.Function(f"{pre}{name}_sens_rhs", ins, [ca.densify(Fs)], names, ["Fs"]),
+           ca.Function(f"{pre}{name}_sens_out", ins, [ca.densify(dh)], names, ["dout"])]
+    return out
+
+
+def drive_sensitivity_function(dae: Dae, variant: Variant, drive):
+    """The prescribed states' sensitivities in one direction E: d(x_drive)/dp E (a drive v_pull*time depends
+    on v_pull; one that follows an input on nothing)."""
+    E = ca.SX.sym("E", dae.p.numel())
+    values = drive.call([dae.t, dae.p, dae.d, dae.u, dae.ud])[0]
+    dv = ca.jtimes(values, dae.p, E)
+    return ca.Function(f"{dae.spec.prefix}{variant.name}_sens_drive", [dae.t, dae.p, dae.d, dae.u, dae.ud, E],
+                       [ca.densify(dv)], ["t", "p", "d", "u", "ud", "E"], ["dx_drive"])
 
 
 def drive_function(dae: Dae, variant: Variant):
@@ -540,12 +580,18 @@ def build(path: Path | None = None, spec: Spec | None = None) -> dict:
         check_core_axial_block(dae, variants[0])
     functions = [fd]
     drives = {}
+    sens = SENSITIVITIES.get(spec.model)
     for v in variants:
         functions += v.functions(dae)
         if v.drive:
             f, fixed = drive_function(dae, v)
             functions.append(f)
             drives[v.name] = fixed
+            if sens:
+                functions.append(drive_sensitivity_function(dae, v, f))
+        # the sensitivities take the full variants: a core one fixes the effects' parameters
+        if sens and v.name.endswith("_full"):
+            functions += sensitivity_functions(dae, v, tuple(sens["outputs"]))
     kinks = time_kinks(ca.vertcat(*[v.xd for v in variants]), dae) if spec.modes else []
     if spec.modes:
         fk = ca.Function(f"{PREFIX}kinks", [dae.p, dae.d], [ca.densify(ca.vertcat(*kinks))], ["p", "d"],
@@ -553,7 +599,7 @@ def build(path: Path | None = None, spec: Spec | None = None) -> dict:
         functions.append(fk)
     public = {n for n, sym in tree.classes[spec.model].symbols.items() if sym.visibility == ast.Visibility.PUBLIC}
     return dict(dae=dae, variants=variants, functions=functions, drives=drives, n_kinks=len(kinks),
-                public=public)
+                public=public, sens=sens)
 
 
 def header(info: dict) -> str:
@@ -598,6 +644,11 @@ def header(info: dict) -> str:
     for i, n in enumerate(dae.d_names):
         lines.append(f"#define SV_D_{c_ident(n)} {i}")
     lines.append("")
+    if info.get("sens"):
+        sens = info["sens"]
+        lines += ["/* Forward sensitivities (fmu/generate.py SENSITIVITIES): parameter directions, outputs */",
+                  f"#define SV_NSENS {sens['parameters']}", f"#define SV_NSENS_OUT {len(sens['outputs'])}"]
+        table("SV_SENS_OUTPUTS", list(sens["outputs"]), "output with sensitivities (the rows of dout of _sens_out)")
     if spec.modes:
         lines += _mode_lines(info, dae, table)
     sz_arg = max(f.sz_arg() for f in fns)

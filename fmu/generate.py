@@ -53,6 +53,11 @@ FMUS = {
     "InterfaceElement": dict(sources=["fmi2.c", "element.c", "el_generated.c"], model_exchange=True,
                              fmu_state=True, experiment=("0", "1", "0.001")),
 }
+#: Forward sensitivities the FMU computes beside its states (fmu/codegen.py generates their equations, fmu/solver.c
+#: integrates them): up to ``parameters`` Real parameters, each selected by its value reference in the Integer
+#: parameter ``sens_p[k]`` (0: none), and the derivative of each named output by each of them, the output
+#: ``sens_<output>[k]``. The variables follow the model's own, so its value references are unchanged.
+SENSITIVITIES = {"ScrewVertebra": dict(parameters=8, outputs=("F_meas", "y_meas"))}
 TYPES = ("Real", "Integer", "Boolean")
 # The type attributes a public declaration may set (others, such as min or fixed, are not carried to the XML).
 ATTRIBUTES = ("unit", "start")
@@ -434,7 +439,7 @@ def parse_model(text: str, source: str = "<string>", model_name: str = MODEL_NAM
                     initial={"parameter": "exact", "calculatedParameter": "calculated"}.get(causality, ""),
                     start=starts[k], unit=units[k], description=f"{description} {suffix}" if dims else description))
     if not FMUS.get(model_name, {}).get("model_exchange"):
-        return Model(model_description, variables, model_name)
+        return Model(model_description, variables + sensitivity_variables(model_name, variables), model_name)
     # model exchange: the states are public Real outputs (in declaration order); their derivatives follow
     states = state_names(spec)
     declared = {v.name: v for v in variables}
@@ -447,6 +452,36 @@ def parse_model(text: str, source: str = "<string>", model_name: str = MODEL_NAM
                                   variability="continuous", initial="", start="", unit="",
                                   description=f"Rate of {s}"))
     return Model(model_description, variables, model_name, ordered)
+
+
+def sensitivity_variables(model_name: str, variables: list[Variable]) -> list[Variable]:
+    """The variables of the forward sensitivities (SENSITIVITIES) after the model's own: the selecting parameters
+    sens_p[k], then per output the derivatives sens_<output>[k]."""
+    facts = SENSITIVITIES.get(model_name)
+    if not facts:
+        return []
+    declared = {v.name: v for v in variables}
+    if not any(name in declared for name in facts["outputs"]):
+        return []   # a model of that name without those outputs (a test's minimal one): nothing to differentiate
+    k_max = facts["parameters"]
+    out: list[Variable] = []
+    for k in range(1, k_max + 1):
+        out.append(Variable(
+            vr=len(variables) + len(out) + 1, name=f"sens_p[{k}]", type="Integer", causality="parameter",
+            variability="fixed", initial="exact", start="0", unit="",
+            description=f"Forward sensitivity {k}: the value reference of the Real parameter to differentiate the "
+                        f"outputs sens_<output>[{k}] by (0: none; every one 0 costs nothing)"))
+    for name in facts["outputs"]:
+        if name not in declared or declared[name].causality != "output" or declared[name].type != "Real":
+            raise ModelicaError(f"SENSITIVITIES of fmu/generate.py names {name!r}, which is not a Real output")
+        for k in range(1, k_max + 1):
+            out.append(Variable(
+                vr=len(variables) + len(out) + 1, name=f"sens_{name}[{k}]", type="Real", causality="output",
+                variability="continuous", initial="", start="", unit="",
+                description=f"Forward sensitivity of {name} by the parameter sens_p[{k}] selects: d {name} / d "
+                            f"parameter, in {declared[name].unit or '1'} per the parameter's unit (0 when "
+                            f"sens_p[{k}] = 0)"))
+    return out
 
 
 def read_model(path: Path = MO_FILE) -> Model:

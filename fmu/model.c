@@ -12,6 +12,10 @@
 
 #define V(name) (mi->v[VR_##name])
 
+#if SV_NSENS > SOLVER_SMAX
+#error "fmu/generate.py SENSITIVITIES offers more parameters than the solver's SOLVER_SMAX columns"
+#endif
+
 static const VarInfo VARS[] = {
 #define X(name, vr, type, caus, start) {name, vr, type, caus, start},
     VARIABLES(X)
@@ -39,6 +43,21 @@ static int check(int ok, char *msg, size_t len, const char *fmt, const char *nam
 {
     if (!ok) snprintf(msg, len, fmt, name, value);
     return !ok;
+}
+
+/* The entry of p of the Real parameter with value reference vr that sensitivities may be taken by; -1 for
+ * another variable (an Integer or Boolean, a solver setting, not a parameter). */
+static int sens_index(double vr)
+{
+    static const int settings[] = {VR_rtol, VR_h_max, VR_max_wall_s, VR_eps_v_eq, VR_eps_a_eq};
+    for (size_t i = 0; i < sizeof(settings) / sizeof(settings[0]); i++)
+        if (vr == settings[i]) return -1;
+    const VarInfo *v = (vr >= 1.0 && vr == (double)(unsigned int)vr) ? model_variable((unsigned int)vr) : NULL;
+    if (!v || v->type != TYPE_REAL || v->causality != CAUS_PARAMETER) return -1;
+#define X(i, name) if (v->vr == VR_##name) return i;
+    SV_PARAMETERS(X)
+#undef X
+    return -1;
 }
 
 int model_validate(const ModelInstance *mi, char *msg, size_t len)
@@ -116,6 +135,20 @@ int model_validate(const ModelInstance *mi, char *msg, size_t len)
               "parameter %s = %g is invalid: unloading must start after the ramp (t_unload >= t_ramp)",
               "t_unload", V(t_unload)))
         return 1;
+    for (int k = 0; k < SV_NSENS; k++) {   /* forward sensitivities: a Real parameter of the equations, or 0 */
+        double vr = mi->v[VR_sens_p_1 + k];
+        char name[16];
+        snprintf(name, sizeof name, "sens_p[%d]", k + 1);
+        if (vr == 0.0) continue;
+        if (check(sens_index(vr) >= 0, msg, len, "parameter %s = %g is invalid: use 0 (none) or the value reference "
+                  "of a Real parameter of the model's equations (not a solver setting, the mode, a switch or a "
+                  "table size)", name, vr))
+            return 1;
+        for (int j = 0; j < k; j++)
+            if (check(mi->v[VR_sens_p_1 + j] != vr, msg, len, "parameter %s = %g is invalid: another sens_p selects "
+                      "the same parameter", name, vr))
+                return 1;
+    }
     int n = (int)V(tab_n);
     if (check(V(tab_n) == 0.0 || (V(tab_n) >= 2.0 && V(tab_n) <= 16.0 && V(tab_n) == n), msg, len,
               "parameter %s = %g is invalid: use 0 (linear c_y) or 2..16 table points", "tab_n", V(tab_n)))
@@ -147,13 +180,20 @@ static void inputs_at(const ModelInstance *mi, double t, double *u, double *ud)
 #undef X
 }
 
-/* Call a generated function of (t, x, p, d, u, ud) with the instance's work arrays. */
-static int call(ModelInstance *mi, sv_fn f, double t, const double *x, double **res)
+/* Call a generated function of (t, x, p, d, u, ud) with the instance's work arrays (and, for the sensitivity
+ * functions, S and the direction E). */
+static int call_sens(ModelInstance *mi, sv_fn f, double t, const double *x, const double *S, const double *E,
+                     double **res)
 {
     double u[SV_NU], ud[SV_NU];
     inputs_at(mi, t, u, ud);
-    const double *arg[SV_SZ_ARG] = {&t, x, mi->p, mi->d, u, ud};
+    const double *arg[SV_SZ_ARG] = {&t, x, mi->p, mi->d, u, ud, S, E};
     return f(arg, res, mi->iw, mi->w, 0);
+}
+
+static int call(ModelInstance *mi, sv_fn f, double t, const double *x, double **res)
+{
+    return call_sens(mi, f, t, x, NULL, NULL, res);
 }
 
 static int domain(double t, const double *x, char *msg, size_t len)
@@ -185,6 +225,19 @@ static int lin(void *ctx, double t, const double *x, double *du, double *J, doub
     double *res[SV_SZ_RES] = {du, J, Ft};
     if (call(mi, mi->f_lin, t, x, res)) {
         snprintf(msg, len, "the generated Jacobian failed at t = %.17g", t);
+        return 1;
+    }
+    return 0;
+}
+
+static int sens(void *ctx, int col, double t, const double *x, const double *S, double *Fs, double *Fts, char *msg,
+                size_t len)
+{
+    ModelInstance *mi = ctx;
+    if (domain(t, x, msg, len)) return 1;
+    double *res[SV_SZ_RES] = {Fs, Fts};
+    if (call_sens(mi, Fts ? mi->f_sens_lin : mi->f_sens_rhs, t, x, S, mi->E[col], res)) {
+        snprintf(msg, len, "the generated sensitivity equations failed at t = %.17g", t);
         return 1;
     }
     return 0;
@@ -232,6 +285,17 @@ static int update_outputs(ModelInstance *mi, char *msg, size_t len)
         V(v_y_mean) = span > 0.0 ? mi->solver.absvel_int / span : fabs(u[SV_IX_VELOCITY]);
     }
     V(n_steps) = (double)mi->solver.n_steps;
+    for (int c = 0; c < mi->n_sens; c++) {
+        double dout[SV_NSENS_OUT];
+        double *rs[SV_SZ_RES] = {dout};
+        if (call_sens(mi, mi->f_sens_out, mi->time, u, mi->solver.S[c], mi->E[c], rs)) {
+            snprintf(msg, len, "the generated output sensitivities failed at t = %.17g", mi->time);
+            return 1;
+        }
+#define X(i, name) mi->v[VR_sens_##name##_1 + mi->sens_col[c]] = dout[i];
+        SV_SENS_OUTPUTS(X)
+#undef X
+    }
     if (!mi->solver.monitors) V(y_max) = V(v_y_max) = V(y_mean) = V(v_y_mean) = V(t_eq) = NAN;
     return 0;
 }
@@ -251,6 +315,16 @@ static int apply_drive(ModelInstance *mi, char *msg, size_t len)
 #define X(i, name) mi->u[SV_IX_##name] = mi->solver.u[SV_IX_##name] = xd[i];
     SV_DRIVE(X)
 #undef X
+    for (int c = 0; c < mi->n_sens; c++) {   /* the prescribed states' sensitivities */
+        arg[5] = mi->E[c];
+        if (mi->f_sens_drive(arg, res, mi->iw, mi->w, 0)) {
+            snprintf(msg, len, "the generated drive sensitivities failed at t = %.17g", t);
+            return 1;
+        }
+#define X(i, name) mi->solver.S[c][SV_IX_##name] = xd[i];
+        SV_DRIVE(X)
+#undef X
+    }
     return 0;
 }
 
@@ -294,11 +368,33 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     SV_CALCULATED(X)
 #undef X
     /* the variant: force-driven with every effect off (core), force-driven, motion-driven (fmu/codegen.py) */
-    int motion = (int)V(mode) == SV_MODE_MOTION, core = !motion && SV_IS_CORE(mi->p);
+    /* forward sensitivities: the selected parameters, in the order of sens_p (fmu/generate.py SENSITIVITIES) */
+    double p_abs[SV_NSENS];
+    mi->n_sens = 0;
+    memset(mi->E, 0, sizeof(mi->E));
+    for (int k = 0; k < SV_NSENS; k++) {
+        int i = mi->v[VR_sens_p_1 + k] != 0.0 ? sens_index(mi->v[VR_sens_p_1 + k]) : -1;
+        if (i < 0) continue;
+        mi->E[mi->n_sens][i] = 1.0;
+        p_abs[mi->n_sens] = fabs(mi->p[i]);
+        mi->sens_col[mi->n_sens++] = k;
+    }
+    for (int k = 0; k < SV_NSENS; k++) {
+#define X(i, name) mi->v[VR_sens_##name##_1 + k] = 0.0;
+        SV_SENS_OUTPUTS(X)
+#undef X
+    }
+    /* the variant: force-driven with every effect off (core), force-driven, motion-driven (fmu/codegen.py);
+     * sensitivities take the full one (a core variant holds the effects' parameters fixed) */
+    int motion = (int)V(mode) == SV_MODE_MOTION, core = !motion && !mi->n_sens && SV_IS_CORE(mi->p);
     mi->f_rhs = motion ? sv_motion_full_rhs : core ? sv_force_core_rhs : sv_force_full_rhs;
     mi->f_lin = motion ? sv_motion_full_lin : core ? sv_force_core_lin : sv_force_full_lin;
     mi->f_out = motion ? sv_motion_full_out : core ? sv_force_core_out : sv_force_full_out;
     mi->f_drive = motion ? sv_motion_full_drive : NULL;
+    mi->f_sens_lin = motion ? sv_motion_full_sens_lin : sv_force_full_sens_lin;
+    mi->f_sens_rhs = motion ? sv_motion_full_sens_rhs : sv_force_full_sens_rhs;
+    mi->f_sens_out = motion ? sv_motion_full_sens_out : sv_force_full_sens_out;
+    mi->f_sens_drive = motion ? sv_motion_full_sens_drive : NULL;
     mi->time = t0;
     mi->t_inputs = t0;
     memset(mi->u, 0, sizeof(mi->u));   /* at rest in the reference configuration (the Modelica's initial equations) */
@@ -320,6 +416,9 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->rhs = rhs;
     sv->lin = lin;
     sv->breakpoint = next_breakpoint;
+    sv->ns = mi->n_sens;
+    sv->sens = sens;
+    for (int c = 0; c < mi->n_sens; c++) sv->sens_p[c] = p_abs[c];
     sv->ctx = mi;
     sv->work = mi->work;
     if (apply_drive(mi, msg, len)) return 1;

@@ -48,6 +48,12 @@ typedef struct ModelInstance {
     double d[SV_ND];         /* the derived parameters (sv_derived) */
     double kinks[SV_NKINKS]; /* times at which the load has a kink (sv_kinks) */
     sv_function f_rhs, f_lin, f_out, f_drive;   /* the variant the parameters call for (f_drive: motion only) */
+    /* forward sensitivities: the selected parameters' columns (sens_p[k]), their unit directions in p, and the
+     * full variant's sensitivity functions (NULL: none selected) */
+    int n_sens;
+    int sens_col[SV_NSENS];  /* k of sens_p[k] (0-based) of each solver column */
+    double E[SV_NSENS][SV_NP];
+    sv_function f_sens_lin, f_sens_rhs, f_sens_out, f_sens_drive;
     int iw[SV_SZ_IW];        /* work arrays of the generated functions */
     double w[SV_SZ_W];
     Solver solver;

@@ -1127,7 +1127,7 @@ static void take_piece_monitors(Solver *s, const PieceMonitors *m)
 static int linear_piece(Solver *s, const Linearization *L, double h, double t_next, char *msg, size_t len)
 {
     int n = s->n, ip = s->ipos, iv = s->ivel;
-    if (!s->lin2 || s->h_max > 0.0 || L->k != 2) return -1;
+    if (!s->lin2 || s->h_max > 0.0 || L->k != 2 || s->ns) return -1;
     if (!((L->idx[0] == ip && L->idx[1] == iv) || (L->idx[0] == iv && L->idx[1] == ip))) return -1;
     if (L->J[ip * n + ip] != 0.0 || L->J[ip * n + iv] != 1.0 || L->Ft[ip] != 0.0) return -1;
     double k = -L->J[iv * n + ip], g = -L->J[iv * n + iv];
@@ -1156,6 +1156,124 @@ static int linear_piece(Solver *s, const Linearization *L, double h, double t_ne
     s->z[iv] = aH;
     s->z_valid = 1;
     s->n_steps++;
+    return 0;
+}
+
+/* ---------------------------------------------------------------- forward sensitivities
+ *
+ * Each column S = du/dp (one parameter) obeys the linear equation S' = J(t, u(t)) S + f_p(t, u(t)) along the
+ * states' solution. Over every accepted step of the states from (t, u0) to (t + h, u1) the columns take steps of
+ * the same exponential Rosenbrock scheme (exprb32) with the states' exact Jacobian J at the step's start:
+ *     S_U = S + k phi1(kJ) G0 + k^2 phi2(kJ) G_t,  S1 = S_U + 2k phi3(kJ) D,
+ *     D = G(t + k, u(t + k), S_U) - G0 - J (S_U - S) - k G_t,
+ * with G = J S + f_p and G_t its derivative in time at fixed S along the states' motion (u' = f), so that the
+ * change of J and f_p enters as the time dependence of a linear equation. A sub-step k of the state's step is
+ * accepted when its correction 2k phi3 D is within rtol of the column's scale (each state's largest |S| so far, or
+ * its largest |u| divided by |p|, what a change of p by itself moves it), else shortened (a fast transient of f_p within a long linear step of the states); the states inside the step come
+ * from its linearised solution (exact where the step was linear), its end is the accepted u1. The block is that of
+ * the states that move or whose sensitivity does (closed under J's coupling). The states' steps are their own, so
+ * a run with sensitivities has the same states as one without. Where the right-hand side switches (a kink of the
+ * load, the Bouc-Wen switch of friction and yield, a rounded corner sharper than a step) S follows the side of the
+ * step's start: the derivative is the one-sided one. */
+
+/* The states at t + tau inside the step from (t, u0) on its linearised solution. */
+static void sens_state_at(const Solver *s, const Linearization *L, const double *u0, double tau, double *u)
+{
+    double A[NMAX * NMAX], ph[4][NMAX * NMAX];
+    if (L->k == 0) { memcpy(u, u0, sizeof(double) * s->n); return; }
+    active_block(s, L, tau, A);
+    solver_phi(L->k, A, ph[0], ph[1], ph[2], ph[3]);
+    propagate_linear(s, L, u0, L->F0, tau, ph, u, NULL);
+}
+
+/* One exponential step of column c over [ta, ta + k] from S (ua, ub the states at its ends); S1 and the error of
+ * its correction against rtol (0 when nothing moves). */
+static int sens_substep(Solver *s, const Linearization *L, int c, double ta, const double *ua, double k,
+                        const double *ub, const double *S, double *S1, double *err, char *msg, size_t len)
+{
+    int n = s->n;
+    double G0[NMAX], Gt[NMAX], G1[NMAX];
+    if (s->sens(s->ctx, c, ta, ua, S, G0, Gt, msg, len)) return 1;
+    int act[NMAX], idx[NMAX], m = 0;
+    for (int i = 0; i < n; i++) {
+        if (!isfinite(G0[i]) || !isfinite(Gt[i])) {
+            snprintf(msg, len, "the sensitivity equations are not finite at t = %.17g (state %d, column %d)", ta, i,
+                     c + 1);
+            return 1;
+        }
+        act[i] = L->active[i] || S[i] != 0.0 || G0[i] != 0.0 || Gt[i] != 0.0;
+    }
+    for (int changed = 1; changed;) {
+        changed = 0;
+        for (int j = 0; j < n; j++)
+            if (act[j])
+                for (int i = 0; i < n; i++)
+                    if (!act[i] && L->Jfull[i * n + j] != 0.0) { act[i] = 1; changed = 1; }
+    }
+    for (int i = 0; i < n; i++)
+        if (act[i]) idx[m++] = i;
+    memcpy(S1, S, sizeof(double) * n);
+    *err = 0.0;
+    if (m == 0) return 0;
+    double A[NMAX * NMAX], P0[NMAX * NMAX], P1[NMAX * NMAX], P2[NMAX * NMAX], P3[NMAX * NMAX];
+    for (int a = 0; a < m; a++)
+        for (int b = 0; b < m; b++) A[a * m + b] = k * L->Jfull[idx[a] * n + idx[b]];
+    solver_phi(m, A, P0, P1, P2, P3);
+    double g0[NMAX], gt[NMAX], y1[NMAX], y2[NMAX], D[NMAX], corr[NMAX];
+    for (int a = 0; a < m; a++) { g0[a] = G0[idx[a]]; gt[a] = Gt[idx[a]]; }
+    matvec(m, P1, g0, y1);
+    matvec(m, P2, gt, y2);
+    for (int a = 0; a < m; a++) S1[idx[a]] += k * y1[a] + k * k * y2[a];
+    if (s->sens(s->ctx, c, ta + k, ub, S1, G1, NULL, msg, len)) return 1;
+    for (int a = 0; a < m; a++) {
+        int i = idx[a];
+        double d = G1[i] - G0[i] - k * Gt[i];
+        for (int b = 0; b < m; b++) d -= L->Jfull[i * n + idx[b]] * (S1[idx[b]] - S[idx[b]]);
+        D[a] = d;
+    }
+    matvec(m, P3, D, corr);
+    for (int a = 0; a < m; a++) {
+        int i = idx[a];
+        double cc = 2.0 * k * corr[a];
+        S1[i] += cc;
+        double sc = s->rtol * fmax(fmax(fmax(fabs(S[i]), fabs(S1[i])), s->Smax[c][i]),
+                                   s->sens_p[c] > 0.0 ? s->umax[i] / s->sens_p[c] : INFINITY);
+        if (sc > 0.0) *err = fmax(*err, fabs(cc) / sc);
+    }
+    for (int i = 0; i < n; i++)
+        if (!isfinite(S1[i])) {
+            snprintf(msg, len, "the sensitivities are not finite at t = %.17g (state %d, column %d)", ta + k, i, c + 1);
+            return 1;
+        }
+    return 0;
+}
+
+static int sens_step(Solver *s, const Linearization *L, double t, const double *u0, double h, const double *u1,
+                     char *msg, size_t len)
+{
+    int n = s->n;
+    for (int c = 0; c < s->ns; c++) {
+        double tau = 0.0, k = h, ua[NMAX], ub[NMAX], S1[NMAX];
+        memcpy(ua, u0, sizeof(double) * n);
+        while (tau < h) {
+            k = fmin(k, h - tau);
+            int last = tau + k >= h;
+            if (last) memcpy(ub, u1, sizeof(double) * n);
+            else sens_state_at(s, L, u0, tau + k, ub);
+            double err;
+            if (sens_substep(s, L, c, t + tau, ua, k, ub, s->S[c], S1, &err, msg, len)) return 1;
+            double fac = err > 0.0 ? 0.9 * pow(err, -1.0 / 3.0) : 4.0;
+            if (err <= 1.0 || k <= h * 1e-3) {
+                memcpy(s->S[c], S1, sizeof(double) * n);
+                for (int i = 0; i < n; i++) s->Smax[c][i] = fmax(s->Smax[c][i], fabs(S1[i]));
+                tau = last ? h : tau + k;
+                memcpy(ua, ub, sizeof(double) * n);
+                k *= fmin(fac, 4.0);
+            } else {
+                k *= fmax(0.1, fmin(fac, 0.5));
+            }
+        }
+    }
     return 0;
 }
 
@@ -1444,8 +1562,11 @@ static int fast_step(Solver *s, Linearization *L, double t_end, double bp, Budge
             if (!at_rest(s, u1[iv], a1)) s->t_eq = -1.0;
         }
         for (int i = 0; i < n; i++) s->umax[i] = fmax(s->umax[i], fabs(u1[i]));
+        double u0[NMAX];
+        memcpy(u0, s->u, sizeof(double) * n);
         memcpy(s->u, u1, sizeof(double) * n);
         s->t = (h == remaining) ? t_end : (at_bp ? bp : t + h);
+        if (s->ns && sens_step(s, L, t, u0, s->t - t, u1, msg, msglen)) return 1;
         s->acc = follow ? a1 : zU[iv];
         memcpy(s->z, zU, sizeof(double) * n);
         s->z[iv] = s->acc;
@@ -1479,6 +1600,7 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
             double bp = s->breakpoint(s->ctx, t);
             while (bp - t <= 1e-12 * fmax(1.0, fabs(t))) bp = s->breakpoint(s->ctx, bp);
             s->t = fmin(t_end, bp);
+            if (s->ns && sens_step(s, &L, t, s->u, s->t - t, s->u, msg, msglen)) return 1;
             s->pos_int += (s->t - t) * s->u[s->ipos];
             s->absvel_int += (s->t - t) * fabs(s->u[s->ivel]);
             s->acc = 0.0;
@@ -1592,8 +1714,11 @@ int solver_advance(Solver *s, double t_end, char *msg, size_t msglen)
                 if (s_new > s_c) s->t_eq = t + s_new;
             }
             for (int i = 0; i < n; i++) s->umax[i] = fmax(s->umax[i], fabs(u1[i]));
+            double u0[NMAX];
+            memcpy(u0, s->u, sizeof(double) * n);
             memcpy(s->u, u1, sizeof(double) * n);
             s->t = (h == remaining) ? t_end : (at_bp ? bp : t + h);
+            if (s->ns && sens_step(s, &L, t, u0, s->t - t, u1, msg, msglen)) return 1;
             s->acc = ac[NSUB];
             /* carry the derivative: exact for the linearised model, blended like the state */
             memcpy(s->z, zs[NSUB], sizeof(double) * n);

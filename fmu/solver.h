@@ -6,6 +6,7 @@
 #include <stddef.h>
 
 #define SOLVER_NMAX 16
+#define SOLVER_SMAX 8            /* forward sensitivity columns */
 
 /* Right-hand side du = f(t, u). Returns 0 on success, nonzero (with msg filled) when the state is outside the
  * model's domain. */
@@ -15,6 +16,11 @@ typedef int (*solver_rhs_fn)(void *ctx, double t, const double *u, double *du, c
  * derivative Ft = d(du)/dt (with the inputs' rates). Returns as solver_rhs_fn. */
 typedef int (*solver_lin_fn)(void *ctx, double t, const double *u, double *du, double *J, double *Ft, char *msg,
                              size_t msglen);
+
+/* Forward sensitivities, column col: Fs = J S + df/dp e_col at (t, u) for S = du/dp e_col, and (Fts not NULL) its
+ * time derivative at fixed S along the states' motion. Returns as solver_rhs_fn. */
+typedef int (*solver_sens_fn)(void *ctx, int col, double t, const double *u, const double *S, double *Fs, double *Fts,
+                              char *msg, size_t msglen);
 
 /* Next time > t at which the right-hand side has a kink in time (a load ramp starts or ends). */
 typedef double (*solver_breakpoint_fn)(void *ctx, double t);
@@ -56,6 +62,15 @@ typedef struct {
                                   * without dense samples are not taken) */
     solver_breakpoint_fn breakpoint;
     void *ctx;
+    /* Forward sensitivities (ns > 0): S[c] = du/dp for the parameter of column c, carried from step to step by
+     * the exponential step of the linear equation S' = J(t, u(t)) S + f_p along each accepted step of the
+     * states (sens_step in solver.c); they leave the states' steps unchanged. */
+    int ns;
+    double S[SOLVER_SMAX][SOLVER_NMAX];
+    double Smax[SOLVER_SMAX][SOLVER_NMAX];   /* running max |S|: the scale of their error control */
+    double sens_p[SOLVER_SMAX];  /* |p| of each column: S_i is also measured against umax_i / |p| (a state's change
+                                  * for a change of p by itself) */
+    solver_sens_fn sens;
 } Solver;
 
 /* Bytes of the workspace (Solver.work) the solver uses for the phi functions applied to vectors. */

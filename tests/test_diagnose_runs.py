@@ -110,6 +110,7 @@ def test_a_jacobian_round_in_parallel_is_the_same_as_one_run_after_another(fmu_p
     jacs = []
     for lanes in (1, 3):
         model = ModelRunner(fmu_path, "force", [p.name for p in params], parallel=lanes)
+        model.has_sensitivities = False   # the finite differences, not the FMU's forward sensitivities
         try:
             fn = Residuals(model, params, [experiment], [np.ones(len(experiment.t), bool)],
                            _response_scale("force", sc), lo, hi)
@@ -162,6 +163,7 @@ def test_heldout_refits_at_once_are_the_same_as_one_after_another(fmu_path, expe
     fit, out = None, []
     for lanes in (1, 4):
         model = ModelRunner(fmu_path, "force", names, parallel=lanes)
+        model.has_sensitivities = False   # the finite differences, not the FMU's forward sensitivities
         try:
             if fit is None:
                 fit = calibrate(model, "sensor_offset", "force", [experiment], sc, max_starts=1)

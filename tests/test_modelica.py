@@ -255,9 +255,35 @@ def generated(tmp_path_factory) -> tuple[str, str]:
         (out / "sources" / "variables.h").read_text(encoding="utf-8")
 
 
+def with_sensitivities(modelica: list[Var], model: str = MODEL) -> list[Var]:
+    """The model's variables and after them those of its forward sensitivities, as the generator's
+    SENSITIVITIES states them (k = 1..K): Integer parameters sens_p[k] (start 0), then per named output the Real
+    outputs sens_<output>[k], value references continuing the model's."""
+    facts = contract.generator().SENSITIVITIES.get(model)
+    units = {v.name: v.unit for v in modelica}
+    if not facts or not any(name in units for name in facts["outputs"]):
+        return modelica
+    out = list(modelica)
+    k_max = facts["parameters"]
+    for k in range(1, k_max + 1):
+        out.append(Var(vr=len(out) + 1, name=f"sens_p[{k}]", type="Integer", causality="parameter",
+                       variability="fixed", initial="exact", unit=None, start=0, declared_start=0,
+                       description=f"Forward sensitivity {k}: the value reference of the Real parameter to "
+                                   f"differentiate the outputs sens_<output>[{k}] by (0: none; every one 0 costs "
+                                   f"nothing)"))
+    for name in facts["outputs"]:
+        for k in range(1, k_max + 1):
+            out.append(Var(vr=len(out) + 1, name=f"sens_{name}[{k}]", type="Real", causality="output",
+                           variability="continuous", initial=None, unit=None, start=None,
+                           description=f"Forward sensitivity of {name} by the parameter sens_p[{k}] selects: d {name} "
+                                       f"/ d parameter, in {units[name] or '1'} per the parameter's unit (0 when "
+                                       f"sens_p[{k}] = 0)"))
+    return out
+
+
 @pytest.fixture(scope="module")
 def mo_vars(mo_text) -> list[Var]:
-    return pymoca_model(mo_text)[1]
+    return with_sensitivities(pymoca_model(mo_text)[1])
 
 
 def generate(text: str) -> tuple[str, str]:
@@ -271,6 +297,7 @@ def generate(text: str) -> tuple[str, str]:
 def agreement(text: str, xml: str, header: str) -> list[str]:
     """Every disagreement of the generated files with pymoca's reading of the Modelica text."""
     description, modelica = pymoca_model(text)
+    modelica = with_sensitivities(modelica)
     root, xml_vars = xml_model(xml)
     problems = compare(modelica, xml_vars)
     if root.get("description") != description:
@@ -420,7 +447,8 @@ def test_rules_hold_beyond_the_shipped_declarations(mo_text, declarations, expec
 def test_a_public_section_after_the_protected_one_counts(mo_text):
     text = _before_sections(mo_text, 'public\n  parameter Real late(unit="s") = 1e3 "After protected";\n\n')
     xml, header = generate(text)
-    assert xml_model(xml)[1][-1].name == "late"
+    names = [v.name for v in xml_model(xml)[1] if not v.name.startswith("sens_")]   # the sensitivities come last
+    assert names[-1] == "late"
     assert agreement(text, xml, header) == []
 
 

@@ -126,6 +126,13 @@ class ModelRunner:
         #: rounds waited for one after another, by stage (:attr:`Fit.rounds`)
         self.rounds: dict[str, int] = {}
         self.stage = "fit"
+        self._sens_outputs = sensitivity_outputs(self.runner.model_description, self.output,
+                                                 [interface.variable(n) for n in names])
+        self._sens: tuple | None = None
+        #: the FMU gives the response's derivatives by the fitted parameters in the same run
+        #: (:meth:`predict_with_jacobian`)
+        self.has_sensitivities = bool(self._sens_outputs)
+        self._sens_pays: bool | None = None
         import threading
 
         self._lock = threading.Lock()
@@ -164,6 +171,58 @@ class ModelRunner:
         """The response channel of every experiment under the given parameter values."""
         self._count(len(experiments))
         return self._simulate(self.plan, values, experiments)
+
+    def sensitivities_pay(self, values: Sequence[float], experiments: Sequence) -> bool:
+        """Whether a run with the forward sensitivities costs less than the 1 + k runs of a forward-difference
+        Jacobian (k parameters): timed once per runner, the faster of two runs of each kind at ``values`` (all
+        counted), so that a busy machine's pauses do not decide. A fast FMU whose sensitivities cost more than the
+        runs they save keeps the finite differences."""
+        if self._sens_pays is None:
+            import time
+
+            self.predict_with_jacobian(values, experiments[:1])      # opens the instance: not timed
+            plain, sens = [], []
+            for _ in range(2):
+                t0 = time.perf_counter()
+                self.predict(values, experiments[:1])
+                t1 = time.perf_counter()
+                self.predict_with_jacobian(values, experiments[:1])
+                plain.append(t1 - t0)
+                sens.append(time.perf_counter() - t1)
+            self._sens_pays = min(sens) < (1 + len(self._sens_outputs)) * min(plain)
+        return self._sens_pays
+
+    def predict_with_jacobian(self, values: Sequence[float], experiments: Sequence) -> tuple[list, list]:
+        """:meth:`predict` and, from the same run, the derivatives of each experiment's response by the fitted
+        parameters in natural units (samples x parameters), from the FMU's forward sensitivities (one run per
+        experiment, as :meth:`predict`). Only when :attr:`has_sensitivities`."""
+        if self._sens is None:
+            from fmusa.fmi.plans import DrivenPlan
+            from fmusa.fmi.runner import FMURunner
+
+            fmu_path, drive, names, fixed, rtol, interface = self._args
+            md_vars = {v.name: v for v in self.runner.model_description.modelVariables}
+            select = {f"sens_p[{k + 1}]": md_vars[interface.variable(n)].valueReference for k, n in enumerate(names)}
+            runner = FMURunner(fmu_path, instance_name="diagnose")
+            try:
+                plan = DrivenPlan(runner, [interface.variable(n) for n in names],
+                                  {**interface.settings(drive, rtol), **fixed, **select}, self.input_name,
+                                  [self.output] + self._sens_outputs)
+            except Exception:
+                runner.close()
+                raise
+            self._sens = (runner, plan)
+        self._count(len(experiments))
+        plan = self._sens[1]
+        preds, jacs = [], []
+        for e in experiments:
+            u = np.asarray(e.drive_signal)
+            data = plan(values, e.t, u if self.in_scale == 1.0 else u / self.in_scale)
+            if self.out_scale != 1.0:
+                data = data * self.out_scale
+            preds.append(data[:, 0])
+            jacs.append(data[:, 1:])
+        return preds, jacs
 
     def predict_many(self, points: Sequence[Sequence[float]], experiments: Sequence) -> list:
         """:meth:`predict` at every point, as one round on up to ``parallel`` FMU instances: per point the
@@ -209,7 +268,26 @@ class ModelRunner:
     def close(self) -> None:
         for runner, _ in self._extra:
             runner.close()
+        if self._sens is not None:
+            self._sens[0].close()
         self.runner.close()
+
+
+def sensitivity_outputs(model_description, output: str, parameters: Sequence[str]) -> list[str]:
+    """The FMU's outputs of the derivatives of ``output`` by each of ``parameters``, when it declares forward
+    sensitivities (Integer parameters ``sens_p[k]`` selecting a Real parameter by value reference, Real
+    outputs ``sens_<output>[k]``, k = 1.. as many as the parameters): [] when it does not, or offers fewer."""
+    md_vars = {v.name: v for v in model_description.modelVariables}
+    out = []
+    for k in range(1, len(parameters) + 1):
+        sel, der = md_vars.get(f"sens_p[{k}]"), md_vars.get(f"sens_{output}[{k}]")
+        if sel is None or der is None or sel.type != "Integer" or sel.causality != "parameter" \
+                or der.type != "Real" or der.causality != "output":
+            return []
+        out.append(der.name)
+    if any(md_vars.get(p) is None or md_vars[p].type != "Real" for p in parameters):
+        return []
+    return out
 
 
 class Lane:
@@ -255,6 +333,15 @@ class Residuals:
         self.model, self.params, self.experiments, self.masks, self.scale = model, params, experiments, masks, scale
         self.lo, self.hi, self.rel_step = lo, hi, rel_step
         self._last: tuple[np.ndarray, np.ndarray] | None = None
+        #: the Jacobian comes with the residuals from one run (the FMU's forward sensitivities)
+        self.exact = bool(getattr(model, "has_sensitivities", False))
+        self._last_jac: tuple[np.ndarray, np.ndarray] | None = None
+
+    def decide(self, x: np.ndarray) -> None:
+        """Keep the sensitivities only where a run with them costs less than the finite differences' runs
+        (:meth:`ModelRunner.sensitivities_pay`, timed once per runner)."""
+        if self.exact and hasattr(self.model, "sensitivities_pay"):
+            self.exact = self.model.sensitivities_pay(self._values(x), self.experiments)
 
     def _values(self, x: np.ndarray) -> list[float]:
         return [p.from_x(xi) for p, xi in zip(self.params, x)]
@@ -270,6 +357,8 @@ class Residuals:
         return r if np.all(np.abs(r) <= 1e3) else np.full(n, 1e3)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
+        if self.exact:
+            return self._with_jacobian(np.array(x, float))
         try:
             preds = self.model.predict(self._values(x), self.experiments)
         except RuntimeError as exc:
@@ -278,8 +367,34 @@ class Residuals:
         self._last = (np.array(x, float), f)
         return f
 
+    def _with_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """The residuals and their Jacobian on the optimiser's scale from one run with the FMU's forward
+        sensitivities: d r / d x_j = (d prediction / d p_j) (d p_j / d x_j) / scale on the masked points, d p / d x
+        = p for a log-scaled parameter. A failed run gives the large constant residuals and a zero Jacobian."""
+        values = self._values(x)
+        try:
+            preds, jacs = self.model.predict_with_jacobian(values, self.experiments)
+        except RuntimeError as exc:
+            preds, jacs = exc, None
+        f = self._scaled(preds)
+        failed = jacs is None or bool(np.all(f == 1e3))
+        if failed:
+            J = np.zeros((len(f), len(x)))
+        else:
+            dpdx = np.array([v if p.log else 1.0 for p, v in zip(self.params, values)])
+            J = np.concatenate([jac[m] for jac, m in zip(jacs, self.masks)]) * (dpdx / self.scale)
+            if not np.all(np.isfinite(J)):
+                J = np.zeros((len(f), len(x)))
+        self._last = (x, f)
+        self._last_jac = (x, J)
+        return f
+
     def jac(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, float)
+        if self.exact:
+            if self._last_jac is None or not np.array_equal(self._last_jac[0], x):
+                self._with_jacobian(x.copy())
+            return self._last_jac[1]
         f0 = self._last[1] if self._last is not None and np.array_equal(self._last[0], x) else self(x)
         h = self.rel_step * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
         out = (x + h < self.lo) | (x + h > self.hi)
@@ -318,8 +433,10 @@ FTOL = XTOL = 1e-6
 def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None = None) -> optimize.OptimizeResult:
     """One bounded trust-region fit from x0 (nudged inside the bounds, which trf requires)."""
     x0 = np.clip(x0, lo + 1e-12 * (hi - lo), hi - 1e-12 * (hi - lo))
-    # one FMU instance: scipy's own forward differences (the same runs, one after another)
-    jac = fn.jac if fn.model.parallel > 1 else "2-point"
+    fn.decide(x0)
+    # the FMU's forward sensitivities: the Jacobian of the run that gave the residuals; otherwise, on one FMU
+    # instance, scipy's own forward differences (the same runs, one after another)
+    jac = fn.jac if fn.exact or fn.model.parallel > 1 else "2-point"
     return optimize.least_squares(fn, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
                                   diff_step=fn.rel_step, max_nfev=max_nfev, xtol=tol or XTOL, ftol=tol or FTOL)
 

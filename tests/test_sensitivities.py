@@ -1,0 +1,185 @@
+"""The FMU's forward sensitivities (sens_p[k] selects a parameter, sens_<output>[k] is the output's derivative by it)
+against paths that do not share their code, and the diagnosis's least-squares Jacobian taken from them.
+
+- The axial spring-damper under the ramp load: d y / d c_y and d y / d d_y against the derivatives of the exact
+  closed form (tests/reference.py, differentiated in 40-digit arithmetic), d y / d F_max = y / F_max.
+- Every effect, force- and motion-driven: against central differences of fresh fmpy runs of the FMU without
+  sensitivities (rtol 1e-10); the states of a run with sensitivities are bit for bit those of one without.
+- A bad selection is refused, naming sens_p[k].
+- Calibration: with the sensitivities, one FMU run per residual evaluation gives the Jacobian too (no run for
+  it), and the fit lands where the finite-difference fit does.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fmpy import read_model_description, simulate_fmu
+
+from reference import MP, Axial
+
+STOP = 2.0
+T = np.linspace(0.0, STOP, 81)
+
+#: per effect, parameters of a clearly active effect (force drive peaks near 1.3 mm at c_y = 2e5 N/m)
+EFFECTS = {
+    "none": {},
+    "nonlinear_stiffness": {"nl_ratio": 2.5, "nl_y_b": 4e-4},
+    "coulomb_friction": {"fric_F": 25.0, "fric_x": 5e-5},
+    "yield_softening": {"yield_ratio": 0.3, "yield_F": 120.0},
+    "viscoelastic_relaxation": {"ve_k": 1e5, "ve_tau": 0.3},
+    "backlash_gap": {"gap": 1e-4},
+    "interface_damage": {"dmg_y0": 4e-4, "dmg_rate": 3000.0, "dmg_F_res": 50.0},
+    "sensor_offset": {},
+}
+#: the cases `make test` runs (the rest run in `make slow`)
+QUICK = {("nonlinear_stiffness", "force"), ("coulomb_friction", "displacement")}
+
+
+def _vrs(fmu) -> dict[str, int]:
+    return {v.name: v.valueReference for v in read_model_description(str(fmu)).modelVariables}
+
+
+def test_axial_sensitivities_match_the_closed_form(fmu_path):
+    m, c, d, F, tr = 0.00029, 823224.0, 488.0, 411.0, 0.05
+    vr = _vrs(fmu_path)
+    res = simulate_fmu(str(fmu_path), stop_time=0.2, output_interval=2e-3,
+                       start_values={"c_y": c, "d_y": d, "F_max": F, "t_ramp": tr, "sens_p[1]": vr["c_y"],
+                                     "sens_p[2]": vr["d_y"], "sens_p[3]": vr["F_max"]},
+                       output=["y_meas", "sens_y_meas[1]", "sens_y_meas[2]", "sens_y_meas[3]"])
+    t = res["time"]
+
+    def y(cc, dd):
+        ax = Axial(m, cc, dd, F, tr)
+        return [ax.eval_mp(float(ti))[0] for ti in t]
+
+    h = MP.mpf("1e-15")
+    c_, d_ = MP.mpf(c), MP.mpf(d)
+    exact = {
+        "c_y": [float((a - b) / (2 * h * c_)) for a, b in zip(y(c_ * (1 + h), d_), y(c_ * (1 - h), d_))],
+        "d_y": [float((a - b) / (2 * h * d_)) for a, b in zip(y(c_, d_ * (1 + h)), y(c_, d_ * (1 - h)))],
+        "F_max": [float(v) / F for v in y(c_, d_)],
+    }
+    # measured: 5e-10, 4e-8 and 2e-16 of the largest sensitivity
+    for k, (name, tol) in enumerate((("c_y", 1e-8), ("d_y", 1e-6), ("F_max", 1e-13)), start=1):
+        ex = np.array(exact[name])
+        err = np.max(np.abs(res[f"sens_y_meas[{k}]"] - ex)) / np.max(np.abs(ex))
+        assert err <= tol, f"d y / d {name}: {err:.2e} of its largest value off the closed form"
+    assert np.max(np.abs(ex)) > 0
+
+
+def _drive(drive: str):
+    """The FMU's own drives (fmpy holds an input constant over a communication step): force-driven, the load
+    ramped to 250 N over 0.5 s, held, unloaded from 1 s; motion-driven, a pull at 1.5 mm/s."""
+    if drive == "force":
+        return {"mode": 1, "F_max": 250.0, "t_ramp": 0.5, "unload": True, "t_unload": 1.0}, "y_meas"
+    return {"mode": 2, "use_y_in": False, "v_pull": 1.5e-3}, "F_meas"
+
+
+def _run(fmu, values: dict, sets: dict, outputs: list[str], rtol: float) -> dict:
+    return simulate_fmu(str(fmu), stop_time=STOP, output_interval=T[1] - T[0], output=outputs,
+                        start_values={**sets, "monitors": False, "rtol": rtol, **values})
+
+
+@pytest.mark.parametrize("effect,drive", [
+    pytest.param(e, dr, marks=() if (e, dr) in QUICK else pytest.mark.slow)
+    for e in EFFECTS for dr in ("force", "displacement")])
+def test_sensitivities_match_central_differences_of_fresh_runs(fmu_path, effect, drive):
+    sets, out = _drive(drive)
+    params = {"c_y": 2e5, "d_y": 100.0, **EFFECTS[effect]}
+    if effect == "sensor_offset":
+        params["y_offset" if drive == "force" else "F_offset"] = 1e-5 if drive == "force" else 5.0
+    names = list(params)
+    vr = _vrs(fmu_path)
+    select = {f"sens_p[{k + 1}]": vr[n] for k, n in enumerate(names)}
+    sens = _run(fmu_path, {**params, **select}, sets, [out] + [f"sens_{out}[{k + 1}]" for k in range(len(names))],
+                1e-8)
+    plain = _run(fmu_path, params, sets, [out], 1e-8)
+    if effect not in ("none", "sensor_offset"):   # the full variant both times: the states see no sensitivities
+        assert np.array_equal(sens[out], plain[out])
+    for k, n in enumerate(names):
+        h = 1e-4 * abs(params[n])
+        up = _run(fmu_path, {**params, n: params[n] + h}, sets, [out], 1e-10)[out]
+        down = _run(fmu_path, {**params, n: params[n] - h}, sets, [out], 1e-10)[out]
+        fd = (up - down) / (2 * h)
+        scale = np.max(np.abs(fd))
+        # a parameter that moves the output by less than 1e-6 of its size would make the check vacuous
+        assert scale * abs(params[n]) > 1e-6 * np.max(np.abs(plain[out])), f"{n} does not move {out}"
+        err = np.max(np.abs(sens[f"sens_{out}[{k + 1}]"] - fd)) / scale
+        # measured worst: 1e-5 (nl_y_b at its rounded corner: the central difference's own error)
+        assert err <= 1e-4, f"{effect}, {drive}: d {out} / d {n} is {err:.2e} of its largest value off"
+
+
+@pytest.mark.parametrize("name,second,expected", [
+    ("mode", None, "Real parameter"), ("rtol", None, "not a solver setting"), ("F_meas", None, "Real parameter"),
+    ("c_y", "c_y", "same parameter")])
+def test_a_selection_that_cannot_be_differentiated_is_refused(fmu_path, name, second, expected):
+    messages: list[str] = []
+    vr = _vrs(fmu_path)
+
+    def logger(component, instance, status, category, message):
+        messages.append(message.decode() if isinstance(message, bytes) else str(message))
+
+    start = {"sens_p[2]": vr[name]} if second is None else {"sens_p[1]": vr[name], "sens_p[2]": vr[second]}
+    with pytest.raises(Exception):
+        simulate_fmu(str(fmu_path), stop_time=0.1, start_values=start, logger=logger)
+    assert any("sens_p[2]" in m and expected in m for m in messages), messages
+
+
+def test_calibration_takes_its_jacobian_from_the_sensitivities(fmu_path):
+    from fmusa.diagnose.calibrate import ModelRunner, calibrate
+    from fmusa.diagnose.effects import data_scales
+    from fmusa.diagnose.measured import Experiment
+
+    t = np.linspace(0.0, 2.0, 41)
+    F = np.interp(t, [0.0, 0.8, 1.2, 2.0], [0.0, 250.0, 250.0, 0.0])
+    truth = {"c_y": 2e5, "d_y": 100.0, "nl_ratio": 2.5, "nl_y_b": 4e-4}
+    gen = ModelRunner(fmu_path, "force", list(truth))
+    try:
+        drive = Experiment(name="drive", path=Path("drive.csv"), drive="force", t=t, displacement=0 * t, force=F)
+        y = gen.predict(list(truth.values()), [drive])[0]
+    finally:
+        gen.close()
+    exp = Experiment(name="synthetic", path=Path("synthetic.csv"), drive="force", t=t, displacement=y, force=F)
+    sc = data_scales([exp])
+    fits = {}
+    for exact in (True, False):
+        model = ModelRunner(fmu_path, "force", list(truth))
+        try:
+            assert model.has_sensitivities
+            model.has_sensitivities = exact
+            model._sens_pays = True   # not the timed choice (a force drive's sensitivities cost more than they save)
+            fit = calibrate(model, "nonlinear_stiffness", "force", [exp], sc, max_starts=1, max_nfev=25,
+                            start={"c_y": 1.5e5, "d_y": 150.0, "nl_ratio": 2.0, "nl_y_b": 3e-4})
+            fits[exact] = (fit, dict(model.runs))
+        finally:
+            model.close()
+    (ex, runs_ex), (fd, runs_fd) = fits[True], fits[False]
+    # one run per residual evaluation (the Jacobian comes with it) and the final prediction
+    assert runs_ex["fit"] == ex.nfev + 1
+    assert runs_fd["fit"] > runs_ex["fit"]
+    for n, v in truth.items():   # from a start near the truth, both land on it (the rounded corner at nl_y_b too)
+        assert ex.params[n] == pytest.approx(v, rel=1e-3), (n, ex.params, fd.params)
+        assert fd.params[n] == pytest.approx(v, rel=1e-3), (n, ex.params, fd.params)
+
+
+def test_an_fmu_without_sensitivities_keeps_the_finite_differences():
+    from fmusa.diagnose.calibrate import sensitivity_outputs
+
+    element = Path(__file__).resolve().parents[1] / "dist" / "InterfaceElement.fmu"
+    if not element.exists():
+        pytest.skip("dist/InterfaceElement.fmu is not built (make fmu)")
+    md = read_model_description(str(element))
+    outputs = [v.name for v in md.modelVariables if v.causality == "output"]
+    params = [v.name for v in md.modelVariables if v.causality == "parameter" and v.type == "Real"][:2]
+    assert outputs and params and sensitivity_outputs(md, outputs[0], params) == []
+
+
+def test_the_sensitivity_outputs_are_found_in_the_model_description(fmu_path):
+    from fmusa.diagnose.calibrate import sensitivity_outputs
+
+    md = read_model_description(str(fmu_path))
+    assert sensitivity_outputs(md, "F_meas", ["c_y", "d_y"]) == ["sens_F_meas[1]", "sens_F_meas[2]"]
+    assert sensitivity_outputs(md, "y_meas", ["c_y"] * 9) == []       # more than the FMU offers
+    assert sensitivity_outputs(md, "F_pull", ["c_y"]) == []             # an output without them
