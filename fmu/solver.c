@@ -1268,7 +1268,9 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
                 for (int i = 0; i < n; i++) s->Smax[c][i] = fmax(s->Smax[c][i], fabs(S1[i]));
                 tau = last ? h : tau + k;
                 memcpy(ua, ub, sizeof(double) * n);
-                k *= fmin(fac, 4.0);
+                /* never below the smallest sub-step accepted anyway: a huge error there (a column that blows up
+                 * across a switch) would otherwise shrink k until tau + k == tau, and the step never ends */
+                k = fmax(k * fmin(fac, 4.0), h * 1e-3);
             } else {
                 k *= fmax(0.1, fmin(fac, 0.5));
             }

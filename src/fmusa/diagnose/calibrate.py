@@ -180,7 +180,20 @@ class ModelRunner:
         if self._sens_pays is None:
             import time
 
-            self.predict_with_jacobian(values, experiments[:1])      # opens the instance: not timed
+            try:
+                t0 = time.perf_counter()
+                self.predict(values, experiments[:1])
+                t1 = time.perf_counter()
+                self.predict_with_jacobian(values, experiments[:1])  # opens the instance too
+            except RuntimeError:
+                # a failed run (the FMU says why; the residuals will say so too): finite differences are no worse
+                self._sens_pays = False
+                return False
+            if time.perf_counter() - t1 > 10.0 * (1 + len(self._sens_outputs)) * (t1 - t0) + 0.05:
+                # far slower even with the instance's opening: not worth two more runs to time it (seen: 2.6 s
+                # against 6.5 ms plain, a column whose sub-steps all sit at the smallest size)
+                self._sens_pays = False
+                return False
             plain, sens = [], []
             for _ in range(2):
                 t0 = time.perf_counter()
@@ -374,8 +387,13 @@ class Residuals:
         values = self._values(x)
         try:
             preds, jacs = self.model.predict_with_jacobian(values, self.experiments)
-        except RuntimeError as exc:
-            preds, jacs = exc, None
+        except RuntimeError:
+            # the sensitivities' failure or the simulation's: a run without them tells which. If it succeeds,
+            # this fit takes finite differences from here on (a wrong or empty Jacobian would stall it)
+            self.exact = False
+            if hasattr(self.model, "_sens_pays"):
+                self.model._sens_pays = False
+            return self(x)
         f = self._scaled(preds)
         failed = jacs is None or bool(np.all(f == 1e3))
         if failed:
@@ -391,9 +409,9 @@ class Residuals:
 
     def jac(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, float)
+        if self.exact and (self._last_jac is None or not np.array_equal(self._last_jac[0], x)):
+            self._with_jacobian(x.copy())          # may fall back to finite differences (self.exact False)
         if self.exact:
-            if self._last_jac is None or not np.array_equal(self._last_jac[0], x):
-                self._with_jacobian(x.copy())
             return self._last_jac[1]
         f0 = self._last[1] if self._last is not None and np.array_equal(self._last[0], x) else self(x)
         h = self.rel_step * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
