@@ -328,14 +328,17 @@ def _one_per_process(jobs: list[FitJob], crashes: list[int], workers: int, budge
 
 
 def crash_message(job: FitJob, code: int | None, times: int) -> str:
-    """Why a candidate's fit failed when its FMU killed the worker process: the candidate, the FMU, how
-    the process ended, and the ways on (inspect the FMU, see its log, leave the candidate out)."""
+    """Why a candidate's fit failed when its FMU killed the worker process: the candidate, the FMU, how the
+    process ended, and the ways on. Not "run it with one worker to see the FMU's log": the messages the FMU
+    logs through fmusa are kept in memory and die with the process, and in fmusa's own process (one worker)
+    the crash ends the whole diagnosis; what the FMU prints itself reaches the terminal from a worker too."""
     from fmusa.runs.pool import exit_reason
 
-    fmu, name = job[0], job[1]
-    added = str(name).split("+")[-1]
-    return (f"the FMU process died while fitting candidate {name!r}: {exit_reason(code)} (exit code {code}), "
-            f"{times} times, the last in a process of its own; the other candidates are not affected. "
-            f"Check the FMU with `fmusa inspect {fmu}`, run this candidate alone with `--candidates {added} "
-            f"--workers 1` to see the FMU's own messages (the FMU then ends fmusa too), or leave {added} out "
-            f"(--candidates, or the study file's effects: candidates)")
+    fmu, name = job[0], str(job[1])
+    added = name.split("+")[-1]       # a chain's fit is named model-so-far+added-effect
+    return (f"the FMU process died while fitting candidate {name!r}, {times} times (the last in a process of "
+            f"its own, so it is this candidate's fit): {exit_reason(code)}, exit code {code}; the other "
+            f"candidates are not affected. The FMU {fmu} crashes in this fit: check it "
+            f"with `fmusa inspect {fmu}` and with the tool that exported it (what the FMU printed before it "
+            f"died is above in this output), or leave {added} out of the candidates (--candidates, or "
+            f"effects: candidates in a diagnosis study file)")
