@@ -4,6 +4,11 @@ A diagnosis is six or more independent fits of a few minutes each; :func:`run_fi
 (one failing candidate does not sink the others), and with a cache folder writes every fit to
 ``<cache>/<candidate>.json`` as soon as it is done, so a rerun on the same data (same :func:`data_key`)
 computes only what is missing.
+
+An FMU that crashes a worker process (a segfault, an abort) breaks the whole pool; the fits finished stay,
+and the ones not finished run again, each in a process of its own, so that only the candidate whose fit
+crashes its own process fails (:func:`crash_message`). With one worker the fits run in this process, where
+such a crash ends the diagnosis.
 """
 from __future__ import annotations
 
