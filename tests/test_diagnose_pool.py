@@ -25,7 +25,7 @@ import fmpy  # noqa: E402
 
 from fmusa.diagnose.budget import RunBudget  # noqa: E402
 from fmusa.diagnose.calibrate import Fit  # noqa: E402
-from fmusa.diagnose.fitcache import fit_to_json, run_fits  # noqa: E402
+from fmusa.diagnose.fitcache import run_fits  # noqa: E402
 from fmusa.diagnose.measured import Experiment, downsample  # noqa: E402
 from fmusa.diagnose.models import resolve  # noqa: E402
 
@@ -69,6 +69,19 @@ def experiment():
     return downsample(e, 30)
 
 
+def assert_same_fit(a: Fit, b: Fit) -> None:
+    """The same fit but for its run counts: the Jacobian's method is chosen by timing runs of each kind
+    (:meth:`ModelRunner.sensitivities_pay`), and a busy machine can make that take a few runs fewer."""
+    for k in ("effect", "n", "k", "starts_tried", "at_bounds", "heldout_skipped"):
+        assert getattr(a, k) == getattr(b, k), k
+    assert a.params.keys() == b.params.keys()
+    pairs = {"params": (list(a.params.values()), list(b.params.values())), "rss": (a.rss, b.rss),
+             "rmse": (a.rmse, b.rmse), "heldout_rmse": (a.heldout_rmse, b.heldout_rmse),
+             "predictions": (np.concatenate(a.predictions), np.concatenate(b.predictions))}
+    for k, (x, y) in pairs.items():
+        np.testing.assert_allclose(x, y, rtol=1e-6, atol=0, err_msg=k)
+
+
 def _job(fmu: Path, name: str, experiment, interface) -> tuple:
     return (str(fmu), name, "force", [experiment], 1, interface, 1, 0)
 
@@ -88,7 +101,7 @@ def test_a_crashing_candidate_fails_alone_and_the_others_keep_their_fits(fmu_pat
     assert took < 120, f"the supervised pool took {took:.1f} s"
     for name in ("none", "sensor_offset"):
         assert isinstance(got[name], Fit), got[name]
-        assert fit_to_json(got[name], "") == fit_to_json(alone[name], "")
+        assert_same_fit(got[name], alone[name])
         assert (tmp_path / "cache" / f"{name}.json").is_file()     # saved as it finished
     why = got["backlash_gap"]
     assert isinstance(why, str) and not isinstance(why, Fit)
@@ -98,7 +111,7 @@ def test_a_crashing_candidate_fails_alone_and_the_others_keep_their_fits(fmu_pat
     # the run budget is one counter across the fresh pools: every run of the good fits, the crashed fit's
     # first run (twice: it crashed its first process, then one of its own), and the runs a good fit had
     # made when the crash stopped its process (it ran again, whole, in a process of its own)
-    spent = sum(sum(f.runs.values()) for f in alone.values())
+    spent = sum(sum(got[name].runs.values()) for name in ("none", "sensor_offset"))
     assert spent + 2 <= budget.used <= 2 * spent + 2, (budget.used, spent)
     print(f"\nsupervised pool with one crashing candidate: {took:.1f} s\nmessage: {why}")
 
