@@ -123,4 +123,4 @@ def test_a_segfault_is_named_too(fmu_path, experiment, tmp_path):
     got = run_fits([_job(crash, "backlash_gap", experiment, interface),
                     _job(crash, "sensor_offset", experiment, interface)], 2, None, "k", False)
     for name in ("backlash_gap", "sensor_offset"):
-        assert "SIGSEGV" in got[name] and "exit code -11" in got[name] and repr(name) in got[name], got[name]
+        assert "SIGSEGV" in got[name] and "exit code -11" in got[name] and repr(name) in got[name], got
