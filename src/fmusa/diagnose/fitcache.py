@@ -4,6 +4,11 @@ A diagnosis is six or more independent fits of a few minutes each; :func:`run_fi
 (one failing candidate does not sink the others), and with a cache folder writes every fit to
 ``<cache>/<candidate>.json`` as soon as it is done, so a rerun on the same data (same :func:`data_key`)
 computes only what is missing.
+
+An FMU that crashes a worker process (a segfault, an abort) breaks the whole pool; the fits finished stay,
+and the ones not finished run again, each in a process of its own, so that only the candidate whose fit
+crashes its own process fails (:func:`crash_message`). With one worker the fits run in this process, where
+such a crash ends the diagnosis.
 """
 from __future__ import annotations
 
@@ -12,6 +17,7 @@ import hashlib
 import json
 import multiprocessing as mp
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Sequence
 
@@ -53,10 +59,26 @@ class FailedFit(str):
         return (FailedFit, (str(self), self.runs))
 
 
-def _start_worker(limit: int | None, value) -> None:
-    """A fit worker: Ctrl-C left to the parent, the diagnosis's run budget shared."""
+def _start_worker(limit: int | None, value, started=None) -> None:
+    """A fit worker: Ctrl-C left to the parent, the diagnosis's run budget shared, and (``started``) the
+    jobs it starts marked where the parent can read them after the worker died."""
+    global _STARTED
     _ignore_sigint()
-    rb.install(limit, value)
+    if value is not None:
+        rb.install(limit, value)
+    _STARTED = started
+
+
+#: in a fit worker: one flag per job of its pool, set when the worker starts that job (None: not tracked)
+_STARTED = None
+
+
+def _tracked_job(index: int, args: FitJob) -> Fit | rb.LeftOut | str:
+    """:func:`_fit_job`, marked as started first: when a worker dies, the jobs started and not finished are
+    the ones that may have crashed it (the pool itself does not say which job its dead process held)."""
+    if _STARTED is not None:
+        _STARTED[index] = 1
+    return _fit_job(args)
 
 
 def data_key(experiments: Sequence, drive: str, max_starts: int, fmu: str,
@@ -204,23 +226,7 @@ def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
             print(f"  fitted {name}: {what}", flush=True)
 
     if workers > 1 and len(todo) > 1:
-        shared = budget.shared() if budget is not None else (None, None)
-        ex = ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn"),
-                                 initializer=_start_worker if budget is not None else _ignore_sigint,
-                                 initargs=shared if budget is not None else ())
-        try:
-            with _sigint_ignored():    # the workers start with Ctrl-C ignored (kept across their exec)
-                futs = {ex.submit(_fit_job, j): j[1] for j in todo}
-            for fut in as_completed(futs):
-                try:
-                    r = fut.result()
-                except Exception as exc:  # a worker that died (e.g. the FMU crashed the process)
-                    r = f"{type(exc).__name__}: {exc}"
-                keep(futs[fut], r)
-        except BaseException:     # Ctrl-C, SIGTERM: stop the fits now (the saved ones stay), not after them
-            _kill_workers(ex)
-            raise
-        ex.shutdown(wait=True)
+        _supervised(todo, workers, budget, keep)
     else:
         old = rb.set_current(budget) if budget is not None else None
         try:
@@ -230,3 +236,114 @@ def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
             if budget is not None:
                 rb.set_current(old)
     return results
+
+
+#: times a job may crash its worker process before it is reported failed (the second crash is on a process
+#: of its own, so it is the job's and not a neighbour's)
+CRASHES = 2
+
+
+def _new_pool(n: int, budget: rb.RunBudget | None, started) -> ProcessPoolExecutor:
+    """A spawn pool of ``n`` fit workers sharing the run budget (one counter across every pool made)."""
+    limit, value = budget.shared() if budget is not None else (None, None)
+    return ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=_start_worker,
+                               initargs=(limit, value, started))
+
+
+def _supervised(todo: list[FitJob], workers: int, budget: rb.RunBudget | None, keep) -> None:
+    """The jobs in a pool of ``workers`` processes; when a process dies (an FMU that crashes), the fits
+    finished stay, and the jobs not finished run again, each in a process of its own (so a second crash is
+    the job's own: it fails with the reason, the others get their fits)."""
+    started = mp.get_context("spawn").Array("b", len(todo), lock=False)
+    ex = _new_pool(min(workers, len(todo)), budget, started)
+    broken = False
+    try:
+        with _sigint_ignored():    # the workers start with Ctrl-C ignored (kept across their exec)
+            futs = {ex.submit(_tracked_job, i, j): i for i, j in enumerate(todo)}
+        for fut in as_completed(futs):
+            if isinstance(fut.exception(), BrokenProcessPool):
+                broken = True
+                break
+            keep(todo[futs[fut]][1], _outcome(fut))
+    except BaseException:     # Ctrl-C, SIGTERM: stop the fits now (the saved ones stay), not after them
+        _kill_workers(ex)
+        raise
+    if not broken:
+        ex.shutdown(wait=True)
+        return
+    # the pool is broken: every future not finished holds BrokenProcessPool; those done before the break
+    # hold their fits
+    done = set()
+    for fut, i in futs.items():
+        if fut.done() and not isinstance(fut.exception(), BrokenProcessPool):
+            keep(todo[i][1], _outcome(fut))
+            done.add(i)
+    _kill_workers(ex)
+    left = [i for i in range(len(todo)) if i not in done]
+    crashes = {i: 1 for i in left if started[i]}      # running when a process died: each may be the cause
+    _one_per_process([todo[i] for i in left], [crashes.get(i, 0) for i in left], workers, budget, keep)
+
+
+def _outcome(fut) -> Fit | rb.LeftOut | str:
+    """A finished future's fit, or why it failed (an exception the fit itself did not catch)."""
+    try:
+        return fut.result()
+    except Exception as exc:  # noqa: BLE001 - reported per candidate
+        return FailedFit(f"{type(exc).__name__}: {exc}")
+
+
+def _one_per_process(jobs: list[FitJob], crashes: list[int], workers: int, budget: rb.RunBudget | None,
+                     keep) -> None:
+    """Each job in a pool of one process of its own, at most ``workers`` at a time: a process that dies
+    was fitting that job and no other. A job that crashes its process again (``crashes`` counts the times it
+    may have before) is reported failed, naming the candidate, how the process ended and what to do."""
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    queue = list(zip(jobs, crashes))
+    running: dict = {}       # future -> (job, crashes so far, its executor, its process)
+    try:
+        while queue or running:
+            while queue and len(running) < workers:
+                job, n = queue.pop(0)
+                ex = _new_pool(1, budget, None)
+                with _sigint_ignored():
+                    fut = ex.submit(_fit_job, job)
+                procs = list((getattr(ex, "_processes", None) or {}).values())
+                running[fut] = (job, n, ex, procs[0] if procs else None)
+            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            for fut in finished:
+                job, n, ex, proc = running.pop(fut)
+                if not isinstance(fut.exception(), BrokenProcessPool):
+                    ex.shutdown(wait=True)
+                    keep(job[1], _outcome(fut))
+                    continue
+                code = None
+                if proc is not None:
+                    proc.join(5)
+                    code = proc.exitcode
+                _kill_workers(ex)
+                if n + 1 < CRASHES:
+                    queue.append((job, n + 1))
+                else:
+                    keep(job[1], FailedFit(crash_message(job, code, n + 1)))
+    except BaseException:     # Ctrl-C, SIGTERM: stop every fit now
+        for _, _, ex, _ in running.values():
+            _kill_workers(ex)
+        raise
+
+
+def crash_message(job: FitJob, code: int | None, times: int) -> str:
+    """Why a candidate's fit failed when its FMU killed the worker process: the candidate, the FMU, how the
+    process ended, and the ways on. Not "run it with one worker to see the FMU's log": the messages the FMU
+    logs through fmusa are kept in memory and die with the process, and in fmusa's own process (one worker)
+    the crash ends the whole diagnosis; what the FMU prints itself reaches the terminal from a worker too."""
+    from fmusa.runs.pool import exit_reason
+
+    fmu, name = job[0], str(job[1])
+    added = name.split("+")[-1]       # a chain's fit is named model-so-far+added-effect
+    return (f"the FMU process died while fitting candidate {name!r}, {times} times (the last in a process of "
+            f"its own, so it is this candidate's fit): {exit_reason(code)}, exit code {code}; the other "
+            f"candidates are not affected. The FMU {fmu} crashes in this fit: check it "
+            f"with `fmusa inspect {fmu}` and with the tool that exported it (what the FMU printed before it "
+            f"died is above in this output), or leave {added} out of the candidates (--candidates, or "
+            f"effects: candidates in a diagnosis study file)")

@@ -9,6 +9,7 @@
 const char *fmi2GetTypesPlatform(void) { return fmi2TypesPlatform; }
 const char *fmi2GetVersion(void) { return fmi2Version; }
 
+#ifndef FMUSA_TEST_OWN_BOOLEANS   /* an FMU that takes Boolean variables defines its own */
 fmi2Status fmi2GetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, fmi2Boolean value[]) {
     (void)c; (void)vr; (void)value; return nvr ? fmi2Error : fmi2OK;
 }
@@ -21,6 +22,7 @@ fmi2Status fmi2SetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t
 fmi2Status fmi2SetString(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2String value[]) {
     (void)c; (void)vr; (void)value; return nvr ? fmi2Error : fmi2OK;
 }
+#endif
 
 /* ------------------------------------------------------------------ unsupported optional functions */
 fmi2Status fmi2GetFMUstate(fmi2Component c, fmi2FMUstate *s) { (void)c; (void)s; return fmi2Error; }
