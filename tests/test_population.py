@@ -50,7 +50,7 @@ def test_too_few_specimens_say_so():
 
 
 @pytest.mark.skipif(not SHEAR.is_dir(), reason="data/shear-c67 not present")
-def test_shear_population_leave_one_out():
+def test_shear_population_leave_one_out(tmp_path):
     """The shear data: per direction and rate, the range of a new specimen from the others' two-line k1 (no
     FMU) against each left-out specimen's k1 of the authors' analysis. Measured: 80 of 90 (89 %) inside."""
     import pandas as pd
@@ -72,6 +72,14 @@ def test_shear_population_leave_one_out():
         f = c["fit"]
         assert f["prediction"][0] < f["mean"] < f["prediction"][1]
         assert 0 <= min(x["shrinkage"] for x in f["specimens"]) <= max(x["shrinkage"] for x in f["specimens"]) <= 1
+    # the figure: one panel per direction and rate, each specimen's row, the specimens the check put outside
+    import matplotlib
+    matplotlib.use("Agg")
+    from fmusa.applications.shear_c67.report import _fig_population
+
+    fig = _fig_population(pop, tmp_path / "population_k1.png")
+    assert fig is not None and fig.stat().st_size > 20_000
+    assert _fig_population({}, tmp_path / "none.png") is None and not (tmp_path / "none.png").exists()
 
 
 def test_population_of_diagnoses_pools_the_final_models():

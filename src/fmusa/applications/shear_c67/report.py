@@ -110,9 +110,59 @@ def _fig_rates(cmp_: pd.DataFrame, path: Path) -> Path:
     return _save(fig, path)
 
 
+def _fig_population(pop: dict, path: Path) -> Path | None:
+    """A forest plot per direction and rate: each specimen's k1 with its 95 % interval, the population mean with
+    its interval and the range of a new specimen (random effects), and the authors' k1 marked where leaving that
+    specimen out put it outside the range predicted from the others."""
+    import matplotlib.pyplot as plt
+
+    cells = pop.get("cells") or {}
+    if not cells:
+        return None
+    directions = list(dict.fromkeys(c["direction"] for c in cells.values()))
+    rates = sorted({c["rate_mm_s"] for c in cells.values()})
+    n_spec = max(len(c["fit"]["specimens"]) for c in cells.values())
+    fig, axes = plt.subplots(len(directions), len(rates), figsize=(7.2, 0.9 + 0.16 * n_spec * len(directions)),
+                             layout="constrained", sharey="row", squeeze=False)
+    for i, direction in enumerate(directions):
+        for j, rate in enumerate(rates):
+            ax = axes[i][j]
+            cell = next((c for c in cells.values() if c["direction"] == direction and c["rate_mm_s"] == rate), None)
+            ax.set_title(f"{DIRECTION_NAMES.get(direction, direction)}, {rate:g} mm/s")
+            if cell is None:
+                ax.set_axis_off()
+                continue
+            fit = cell["fit"]
+            specs = fit["specimens"]
+            y = np.arange(len(specs))[::-1]
+            lo, hi = fit["prediction"]
+            ax.axvspan(lo, hi, color="tab:blue", alpha=0.12, lw=0, label="a new specimen, 95 %")
+            ax.axvspan(*fit["mean_ci"], color="tab:blue", alpha=0.35, lw=0, label="population mean, 95 %")
+            est = np.array([s["estimate"] for s in specs])
+            se = np.array([s["se"] for s in specs])
+            ax.errorbar(est, y, xerr=1.96 * se, fmt="o", ms=3, color="k", elinewidth=1, capsize=1.5,
+                        label="specimen's k1 (two lines), 95 %")
+            loo = {r["name"]: r for r in cell.get("leave_one_out", {}).get("rows", [])}
+            out = [(s["name"], yy) for s, yy in zip(specs, y) if s["name"] in loo and not loo[s["name"]]["inside"]]
+            if out:
+                ax.scatter([loo[n]["reference"] for n, _ in out], [yy for _, yy in out], marker="x", s=30,
+                           color="tab:red", zorder=3, label="authors' k1 outside the range from the others")
+            ax.set_yticks(y, [s["name"] for s in specs])
+            ax.set_xlabel("k1 [N/mm]")
+            ax.grid(alpha=0.3, axis="x")
+    handles, labels = {}, {}
+    for ax in np.ravel(axes):
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=2, frameon=False)
+    fig.suptitle("k1 over the specimens: random effects (Paule–Mandel) and leave one specimen out", fontsize=9)
+    return _save(fig, path)
+
+
 def write_figures(summary: dict, cmp_: pd.DataFrame, out: Path) -> list[Path]:
-    """figures/bilinear_vs_authors.png (our two-phase fit against the authors') and
-    figures/rate_dependence.png (stiffness against rate per unit)."""
+    """figures/bilinear_vs_authors.png (our two-phase fit against the authors'),
+    figures/rate_dependence.png (stiffness against rate per unit) and figures/population_k1.png (k1 over the
+    specimens, where the data have enough of them)."""
     import matplotlib
     matplotlib.use("Agg")
 
@@ -123,8 +173,10 @@ def write_figures(summary: dict, cmp_: pd.DataFrame, out: Path) -> list[Path]:
     # three panels across a page's width: the fonts a journal prints at that size
     with plt.rc_context({"font.size": 8, "axes.labelsize": 8, "axes.titlesize": 8.5, "xtick.labelsize": 7.5,
                          "ytick.labelsize": 7.5, "legend.fontsize": 7.5}):
-        return [_fig_bilinear(cmp_, figdir / "bilinear_vs_authors.png"),
-                _fig_rates(cmp_, figdir / "rate_dependence.png")]
+        figs = [_fig_bilinear(cmp_, figdir / "bilinear_vs_authors.png"),
+                _fig_rates(cmp_, figdir / "rate_dependence.png"),
+                _fig_population(summary.get("population_k1") or {}, figdir / "population_k1.png")]
+    return [f for f in figs if f is not None]
 
 
 def _f(x, fmt=".3g") -> str:
