@@ -317,10 +317,7 @@ def _one_per_process(jobs: list[FitJob], crashes: list[int], workers: int, budge
                     ex.shutdown(wait=True)
                     keep(job[1], _outcome(fut))
                     continue
-                code = None
-                if proc is not None:
-                    proc.join(5)
-                    code = proc.exitcode
+                code = _exit_code(proc)
                 _kill_workers(ex)
                 if n + 1 < CRASHES:
                     queue.append((job, n + 1))
@@ -330,6 +327,22 @@ def _one_per_process(jobs: list[FitJob], crashes: list[int], workers: int, budge
         for _, _, ex, _ in running.values():
             _kill_workers(ex)
         raise
+
+
+def _exit_code(proc, wait_s: float = 5.0) -> int | None:
+    """How the pool's process ended. Its executor's own thread reaps it too: when that thread's waitpid wins,
+    ours fails (ECHILD) and reads None until the winner stores the code, so this asks again for a while."""
+    import time
+
+    if proc is None:
+        return None
+    end = time.monotonic() + wait_s
+    proc.join(wait_s)
+    while True:
+        code = proc.exitcode
+        if code is not None or time.monotonic() > end:
+            return code
+        time.sleep(0.02)
 
 
 def crash_message(job: FitJob, code: int | None, times: int) -> str:
