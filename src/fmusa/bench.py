@@ -1007,6 +1007,78 @@ def bench_diagnose_runs(fmu_path: Path, workers: int | None = None, slow_workers
     return {**out, **flat, **DIAGNOSE_TARGETS}
 
 
+def bench_attached_run(runs: int = 10, effect: str = "nonlinear_stiffness") -> dict:
+    """What one run of an attached diagnosis costs: OpenModelica's Mass_Damper export (the shared vendor FMUs)
+    with our InterfaceElement FMU coupled at its force input by the diagnosis's own runner (the me-grid scheme),
+    on a force ramp-hold-unload of 4 s sampled at 40 Hz, the element carrying ``effect``; beside it, one run of the
+    export alone through fmpy. Skipped, saying why, where the vendor FMUs or the element FMU are not there."""
+    import numpy as np
+
+    from fmusa.diagnose.calibrate import make_runner
+    from fmusa.diagnose.effects import data_scales, model_parameters
+    from fmusa.diagnose.measured import Experiment
+    from fmusa.diagnose.study import load_diagnosis_study
+
+    shared = Path(os.environ.get("FMUSA_SHARED_DIR") or Path.cwd().resolve().parent / "shared")
+    om, element = shared / "vendor-fmus" / "OM1193_Mass_Damper.fmu", Path("dist/InterfaceElement.fmu").resolve()
+    missing = [str(p) for p in (om, element) if not p.is_file()]
+    if missing:
+        return {"attached_run": {"skipped": f"not found: {', '.join(missing)} (set FMUSA_SHARED_DIR; make fmu)"}}
+    t = np.arange(0.0, 4.0 + 1e-9, 1.0 / 40.0)
+    F = np.interp(t, [0.0, 1.5, 2.5, 4.0], [0.0, 150.0, 150.0, 0.0])
+    y = F / 1.5e4
+    with tempfile.TemporaryDirectory(prefix="fmusa-bench-attached-") as tmp:
+        csv = Path(tmp) / "ramp.csv"
+        csv.write_text("time,displacement,force\n" + "".join(f"{a!r},{b!r},{c!r}\n" for a, b, c in zip(t, y, F)),
+                       encoding="utf-8")
+        study = Path(tmp) / "study.yaml"
+        study.write_text(f"""name: mass_damper
+fmu: {om}
+model:
+  drives:
+    force: {{input: f, response: y}}
+  fixed: {{spring.s_rel0: 0.5}}
+baseline:
+  stiffness: {{variable: c, bounds: [1.0e3, 2.0e4]}}
+  damping: {{variable: d, bounds: [0.0, 200.0]}}
+effects:
+  where: attached
+  element: {element}
+  force_input: f
+  displacement_output: y
+  velocity_output: mass.v
+tests:
+  drive: force
+  files: [{csv}]
+""", encoding="utf-8")
+        st = load_diagnosis_study(study)
+        exp = Experiment(name="ramp", path=csv, drive="force", t=t, displacement=y, force=F)
+        params = {p.name: p.starts[0] for p in model_parameters(effect, "force", data_scales([exp]))}
+        runner = make_runner(str(om), "force", list(params), {}, st.interface)
+        try:
+            runner.predict(list(params.values()), [exp])            # loads both FMUs: not timed
+            wall, cpu = [], []
+            for _ in range(runs):
+                w0, c0 = time.perf_counter(), time.process_time()
+                runner.predict(list(params.values()), [exp])
+                wall.append(time.perf_counter() - w0)
+                cpu.append(time.process_time() - c0)
+            scheme = getattr(getattr(runner, "last", None), "scheme", None)
+        finally:
+            runner.close()
+    import fmpy
+
+    alone = []
+    for _ in range(3):
+        w0 = time.perf_counter()
+        fmpy.simulate_fmu(str(om), stop_time=4.0, output_interval=1.0 / 40.0, start_values={"spring.s_rel0": 0.5})
+        alone.append(time.perf_counter() - w0)
+    return {"attached_run": {"effect": effect, "samples": int(t.size), "scheme": scheme, "runs": runs,
+                             "parameters": params},
+            "attached_run_ms": 1e3 * statistics.median(wall), "attached_run_cpu_ms": 1e3 * statistics.median(cpu),
+            "attached_export_alone_fmpy_ms": 1e3 * statistics.median(alone)}
+
+
 def bench_fmi3(runs: int = 20, fmu_path: Path | None = None) -> dict:
     """An FMI 3.0 FMU through fmusa (fmusa.fmi.fmi3): MapleSim 2024's CoupledClutches from the shared vendor FMUs
     (``../shared/vendor-fmus/`` next to the repository), co-simulation and model exchange, 1.5 s sampled every
@@ -1116,7 +1188,7 @@ def main(argv: list[str] | None = None) -> int:
     fmu_path = (args.fmu or default_fmu_path()).resolve()
     methods = tuple(m.strip() for m in args.start_methods.split(",") if m.strip())
     if args.only_diagnose_runs or args.only_diagnose:
-        res = bench_diagnose(fmu_path, args.workers) if args.only_diagnose else {}
+        res = {**bench_diagnose(fmu_path, args.workers), **bench_attached_run()} if args.only_diagnose else {}
         _merge_into(args.out, {**res, **bench_diagnose_runs(fmu_path, args.workers),
                                "diagnose_runs_machine": _machine()})
         return 0
@@ -1165,6 +1237,7 @@ def main(argv: list[str] | None = None) -> int:
         result.update(bench_diagnose_runs(fmu_path, args.workers))
     if args.diagnose:
         result.update(bench_diagnose(fmu_path, args.workers))
+        result.update(bench_attached_run())   # when ../shared's vendor FMUs are there
         print(f"diagnose: one driven run {result['diagnose_run_ms_displacement_baseline']:.2f} ms (baseline, "
               f"300 samples), {result['diagnose_run_ms_force_friction']:.2f} ms (force drive, friction); a "
               f"real unit, 6 candidates: {result['diagnose_shear_unit_wall_s']:.1f} s")
