@@ -97,6 +97,14 @@ def can_be_significant(ext: Fit, base: Fit, delta_bic: float, p_value: float) ->
 
 # ---------------------------------------------------------------------- simulation
 
+#: per process, whether an FMU's runs with sensitivities cost less than the finite differences' runs, by FMU,
+#: drive, input and output: the first runner times it (:meth:`ModelRunner.sensitivities_pay`), the others of the
+#: process take its answer. Runs with sensitivities cost the states' run plus about the same per parameter
+#: column, so the answer (that per-column cost below a run's) does not depend on how many parameters a candidate
+#: fits; timing it again for every candidate's runner cost a quarter of a force-driven diagnosis's CPU.
+_SENS_PAYS: dict[tuple, bool] = {}
+
+
 class ModelRunner:
     """The FMU of one candidate, driven by the experiments' measured drive.
 
@@ -177,6 +185,9 @@ class ModelRunner:
         Jacobian (k parameters): timed once per runner, the faster of two runs of each kind at ``values`` (all
         counted), so that a busy machine's pauses do not decide. A fast FMU whose sensitivities cost more than the
         runs they save keeps the finite differences."""
+        key = (str(self._args[0]), self._args[1], self.input_name, self.output)
+        if self._sens_pays is None and key in _SENS_PAYS:
+            self._sens_pays = _SENS_PAYS[key]
         if self._sens_pays is None:
             import time
 
@@ -187,11 +198,13 @@ class ModelRunner:
                 self.predict_with_jacobian(values, experiments[:1])  # opens the instance too
             except RuntimeError:
                 # a failed run (the FMU says why; the residuals will say so too): finite differences are no worse
+                # (not remembered for the FMU: a failed run says nothing of what the sensitivities cost)
                 self._sens_pays = False
                 return False
             if time.perf_counter() - t1 > 10.0 * (1 + len(self._sens_outputs)) * (t1 - t0) + 0.05:
                 # far slower even with the instance's opening: not worth two more runs to time it (seen: 2.6 s
-                # against 6.5 ms plain, a column whose sub-steps all sit at the smallest size)
+                # against 6.5 ms plain, a column whose sub-steps all sit at the smallest size): not remembered for
+                # the FMU either, since such a column is a matter of this point
                 self._sens_pays = False
                 return False
             plain, sens = [], []
@@ -203,6 +216,7 @@ class ModelRunner:
                 plain.append(t1 - t0)
                 sens.append(time.perf_counter() - t1)
             self._sens_pays = min(sens) < (1 + len(self._sens_outputs)) * min(plain)
+            _SENS_PAYS[key] = self._sens_pays
         return self._sens_pays
 
     def predict_with_jacobian(self, values: Sequence[float], experiments: Sequence) -> tuple[list, list]:
