@@ -65,27 +65,39 @@ def leaky_description(extra: int = 0) -> str:
 """
 
 
-def build_leaky(root: Path, extra: int = 0, binary: Path | None = None, defines: tuple[str, ...] = ()) -> Path:
-    """tests/fmus/leaky built (or ``binary`` reused; ``defines`` for gcc -D) and zipped as ``root``/Leaky.fmu."""
+def compile_linux64(source: Path, so: Path, defines: tuple[str, ...] = (), what: str = "test FMU") -> None:
+    """A test FMU's C file built as its linux64 binary (skipped off Linux or without gcc, failed with gcc's words)."""
     if not sys.platform.startswith("linux"):
         pytest.skip("the test FMUs are built as linux64 binaries")
     if shutil.which("gcc") is None:
-        pytest.skip("gcc is needed to build the test FMU tests/fmus/leaky")
-    tree = root / "tree"
-    so = tree / "binaries" / "linux64" / "Leaky.so"
+        pytest.skip(f"gcc is needed to build the {what} {source}")
     so.parent.mkdir(parents=True, exist_ok=True)
-    if binary is not None:
-        shutil.copy(binary, so)
-    else:
-        cmd = ["gcc", "-std=c99", "-Wall", "-O1", "-shared", "-fPIC", *(f"-D{d}" for d in defines), "-I", str(FMI_HEADERS),
-               str(LEAKY / "leaky.c"), "-o", str(so), "-lm"]
-        proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", errors="replace")
-        if proc.returncode != 0:
-            pytest.fail(f"building the leaky FMU failed:\n{' '.join(cmd)}\n{proc.stdout}\n{proc.stderr}")
-    (tree / "modelDescription.xml").write_text(leaky_description(extra), encoding="utf-8")
-    fmu = root / "Leaky.fmu"
+    cmd = ["gcc", "-std=c99", "-Wall", "-O1", "-shared", "-fPIC", *(f"-D{d}" for d in defines), "-I",
+           str(FMI_HEADERS), str(source), "-o", str(so), "-lm"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", errors="replace")
+    if proc.returncode != 0:
+        pytest.fail(f"building the {what} failed:\n{' '.join(cmd)}\n{proc.stdout}\n{proc.stderr}")
+
+
+def zip_tree(tree: Path, fmu: Path) -> Path:
+    """An FMU's unpacked tree zipped as ``fmu``."""
     with zipfile.ZipFile(fmu, "w", zipfile.ZIP_DEFLATED) as z:
         for f in sorted(tree.rglob("*")):
             if f.is_file():
                 z.write(f, f.relative_to(tree).as_posix())
     return fmu
+
+
+def build_leaky(root: Path, extra: int = 0, binary: Path | None = None, defines: tuple[str, ...] = ()) -> Path:
+    """tests/fmus/leaky built (or ``binary`` reused; ``defines`` for gcc -D) and zipped as ``root``/Leaky.fmu."""
+    tree = root / "tree"
+    so = tree / "binaries" / "linux64" / "Leaky.so"
+    if binary is not None:
+        if not sys.platform.startswith("linux"):
+            pytest.skip("the test FMUs are built as linux64 binaries")
+        so.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(binary, so)
+    else:
+        compile_linux64(LEAKY / "leaky.c", so, defines, "leaky FMU")
+    (tree / "modelDescription.xml").write_text(leaky_description(extra), encoding="utf-8")
+    return zip_tree(tree, root / "Leaky.fmu")

@@ -8,8 +8,6 @@ that did not crash must still get the fits a run without it gives.
 from __future__ import annotations
 
 import re
-import shutil
-import subprocess
 import sys
 import time
 import zipfile
@@ -20,8 +18,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 import effects_reference as er  # noqa: E402
+from c_fmus import compile_linux64, zip_tree  # noqa: E402
 
-import fmpy  # noqa: E402
 
 from fmusa.diagnose.budget import RunBudget  # noqa: E402
 from fmusa.diagnose.calibrate import Fit  # noqa: E402
@@ -30,35 +28,19 @@ from fmusa.diagnose.measured import Experiment, downsample  # noqa: E402
 from fmusa.diagnose.models import resolve  # noqa: E402
 
 CRASH_C = Path(__file__).resolve().parent / "fmus" / "crash" / "crash.c"
-FMI_HEADERS = Path(fmpy.__file__).resolve().parent / "c-code"
 
 
 def build_crash_fmu(root: Path, description_from: Path, defines: tuple[str, ...] = ()) -> Path:
     """tests/fmus/crash with the model description of ``description_from`` (its sources left out), zipped as
     ``root``/Crash.fmu."""
-    if not sys.platform.startswith("linux"):
-        pytest.skip("the test FMUs are built as linux64 binaries")
-    if shutil.which("gcc") is None:
-        pytest.skip("gcc is needed to build the test FMU tests/fmus/crash")
     tree = root / "tree"
-    so = tree / "binaries" / "linux64" / "Crash.so"
-    so.parent.mkdir(parents=True, exist_ok=True)
-    cmd = ["gcc", "-std=c99", "-Wall", "-O1", "-shared", "-fPIC", *(f"-D{d}" for d in defines), "-I",
-           str(FMI_HEADERS), str(CRASH_C), "-o", str(so)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", errors="replace")
-    if proc.returncode != 0:
-        pytest.fail(f"building the crash FMU failed:\n{' '.join(cmd)}\n{proc.stdout}\n{proc.stderr}")
+    compile_linux64(CRASH_C, tree / "binaries" / "linux64" / "Crash.so", defines, "crash FMU")
     with zipfile.ZipFile(description_from) as z:
         xml = z.read("modelDescription.xml").decode("utf-8")
     xml = re.sub(r'modelIdentifier="[^"]*"', 'modelIdentifier="Crash"', xml)
     xml = re.sub(r"\s*<SourceFiles>.*?</SourceFiles>", "", xml, flags=re.S)
     (tree / "modelDescription.xml").write_text(xml, encoding="utf-8")
-    fmu = root / "Crash.fmu"
-    with zipfile.ZipFile(fmu, "w", zipfile.ZIP_DEFLATED) as z:
-        for f in sorted(tree.rglob("*")):
-            if f.is_file():
-                z.write(f, f.relative_to(tree).as_posix())
-    return fmu
+    return zip_tree(tree, root / "Crash.fmu")
 
 
 @pytest.fixture(scope="module")
