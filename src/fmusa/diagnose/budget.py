@@ -25,11 +25,20 @@ class RunBudget:
     Made in the parent (``RunBudget(limit)``) and handed to worker processes at their start
     (:meth:`shared`, :func:`install`): a synchronized value passes only by inheritance, not by pickling."""
 
-    def __init__(self, limit: int | None = None, _value=None) -> None:
-        if limit is not None and limit < 1:
+    def __init__(self, limit=None, _value=None) -> None:
+        # ``limit`` may be a shared value too (-1: none): a worker of a pool kept across diagnoses
+        # (:mod:`fitcache`) reads the limit of the diagnosis it works for at each run
+        if isinstance(limit, int) and limit < 1:
             raise ValueError(f"the run budget must be at least 1, got {limit}")
-        self.limit = limit
+        self._limit = limit
         self._value = _value if _value is not None else mp.get_context("spawn").Value("q", 0)
+
+    @property
+    def limit(self) -> int | None:
+        if self._limit is None or isinstance(self._limit, int):
+            return self._limit
+        v = int(self._limit.value)
+        return None if v < 0 else v
 
     @property
     def used(self) -> int:
@@ -43,8 +52,9 @@ class RunBudget:
     def take(self, n: int = 1) -> None:
         """Count ``n`` runs about to start, or raise BudgetExhausted when they would pass the limit."""
         with self._value.get_lock():
-            if self.limit is not None and self._value.value + n > self.limit:
-                raise BudgetExhausted(f"the run budget of {self.limit} FMU runs ended")
+            limit = self.limit
+            if limit is not None and self._value.value + n > limit:
+                raise BudgetExhausted(f"the run budget of {limit} FMU runs ended")
             self._value.value += n
 
     def shared(self) -> tuple:

@@ -16,6 +16,7 @@ import contextlib
 import hashlib
 import json
 import multiprocessing as mp
+import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -28,7 +29,7 @@ from fmusa.diagnose.calibrate import Fit, fit_candidate
 from fmusa.diagnose.interface import ModelInterface
 from fmusa.files import atomic_write
 
-__all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits"]
+__all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits", "map_in_pool"]
 
 #: (fmu path, candidate, drive, experiments, max_starts, interface[, parallel, agree, start, gate]): the
 #: arguments of fit_candidate.
@@ -250,27 +251,116 @@ def _new_pool(n: int, budget: rb.RunBudget | None, started) -> ProcessPoolExecut
                                initargs=(limit, value, started))
 
 
-def _supervised(todo: list[FitJob], workers: int, budget: rb.RunBudget | None, keep) -> None:
-    """The jobs in a pool of ``workers`` processes; when a process dies (an FMU that crashes), the fits
-    finished stay, and the jobs not finished run again, each in a process of its own (so a second crash is
-    the job's own: it fails with the reason, the others get their fits)."""
-    started = mp.get_context("spawn").Array("b", len(todo), lock=False)
-    ex = _new_pool(min(workers, len(todo)), budget, started)
-    broken = False
-    try:
-        with _sigint_ignored():    # the workers start with Ctrl-C ignored (kept across their exec)
-            futs = {ex.submit(_tracked_job, i, j): i for i, j in enumerate(todo)}
-        for fut in as_completed(futs):
-            if isinstance(fut.exception(), BrokenProcessPool):
-                broken = True
-                break
-            keep(todo[futs[fut]][1], _outcome(fut))
-    except BaseException:     # Ctrl-C, SIGTERM: stop the fits now (the saved ones stay), not after them
-        _kill_workers(ex)
-        raise
-    if not broken:
-        ex.shutdown(wait=True)
+class _SharedPool:
+    """The fit workers kept from one :func:`run_fits` to the next (a diagnosis calls it once per stage, a
+    shear study once per stage of each of its 30 units): a spawned worker costs about 2 s of CPU to start
+    (the interpreter, numpy, scipy, fmpy) and times an FMU's sensitivities once (``calibrate._SENS_PAYS``).
+
+    The run budget passes to workers only at their start, so the pool has a counter and a limit of its own,
+    lent to each call's budget (:meth:`lent`); the started flags (which job a dead worker may have held) are
+    slots numbered across calls. Kept only while the environment is the one its workers were spawned with."""
+
+    SLOTS = 1 << 14
+
+    def __init__(self, workers: int) -> None:
+        ctx = mp.get_context("spawn")
+        self.workers, self.env = workers, _environment()
+        self.count, self.limit = ctx.Value("q", 0), ctx.Value("q", -1)
+        self.started = ctx.Array("b", self.SLOTS, lock=False)
+        self.next = 0
+        self.ex = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_start_worker,
+                                      initargs=(self.limit, self.count, self.started))
+
+    def slots(self, n: int) -> int | None:
+        """The first of ``n`` new started flags, or None when the pool has run out of them."""
+        if self.next + n > self.SLOTS:
+            return None
+        first, self.next = self.next, self.next + n
+        return first
+
+    @contextlib.contextmanager
+    def lent(self, budget: rb.RunBudget | None):
+        """The pool's counter and limit set to ``budget``'s for the block, and its count given back after."""
+        self.limit.value = -1 if budget is None or budget.limit is None else int(budget.limit)
+        self.count.value = budget.used if budget is not None else 0
+        try:
+            yield
+        finally:
+            if budget is not None:
+                budget._value.value = int(self.count.value)
+
+
+def _environment() -> int:
+    """What spawned workers inherited from this process that can change between calls: its environment."""
+    return hash(tuple(sorted(os.environ.items())))
+
+
+_POOL: _SharedPool | None = None
+
+
+def _shared_pool(workers: int, jobs: int) -> tuple[_SharedPool, int]:
+    """The kept pool (a new one when there is none, it has another size or environment, or no started flags
+    left) and the first started flag of ``jobs`` jobs."""
+    global _POOL
+    if _POOL is not None and (_POOL.workers != workers or _POOL.env != _environment()
+                              or _POOL.next + jobs > _POOL.SLOTS):
+        _drop_pool()
+    if _POOL is None:
+        _POOL = _SharedPool(workers)
+    return _POOL, _POOL.slots(jobs)
+
+
+def _drop_pool(kill: bool = False) -> None:
+    """Shut the kept pool down (``kill``: at once, as for a broken pool or an interrupt)."""
+    global _POOL
+    pool, _POOL = _POOL, None
+    if pool is None:
         return
+    if kill:
+        _kill_workers(pool.ex)
+    else:
+        pool.ex.shutdown(wait=True)
+
+
+def map_in_pool(fn, calls: Sequence[tuple], workers: int) -> list:
+    """``fn(*args)`` for every args of ``calls``, in the kept pool of fit workers when ``workers`` > 1 and
+    there are several (the stages of a study that follow its diagnoses, unit by unit), in this process
+    otherwise; the results in the order of ``calls``. ``fn`` must be a module-level function (it is pickled).
+    An exception of a call is raised here; a worker that dies breaks the pool, which is dropped, and raises
+    BrokenProcessPool (nothing here supervises: these calls run FMUs a diagnosis has run already)."""
+    if workers <= 1 or len(calls) <= 1:
+        return [fn(*args) for args in calls]
+    pool, _ = _shared_pool(workers, 0)
+    try:
+        with pool.lent(None), _sigint_ignored():
+            futs = [pool.ex.submit(fn, *args) for args in calls]
+        return [f.result() for f in futs]
+    except BaseException:
+        _drop_pool(kill=True)
+        raise
+
+
+def _supervised(todo: list[FitJob], workers: int, budget: rb.RunBudget | None, keep) -> None:
+    """The jobs in the kept pool of ``workers`` processes (:class:`_SharedPool`); when a process dies (an FMU
+    that crashes), the fits finished stay, and the jobs not finished run again, each in a process of its own
+    (so a second crash is the job's own: it fails with the reason, the others get their fits)."""
+    pool, first = _shared_pool(workers, len(todo))
+    ex, started = pool.ex, pool.started
+    broken = False
+    with pool.lent(budget):
+        try:
+            with _sigint_ignored():    # the workers start with Ctrl-C ignored (kept across their exec)
+                futs = {ex.submit(_tracked_job, first + i, j): i for i, j in enumerate(todo)}
+            for fut in as_completed(futs):
+                if isinstance(fut.exception(), BrokenProcessPool):
+                    broken = True
+                    break
+                keep(todo[futs[fut]][1], _outcome(fut))
+        except BaseException:     # Ctrl-C, SIGTERM: stop the fits now (the saved ones stay), not after them
+            _drop_pool(kill=True)
+            raise
+        if not broken:
+            return
     # the pool is broken: every future not finished holds BrokenProcessPool; those done before the break
     # hold their fits
     done = set()
@@ -278,9 +368,9 @@ def _supervised(todo: list[FitJob], workers: int, budget: rb.RunBudget | None, k
         if fut.done() and not isinstance(fut.exception(), BrokenProcessPool):
             keep(todo[i][1], _outcome(fut))
             done.add(i)
-    _kill_workers(ex)
+    _drop_pool(kill=True)
     left = [i for i in range(len(todo)) if i not in done]
-    crashes = {i: 1 for i in left if started[i]}      # running when a process died: each may be the cause
+    crashes = {i: 1 for i in left if started[first + i]}   # running when a process died: each may be the cause
     _one_per_process([todo[i] for i in left], [crashes.get(i, 0) for i in left], workers, budget, keep)
 
 
@@ -305,26 +395,29 @@ def _one_per_process(jobs: list[FitJob], crashes: list[int], workers: int, budge
         while queue or running:
             while queue and len(running) < workers:
                 job, n = queue.pop(0)
-                ex = _new_pool(1, budget, None)
+                started = mp.get_context("spawn").Array("b", 1, lock=False)
+                ex = _new_pool(1, budget, started)
                 with _sigint_ignored():
-                    fut = ex.submit(_fit_job, job)
+                    fut = ex.submit(_tracked_job, 0, job)
                 procs = list((getattr(ex, "_processes", None) or {}).values())
-                running[fut] = (job, n, ex, procs[0] if procs else None)
+                running[fut] = (job, n, ex, procs[0] if procs else None, started)
             finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
             for fut in finished:
-                job, n, ex, proc = running.pop(fut)
+                job, n, ex, proc, started = running.pop(fut)
                 if not isinstance(fut.exception(), BrokenProcessPool):
                     ex.shutdown(wait=True)
                     keep(job[1], _outcome(fut))
                     continue
                 code = _exit_code(proc)
                 _kill_workers(ex)
-                if n + 1 < CRASHES:
+                if not started[0]:       # died before the fit began: the process, not the FMU, failed
+                    keep(job[1], FailedFit(start_failure_message(job, code)))
+                elif n + 1 < CRASHES:
                     queue.append((job, n + 1))
                 else:
                     keep(job[1], FailedFit(crash_message(job, code, n + 1)))
     except BaseException:     # Ctrl-C, SIGTERM: stop every fit now
-        for _, _, ex, _ in running.values():
+        for _, _, ex, _, _ in running.values():
             _kill_workers(ex)
         raise
 
@@ -343,6 +436,20 @@ def _exit_code(proc, wait_s: float = 5.0) -> int | None:
         if code is not None or time.monotonic() > end:
             return code
         time.sleep(0.02)
+
+
+def start_failure_message(job: FitJob, code: int | None) -> str:
+    """Why a candidate's fit failed when its worker process died before it began the fit: not the FMU. The
+    usual cause is a script that starts a diagnosis without guarding its entry point: fit workers are spawned
+    (a fresh interpreter that imports the script's main module), as every process is on Windows, and an
+    unguarded script starts the diagnosis again inside each worker, which Python stops."""
+    from fmusa.runs.pool import exit_reason
+
+    return (f"the worker process for candidate {str(job[1])!r} ended before it began the fit "
+            f"({exit_reason(code)}): the FMU was not run. Fit workers are started by "
+            f"'spawn' (a fresh Python that imports your main module), so a script that runs a diagnosis must "
+            f"guard it: put the call under `if __name__ == \"__main__\":`, or run with one worker "
+            f"(workers=1, --workers 1). The worker's own error is printed above in this output")
 
 
 def crash_message(job: FitJob, code: int | None, times: int) -> str:

@@ -27,6 +27,7 @@ from typing import Sequence
 import numpy as np
 
 from fmusa.diagnose.calibrate import ModelRunner, calibrate
+from fmusa.diagnose.run import AGREE_STARTS
 from fmusa.diagnose.effects import data_scales, model_parameters
 from fmusa.diagnose.intervals import interval_report, prediction_band
 
@@ -112,13 +113,14 @@ def held_out_rate_bands(experiments: Sequence, fmu: str, max_starts: int = 4, ef
         for e in exps:
             sc = data_scales([e])
             params = model_parameters(effect, "displacement", sc)
-            fit = calibrate(model, effect, "displacement", [e], sc, max_starts=max_starts)
+            fit = calibrate(model, effect, "displacement", [e], sc, max_starts=max_starts, agree=AGREE_STARTS)
             alone.append(model.predict([p.from_x(v) for p, v in zip(params, _x_of(params, fit))], exps))
         for i, new in enumerate(exps):
             train = [j for j in range(len(exps)) if j != i]
             sc = data_scales([exps[j] for j in train])
             params = model_parameters(effect, "displacement", sc)
-            fit = calibrate(model, effect, "displacement", [exps[j] for j in train], sc, max_starts=max_starts)
+            fit = calibrate(model, effect, "displacement", [exps[j] for j in train], sc, max_starts=max_starts,
+                            agree=AGREE_STARTS)
             x = _x_of(params, fit)
 
             def on(es):

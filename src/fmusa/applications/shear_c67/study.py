@@ -27,7 +27,7 @@ from fmusa.diagnose.calibrate import Fit, ModelRunner, calibrate, fit_candidate
 from fmusa.diagnose.effects import CANDIDATES, data_scales
 from fmusa.diagnose.measured import MeasuredDataError
 from fmusa.diagnose.population import MIN_SPECIMENS, leave_one_out, population_of_diagnoses, random_effects
-from fmusa.diagnose.fitcache import data_key, run_fits
+from fmusa.diagnose.fitcache import data_key, map_in_pool, run_fits
 from fmusa.diagnose.models import resolve
 from fmusa.diagnose.run import AGREE_STARTS, run_diagnosis
 from fmusa.fmi.info import FMURunError
@@ -134,8 +134,9 @@ def _model_row(row: pd.Series, model: ModelRunner, damped: ModelRunner, max_poin
     exp = shear_c67.load_test(row, max_points=max_points)
     sc = data_scales([exp])
     fit = calibrate(model, "nonlinear_stiffness", "displacement", [exp], sc, max_starts=max_starts,
-                    held=("d_y",))
-    dfit = calibrate(damped, "nonlinear_stiffness", "displacement", [exp], sc, max_starts=max_starts)
+                    held=("d_y",), agree=AGREE_STARTS)
+    dfit = calibrate(damped, "nonlinear_stiffness", "displacement", [exp], sc, max_starts=max_starts,
+                     agree=AGREE_STARTS)
     sign = 1.0 if row["direction"] == "Ant" else -1.0
     x0 = float(exp.meta.get("zero_shift", 0.0))
     c1, dc1 = fit.params["c_y"] / 1000.0, dfit.params["c_y"] / 1000.0
@@ -160,7 +161,7 @@ def _model_row(row: pd.Series, model: ModelRunner, damped: ModelRunner, max_poin
         start = {"c_y": c_s, "nl_ratio": abs(two["k2_N_mm"] / two["k1_N_mm"]) if two["k1_N_mm"] else 1.0,
                  "nl_y_b": y_b, TOE_PARAM: off}
         tfit = calibrate(toe, f"nonlinear_stiffness+{TOE_EFFECT}", "displacement", [exp], sc,
-                         max_starts=max_starts, held=("d_y",), start=start)
+                         max_starts=max_starts, held=("d_y",), start=start, agree=AGREE_STARTS)
         extra = {"toe_k1_N_mm": tfit.params["c_y"] / 1000.0,
                  "toe_k2_N_mm": tfit.params["c_y"] * tfit.params["nl_ratio"] / 1000.0,
                  "toe_gap_mm": 1000.0 * tfit.params["gap"] if TOE_PARAM == "gap" else float("nan"),
@@ -201,6 +202,17 @@ def rate_dependence(exps: Sequence, fmu: str, diag: dict, max_starts: int = 6,
             "heldout_ratio": both.heldout_rmse / two.heldout_rmse, "delta_bic": both.bic - two.bic}
 
 
+def _post_stage(kind: str, args: tuple):
+    """One job of the stages after the diagnoses (a worker's): a unit's rate dependence or prediction bands,
+    or the two-line fits of a specimen's tests."""
+    if kind == "rate":
+        return rate_dependence(*args)
+    if kind == "bands":
+        return held_out_rate_bands(*args)
+    tests, fmu, max_points, max_starts, chosen = args
+    return fit_bilinear_per_test(tests, fmu, max_points, max_starts, model_specimens=chosen)
+
+
 #: Specimens diagnosed through the FMU by default (the first of the folder): the per-unit diagnosis costs
 #: about a minute per unit on two cores; the two-line comparison with the authors covers every test.
 DEFAULT_DIAGNOSED = 3
@@ -232,16 +244,20 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
         print(f"{spec} {direction}: {len(exps)} tests", flush=True)
         groups[key] = run_diagnosis(exps, "displacement", out / key, fmu_path=fmu, workers=workers,
                                     max_starts=max_starts, candidates=candidates)
-    rate_models = {}
-    for key, diag in groups.items():
-        print(f"{key}: rate dependence on top of the two-phase curve", flush=True)
-        rate_models[key] = rate_dependence(unit_exps[key], fmu, diag, max_starts, out / key / "fits")
-    bands = {}
-    for key in groups:
-        print(f"{key}: prediction bands of each rate from the others", flush=True)
-        bands[key] = held_out_rate_bands(unit_exps[key], fmu, max_starts)
-    print(f"two-line fits of {len(tests)} tests", flush=True)
-    ours = fit_bilinear_per_test(tests, fmu, max_points, max_starts, model_specimens=chosen)
+    # the stages after the diagnoses, independent unit by unit and test by test: all at once on the workers
+    n_workers = max(1, int(workers or os.cpu_count() or 1))
+    print(f"rate dependence and prediction bands of {len(groups)} units, two-line fits of {len(tests)} tests "
+          f"({n_workers} processes)", flush=True)
+    calls = [("rate", key, (unit_exps[key], fmu, {"_fits": {k: f for k, f in diag["_fits"].items()
+                                                              if k == "nonlinear_stiffness"}},
+                            max_starts, out / key / "fits")) for key, diag in groups.items()]
+    calls += [("bands", key, (unit_exps[key], fmu, max_starts)) for key in groups]
+    calls += [("bilinear", spec, (tests[tests.specimen == spec], fmu, max_points, max_starts, chosen))
+              for spec in dict.fromkeys(tests.specimen)]
+    done = map_in_pool(_post_stage, [(kind, args) for kind, _, args in calls], n_workers)
+    rate_models = {key: r for (kind, key, _), r in zip(calls, done) if kind == "rate"}
+    bands = {key: r for (kind, key, _), r in zip(calls, done) if kind == "bands"}
+    ours = pd.concat([r for (kind, _, _), r in zip(calls, done) if kind == "bilinear"], ignore_index=True)
     cmp_ = ours.merge(authors, on=["specimen", "direction", "rate_mm_s"], how="left")
     data = describe_data(root, tests, max_points)
     data["diagnosed_specimens"] = chosen
