@@ -36,13 +36,30 @@ RIVALS = {"backlash_gap": ("nonlinear_stiffness", "coulomb_friction"),
           "nonlinear_stiffness": ("backlash_gap", "yield_softening"),
           "viscoelastic_relaxation": ("coulomb_friction", "nonlinear_stiffness"),
           "interface_damage": ("yield_softening", "nonlinear_stiffness")}
+#: The measured tests of each case (keywords of ar.protocol(), one test file each; default the one protocol). The
+#: expected 95 % half-widths at the truth (Gauss-Newton, noise 2e-4 m, every 40 Hz sample) on the one protocol:
+#: fric_x ±14 %, dmg_F_res ±27 %, dmg_rate ±16 %, every other parameter ≤ 2.5 % (but d_y). So friction gets a
+#: slow small cycle beside it (its pre-slip shows at each reversal: 80 N of force, 2 samples at 900 N in 0.5 s,
+#: 27 at 120 N in 3 s): fric_x ±2.4 %, fric_F ±1.1 %; and damage a test to a higher peak (the interface
+#: further past its onset, towards its residual force): dmg_F_res ±2.0 %, dmg_rate ±1.8 %, dmg_y0 ±2.2 %.
+PROTOCOLS = {"coulomb_friction": ({}, {"peak": 120.0, "ramp": 3.0, "hold": 0.1}),
+             "interface_damage": ({}, {"peak": 1500.0, "hold": 0.25})}
 
 
 def write_study(tmp: Path, effect: str, candidates: list[str] | None = None, starts: int = 2,
-                points: int = 100) -> Path:
-    df, _ = ar.synthesize(effect)
-    csv = tmp / f"{effect}.csv"
-    df.to_csv(csv, index=False)
+                points: int | None = None) -> Path:
+    """The study of the case ``effect``: its tests (PROTOCOLS, each with its own noise), every sample fitted
+    unless ``points`` is given. Not block-averaged: the mass rings at 19.5 Hz after each kink of the drive (about
+    1 mm), which a mean of two 40 Hz samples cancels and the model at the block's mean time does not; to 100
+    points (blocks of 2) the noise-free data are 1.2-2.3 times the noise away from the true model's response, and
+    the fit trades that for damping (d_y +58 to +440 %) and the effect's parameters (fric_F -25 %)."""
+    csvs, longest = [], 0
+    for i, kw in enumerate(PROTOCOLS.get(effect, ({},))):
+        df, _ = ar.synthesize(effect, seed=i, **kw)
+        csvs.append(tmp / f"{effect}_{i}.csv")
+        df.to_csv(csvs[-1], index=False)
+        longest = max(longest, len(df))
+    points = points or longest
     cands = f"  candidates: [{', '.join(candidates)}]\n" if candidates else ""
     f = tmp / "study.yaml"
     f.write_text(f"""name: mass_damper
@@ -62,7 +79,7 @@ effects:
   velocity_output: mass.v
 {cands}tests:
   drive: force
-  files: [{csv}]
+  files: [{', '.join(str(c) for c in csvs)}]
   max_points: {points}
 diagnosis:
   starts: {starts}
@@ -118,8 +135,8 @@ def test_attached_effect_is_named(tmp_path, effect):
     st = load_diagnosis_study(write_study(tmp_path, effect, candidates=[effect, *RIVALS[effect]], starts=1))
     d = run_study_diagnosis(st, tmp_path / "out", workers=2, progress=False)
     assert effect in d["effect"].split(" ≡ "), (d["effect"], [(r["effect"], r["significant"]) for r in d["ranking"]])
-    # the effect's parameters and the stiffness within 5 %; the damping is weakly identified under a force drive
-    # of slow ramps (backlash_gap measured: c -0.9 %, gap -0.5 %, d +58 %), so it is not checked
+    # the effect's parameters and the stiffness within 5 %; the damping shows only in the ringing after the drive's
+    # kinks, a few samples at 40 Hz (expected 95 % half-width of d_y 17-70 % on these tests), so it is not checked
     truth = {**ar.CASES[effect], "c_y": ar.BASE["c_y"]}
     fit = d["_fits"][effect].params
     for k, v in truth.items():
