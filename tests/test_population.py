@@ -44,6 +44,27 @@ def test_new_specimen_range_covers_on_synthetic_populations():
     assert 0.90 <= inside / tested <= 0.98, inside / tested
 
 
+def test_a_measured_reference_is_checked_with_its_own_error():
+    """The reference a left-out specimen is checked against is itself an estimate (the authors' fit of the
+    same test), with errors as large as the spread between specimens: against the new specimen's range (of a
+    true value) it falls outside far more often than 5 %; against that range widened by its own error, in
+    90–98 % of cases."""
+    rng = np.random.default_rng(9)
+    plain = widened = tested = 0
+    for _ in range(120):
+        true = rng.normal(100.0, 20.0, 15)
+        s = rng.uniform(5.0, 40.0, 15)
+        est = true + rng.normal(0.0, s)
+        ref = est + rng.normal(0.0, 0.05 * s)     # the authors' redo of the same fit: nearly the same number
+        plain += leave_one_out(est, s, ref)["inside"]
+        loo = leave_one_out(est, s, ref, reference_ses=s)
+        widened += loo["inside"]
+        tested += loo["tested"]
+        assert all(r["checked_range"][0] <= r["prediction"][0] for r in loo["rows"])
+    assert 0.90 <= widened / tested <= 0.98, widened / tested
+    assert plain / tested < 0.88, plain / tested
+
+
 def test_too_few_specimens_say_so():
     fit = random_effects([1.0, 2.0], [0.1, 0.1])
     assert np.isnan(fit["prediction"][0]) and "at least" in fit["note"]
@@ -52,7 +73,8 @@ def test_too_few_specimens_say_so():
 @pytest.mark.skipif(not SHEAR.is_dir(), reason="data/shear-c67 not present")
 def test_shear_population_leave_one_out(tmp_path):
     """The shear data: per direction and rate, the range of a new specimen from the others' two-line k1 (no
-    FMU) against each left-out specimen's k1 of the authors' analysis. Measured: 80 of 90 (89 %) inside."""
+    FMU) against each left-out specimen's k1 of the authors' analysis, widened by that test's own error.
+    Measured: 87 of 90 (97 %) inside (80 of 90 without the widening; 10 of 15 at 100 mm/s anterior)."""
     import pandas as pd
 
     from fmusa.applications.shear_c67 import bilinear
@@ -67,7 +89,7 @@ def test_shear_population_leave_one_out(tmp_path):
     cmp_ = pd.DataFrame(rows).merge(sd.authors_bilinear(SHEAR), on=["specimen", "direction", "rate_mm_s"])
     pop = population_k1(cmp_)
     assert len(pop["cells"]) == 6 and pop["tested"] == len(cmp_)
-    assert 0.8 <= pop["share"] <= 1.0, pop["share"]
+    assert 0.90 <= pop["share"] <= 0.99, pop["share"]
     for c in pop["cells"].values():
         f = c["fit"]
         assert f["prediction"][0] < f["mean"] < f["prediction"][1]

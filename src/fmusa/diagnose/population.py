@@ -86,14 +86,23 @@ def _paule_mandel(y: np.ndarray, s: np.ndarray) -> float:
 
 
 def leave_one_out(estimates: Sequence[float], ses: Sequence[float], reference: Sequence[float],
-                  names: Sequence[str] | None = None, level: float = 0.95) -> dict:
+                  names: Sequence[str] | None = None, level: float = 0.95,
+                  reference_ses: Sequence[float] | None = None) -> dict:
     """Leave each specimen out, predict the range of a new specimen from the rest (:func:`random_effects`)
     and check whether the specimen's ``reference`` value (e.g. the authors' own analysis) falls inside.
 
-    Keys: rows (name, reference, prediction, inside), inside (count), tested (count), share."""
+    The range of a new specimen is that of its true value. A reference that is itself measured (the authors'
+    k1 is a fit to the same test, with the same error as the specimen's own estimate) scatters about the true
+    value by its own error too, so with ``reference_ses`` each is checked against the range widened by it:
+    μ ± t_{k−2} √(τ² + SE(μ)² + s_ref²) (the left-out test's precision, not its value). Without them the
+    reference is taken as exact (a true value, as in a simulation).
+
+    Keys: rows (name, reference, prediction (the new specimen's range), checked_range, inside), inside
+    (count), tested (count), share."""
     y = np.asarray(estimates, float)
     s = np.asarray(ses, float)
     ref = np.asarray(reference, float)
+    ref_s = np.zeros(len(y)) if reference_ses is None else np.asarray(reference_ses, float)
     names = list(names) if names is not None else [str(i + 1) for i in range(len(y))]
     rows = []
     for i in range(len(y)):
@@ -102,8 +111,15 @@ def leave_one_out(estimates: Sequence[float], ses: Sequence[float], reference: S
         lo, hi = fit["prediction"]
         if not (math.isfinite(lo) and math.isfinite(ref[i])):
             continue
+        if ref_s[i] > 0 and math.isfinite(ref_s[i]):
+            k = fit["k"]
+            half = stats.t.ppf(0.5 + level / 2, k - 2) * math.sqrt(fit["tau"] ** 2 + fit["mean_se"] ** 2
+                                                                   + ref_s[i] ** 2)
+            checked = [fit["mean"] - half, fit["mean"] + half]
+        else:
+            checked = [lo, hi]
         rows.append({"name": names[i], "reference": float(ref[i]), "prediction": [lo, hi],
-                     "inside": bool(lo <= ref[i] <= hi)})
+                     "checked_range": checked, "inside": bool(checked[0] <= ref[i] <= checked[1])})
     inside = sum(r["inside"] for r in rows)
     return {"rows": rows, "inside": inside, "tested": len(rows),
             "share": inside / len(rows) if rows else float("nan")}

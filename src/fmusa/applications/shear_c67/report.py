@@ -245,7 +245,9 @@ def _population_section(summary: dict) -> list[str]:
          "τ is the spread between specimens beyond each test's own uncertainty; the shrinkage is how far a "
          "specimen's estimate moves towards the mean (0: its own test decides, 1: the population does). "
          "Leave one out: the range of a new specimen predicted from the other specimens, and whether the "
-         "left-out specimen's k1 of the authors' analysis falls inside.\n",
+         "left-out specimen's k1 of the authors' analysis falls inside it, widened by that test's own standard "
+         "error (their k1 is a fit to the same test, so it carries the test's error as well as the "
+         "specimen's).\n",
          "| direction | rate [mm/s] | specimens | mean k1 [N/mm] | τ between specimens [N/mm] | SD of the "
          "estimates [N/mm] | a new specimen, 95 % [N/mm] | largest shrinkage | authors' k1 inside (left out) |",
          "|---|---|---|---|---|---|---|---|---|"]
@@ -272,7 +274,7 @@ def _population_section(summary: dict) -> list[str]:
                  + ", ".join(f"{x['name']} {_f(x['estimate'] / 1e3, '.4g')} → {_f(x['shrunk'] / 1e3, '.4g')} "
                              f"({_f(x['shrinkage'], '.2f')})" for x in c["specimens"]) + ".\n")
     L.append(f"In all, the authors' k1 of {pop['inside']} of {pop['tested']} left-out specimen tests "
-             f"({100 * pop['share']:.0f} %) falls inside the range predicted from the other specimens (nominal 95 %).\n")
+             f"({100 * pop['share']:.0f} %) falls inside the range predicted from the other specimens, widened by its test's own error (nominal 95 %).\n")
     return L
 
 
