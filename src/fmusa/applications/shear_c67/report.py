@@ -122,7 +122,7 @@ def _fig_population(pop: dict, path: Path) -> Path | None:
     directions = list(dict.fromkeys(c["direction"] for c in cells.values()))
     rates = sorted({c["rate_mm_s"] for c in cells.values()})
     n_spec = max(len(c["fit"]["specimens"]) for c in cells.values())
-    fig, axes = plt.subplots(len(directions), len(rates), figsize=(7.2, 0.9 + 0.16 * n_spec * len(directions)),
+    fig, axes = plt.subplots(len(directions), len(rates), figsize=(7.2, 1.6 + 0.24 * n_spec * len(directions)),
                              layout="constrained", sharey="row", squeeze=False)
     for i, direction in enumerate(directions):
         for j, rate in enumerate(rates):
@@ -143,6 +143,11 @@ def _fig_population(pop: dict, path: Path) -> Path | None:
             ax.errorbar(est, y, xerr=1.96 * se, fmt="o", ms=3, color="k", elinewidth=1, capsize=1.5,
                         label="specimen's k1 (two lines), 95 %")
             loo = {r["name"]: r for r in cell.get("leave_one_out", {}).get("rows", [])}
+            for s, yy in zip(specs, y):
+                rng = loo.get(s["name"], {}).get("checked_range")
+                if rng:
+                    ax.plot(rng, [yy - 0.3, yy - 0.3], color="tab:gray", lw=0.8, alpha=0.5,
+                            label="range from the others, widened by its test's error")
             out = [(s["name"], yy) for s, yy in zip(specs, y) if s["name"] in loo and not loo[s["name"]]["inside"]]
             if out:
                 ax.scatter([loo[n]["reference"] for n, _ in out], [yy for _, yy in out], marker="x", s=30,
