@@ -100,3 +100,37 @@ def test_no_oscillation_in_a_peak_and_a_drop(failure_diagnosis):
     assert st["misfit"] is not None and st["misfit"]["x_start"] < st["misfit"]["x_end"]
     assert "Hz" not in st["description"] and " mm " in st["description"] + " "
     assert d["residuals"]["extended"]["oscillation"] is None
+
+
+def test_a_candidate_fit_worse_than_the_baseline_is_refitted_from_it(fmu_path):
+    """A candidate contains the baseline (its effect off), so a fit of it worse than the baseline's is the
+    optimiser's failure (as the force-driven damage fit was when every start let the interface run away): it
+    is refitted from the baseline's optimum, its runs counted with the first fit's, and the report says so."""
+    import zlib
+
+    from fmusa.diagnose.calibrate import Fit, fit_candidate
+    from fmusa.diagnose.fitcache import FailedFit
+    from fmusa.diagnose.models import resolve
+    from fmusa.diagnose.report import _ranking_section
+    from fmusa.diagnose.run import _refit_worse_than_baseline
+
+    df, _ = er.synthesize("nonlinear_stiffness", "force",
+                          seed=zlib.crc32(b"nonlinear_stiffness/force") % 10_000)
+    e = downsample(Experiment("s", Path("s.csv"), "force", df.time.values, df.displacement.values,
+                              df.force.values), 120)
+    interface = resolve(None, str(fmu_path))
+    base = fit_candidate(str(fmu_path), "none", "force", [e], 2, interface)
+    # a first fit that stalled far off (its numbers as a stalled fit reports them)
+    stalled = Fit(effect="backlash_gap", params={"c_y": base.params["c_y"], "d_y": base.params["d_y"], "gap": 1e-4},
+                  ci95={}, rss=1e3 * base.rss, n=base.n, k=3, rmse=base.rmse * 31.6, starts_tried=1,
+                  runs={"fit": 7}, rounds={"fit": 7})
+    results = {"none": base, "backlash_gap": stalled, "sensor_offset": FailedFit("an FMU error", {"fit": 3})}
+    notes = _refit_worse_than_baseline(results, base, str(fmu_path), "force", [e], 2, interface, 1, None)
+    refit = results["backlash_gap"]
+    assert isinstance(refit, Fit) and refit.rss <= base.rss * (1 + 1e-6), refit
+    assert refit.runs["fit"] > 7 and refit.runs.get("heldout", 0) > 0     # both fits' runs, and its held-out score
+    assert "worse than the baseline" in notes["backlash_gap"]["text"]
+    assert isinstance(results["sensor_offset"], FailedFit)                 # a failed fit is left as it is
+    text = _ranking_section({"ranking": [], "refitted": notes, "failed": {"sensor_offset": "an FMU error"},
+                             "effect": "none", "data": {"response": "displacement", "drive": "force"}})
+    assert "`backlash_gap`: its first fit" in text and "- `sensor_offset`: an FMU error" in text

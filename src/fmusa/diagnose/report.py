@@ -307,6 +307,13 @@ def _ranking_section(diag: Mapping) -> str:
     out += _table(["#", "candidate", "significant", "k", f"RMSE [{unit}]", f"held-out RMSE [{unit}]",
                    "RMSE ratio", "held-out ratio", "ΔAIC", "ΔBIC", "p", "effect parameters",
                    f"change of the prediction [{unit}] (floor)"], rows) + "\n"
+    refitted = diag.get("refitted") or {}
+    for name, note in refitted.items():
+        out += f"`{name}`: {note['text']}.\n\n"
+    failed = diag.get("failed") or {}
+    if failed:
+        out += ("Candidates that could not be fitted (not ranked, so the verdict is among the others):\n\n"
+                + "".join(f"- `{n}`: {why}\n" for n, why in failed.items()) + "\n")
     return out
 
 

@@ -21,11 +21,11 @@ import numpy as np
 
 from fmusa.diagnose import residuals as rs
 from fmusa.diagnose.budget import LeftOut, RunBudget
-from fmusa.diagnose.calibrate import MIN_EXPERIMENTS_LEFT_OUT, Fit, unify_equivalent
+from fmusa.diagnose.calibrate import AGREE_DBIC, MIN_EXPERIMENTS_LEFT_OUT, Fit, unify_equivalent
 from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, DAMPING, STIFFNESS, UNITS, DiagnoseError,
                                     data_scales, equivalent_by_construction, equivalent_parameters,
                                     main_parameter, model_parameters)
-from fmusa.diagnose.fitcache import data_key, run_fits
+from fmusa.diagnose.fitcache import FailedFit, data_key, run_fits
 from fmusa.diagnose.interface import ModelInterface
 from fmusa.diagnose.plausibility import implausible, support_of, unidentifiable
 from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members,
@@ -158,7 +158,7 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         combos = {c: results[f"{name}+{c}"] for c in rest if isinstance(results.get(f"{name}+{c}"), Fit)}
         rescued, ended = {}, False
         for c in list(combos):
-            if combos[c].rss > current.rss * (1 + 1e-6):       # nested: never worse at its optimum
+            if worse_than(combos[c], current):       # nested: never worse at its optimum
                 worse = combos[c]
                 # the refit tries the starts the fit did not (its first one was the model so far's optimum
                 # already): none left, and it would make the same runs again to the same end
@@ -170,7 +170,7 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
                         ended = True
                         break
                     combos[c] = refit
-                if combos[c].rss > current.rss * (1 + 1e-6):
+                if worse_than(combos[c], current):
                     removed.append({"step": len(steps) + 1, "effect": c, "model": f"{name}+{c}",
                                     "check": "optimiser",
                                     "reason": f"the fit (RMSE {worse.rmse:.4g}) is worse than the model it extends "
@@ -205,13 +205,54 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
     return steps
 
 
-def refit_note(first: Fit, refit: Fit, previous: Fit) -> dict:
+def worse_than(fit: Fit, nested: Fit) -> bool:
+    """Whether a model's fit is worse than that of a model it contains by more than the optimiser's tolerance:
+    a higher residual sum of squares by more than :data:`calibrate.AGREE_DBIC` in BIC units (n ln(rss/rss0)),
+    the difference below which two starts count as the same optimum."""
+    return fit.rss > nested.rss * math.exp(AGREE_DBIC / max(fit.n, 1))
+
+
+def _refit_worse_than_baseline(results: dict, base: Fit, fmu: str, drive: str, experiments: Sequence,
+                               max_starts: int, interface: ModelInterface, workers: int,
+                               budget: RunBudget | None) -> dict:
+    """Every candidate nests the baseline (its effect switched off is the baseline), so a candidate's fit worse
+    than the baseline's is an optimiser failure (seen: every start in a region where the FMU's runs fail, the
+    fit stopped there after two evaluations). Each such fit is refitted from the baseline's optimum (the starts
+    it did not try); one still worse is reported failed with why. ``results`` is updated in place (the runs of
+    both fits kept together); returns the notes of the ones the refit rescued."""
+    notes = {}
+    for name, first in list(results.items()):
+        if name == "none" or not isinstance(first, Fit) or not worse_than(first, base):
+            continue
+        refit = _refit_from(fmu, name, drive, experiments, max_starts, interface, base, None,
+                            jacobian_lanes(workers, 1), budget, skip=first.starts_tried)
+        runs = dict(first.runs)
+        for stage, n in (getattr(refit, "runs", None) or {}).items():
+            runs[stage] = runs.get(stage, 0) + n
+        if isinstance(refit, Fit) and not worse_than(refit, base):
+            refit.runs = runs
+            refit.rounds = {k: first.rounds.get(k, 0) + refit.rounds.get(k, 0)
+                            for k in set(first.rounds) | set(refit.rounds)}
+            results[name] = refit
+            notes[name] = refit_note(first, refit, base, "the baseline")
+        elif isinstance(refit, Fit):
+            results[name] = FailedFit(
+                f"an optimiser failure: its fit (RMSE {first.rmse:.4g}) and its refit from the baseline's optimum "
+                f"(RMSE {refit.rmse:.4g}) are worse than the baseline (RMSE {base.rmse:.4g}), which it contains",
+                runs)
+        else:               # the run budget ended in the refit
+            refit.runs = runs
+            results[name] = refit
+    return notes
+
+
+def refit_note(first: Fit, refit: Fit, previous: Fit, what: str = "the model it extends") -> dict:
     """A step whose first fit was worse than the model it extends and whose refit from that model's optimum was
     not: the three RMSEs and what it means (the first fit stalled; the kept fit is the refit)."""
     return {"first_rmse": first.rmse, "refit_rmse": refit.rmse, "previous_rmse": previous.rmse,
-            "text": f"its first fit (RMSE {first.rmse:.4g}) was worse than the model it extends (RMSE "
+            "text": f"its first fit (RMSE {first.rmse:.4g}) was worse than {what} (RMSE "
                     f"{previous.rmse:.4g}): an optimiser failure; refitted from that model's optimum (RMSE "
-                    f"{refit.rmse:.4g}), the refit is the step"}
+                    f"{refit.rmse:.4g}), the refit is the " + ("step" if what == "the model it extends" else "fit")}
 
 
 def _gate(current: Fit, th: Thresholds) -> dict:
@@ -450,6 +491,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
                             f"({budget.used} runs made); allow more runs (--max-runs)")
     if not isinstance(base, Fit):
         raise FMURunError(f"the baseline could not be fitted: {base}")
+    refitted = _refit_worse_than_baseline(results, base, fmu, drive, experiments, max_starts, interface, workers,
+                                          budget)
     line = straight_line(experiments, drive)
     line["baseline_not_worse"] = bool(base.rmse <= line["rmse"] * (1 + 1e-3) + 1e-12 * sc.F_pk)
     # the same equations under two parametrisations are scored as one model
@@ -490,6 +533,7 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "gain": _gain(base, ext, effect),
         "ranking": ranking,
         "failed": {n: r for n, r in results.items() if isinstance(r, str)},
+        "refitted": refitted,
         "runs": run_count(results, chain_results, budget),
         "indistinguishable": _with_cannot_tell_first(
             indistinguishable(effect, ties, ranking, features, fits, drive) + damping_look_alikes(base, members, effect),
