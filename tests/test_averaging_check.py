@@ -82,9 +82,9 @@ def test_ringing_mass_damper_in_blocks_of_two_is_warned_about(tmp_path):
     truth = {**ar.BASE, **ar.CASES["backlash_gap"]}
     fit = _fit_at(tda.OM, "force", st.interface, truth, exps, "backlash_gap")
     budget = RunBudget(None)
-    check = check_averaging(str(tda.OM), "force", st.interface, {"final (backlash_gap)": fit}, exps, budget)
+    check = check_averaging(str(tda.OM), "force", st.interface, {"final model (backlash_gap)": fit}, exps, budget)
     assert check["made"] and check["runs"] == budget.used == 2, check     # the run at the samples + reuse check
-    row = check["models"]["final (backlash_gap)"]["tests"][0]
+    row = check["models"]["final model (backlash_gap)"]["tests"][0]
     # measured: RMS 0.73 x the residual RMSE, 3.9 x at the worst block (t = 2.54 s, after the unloading's kink)
     assert row["max_ratio"] > 2.0 and row["rms_ratio"] > 0.4 and row["shift_se"] > 3 * MAX_SHIFT_SE, row
     (w,) = check["warnings"]
@@ -105,7 +105,7 @@ def test_ringing_mass_damper_in_blocks_of_two_is_warned_about(tmp_path):
     _, st_all = _mass_damper_study(tmp_path / "all", None)
     exps_all = st_all.experiments()
     assert exps_all[0].n == 121 and "blocks" not in exps_all[0].meta
-    check_all = check_averaging(str(tda.OM), "force", st_all.interface, {"final (backlash_gap)": fit}, exps_all)
+    check_all = check_averaging(str(tda.OM), "force", st_all.interface, {"final model (backlash_gap)": fit}, exps_all)
     assert not check_all["made"] and check_all["runs"] == 0 and check_all["warnings"] == []
     assert "no test was block-averaged" in check_all["why"]
 
@@ -137,7 +137,7 @@ def test_shear_test_close_to_a_line_within_its_blocks_is_not_warned_about(fmu_pa
             model.close()
     assert fits["interface_damage"].rmse < 0.8 * fits["none"].rmse      # a curved fit, not the line again
     check = check_averaging(str(fmu_path), "displacement", interface,
-                            {"final (interface_damage)": fits["interface_damage"], "baseline": fits["none"]}, [e])
+                            {"final model (interface_damage)": fits["interface_damage"], "baseline": fits["none"]}, [e])
     assert check["made"] and check["runs"] == 2 and check["warnings"] == []
     for label, m in check["models"].items():
         (r,) = m["tests"]

@@ -195,12 +195,12 @@ def averaging_warning(check: Mapping, drive: str) -> dict | None:
                      f"response at the block times by {r['max_ratio']:.2g} x the residual RMSE at most "
                      f"({_size(r['bias_max'], drive)} at t = {r['bias_max_t']:.3g} s; RMS {r['rms_ratio']:.2g} x, "
                      f"residual RMSE {_size(r['rmse'], drive)})")
-    models = "; ".join(f"the {lab} model by up to {m['shift_se']:.2g}" for lab, m in bad.items())
+    models = "; ".join(f"of the {lab} by up to {m['shift_se']:.2g}" for lab, m in bad.items())
     n = max(r["samples"] for r in named)
     text = (f"block averaging: the response is not close to a straight line within the blocks of "
             f"{'test' if len(named) == 1 else 'tests'} " + "; ".join(parts) + ". The data's block means and the "
             f"model at the block times differ even where the model is right, and the fit takes the difference for "
-            f"physics: it can move a fitted parameter ({models} standard errors, more than "
+            f"physics: it can move a fitted parameter {models} standard errors (the check's limit is "
             f"{check.get('threshold_se', MAX_SHIFT_SE):g}). Fit every sample: max_points at least {n} "
             f"(`max_points: {n}` under `tests:` in the study file, or `--max-points {n}`).")
     return {"kind": "averaging", "message": text, "fix": f"--max-points {n}", "max_points": n,

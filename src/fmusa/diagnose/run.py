@@ -212,7 +212,7 @@ def averaging_check(fmu: str, drive: str, interface: ModelInterface, base: Fit, 
     from fmusa.diagnose.averaging import check_averaging
 
     name = "+".join(s["effect"] for s in steps) if steps else ""
-    fits = {f"final ({name})": final, "baseline": base} if name else {"baseline": base}
+    fits = {f"final model ({name})": final, "baseline": base} if name else {"baseline": base}
     return check_averaging(fmu, drive, interface, fits, experiments, budget, cache_dir, key)
 
 
