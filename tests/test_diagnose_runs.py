@@ -52,7 +52,7 @@ def counted(logged_fmu, experiment):
 
 
 def _stage_total(runs: dict) -> int:
-    fits = [runs["baseline"], *runs["candidates"].values(), *runs["chain"].values()]
+    fits = [runs["baseline"], *runs["candidates"].values(), *runs["chain"].values(), *runs["checks"].values()]
     return sum(f["total"] for f in fits if not f.get("cached"))
 
 
@@ -61,6 +61,8 @@ def test_runs_counted_by_stage_match_the_runs_the_fmu_saw(counted, experiment, t
     runs = d["runs"]
     assert seen > 50 and runs["chain"], "the chain must have run for its runs to be checked"
     assert runs["total"] == seen == runs["counted_by_fits"] == _stage_total(runs)
+    # the test is block means: the averaging check ran the final model and the baseline once each at its samples
+    assert runs["checks"]["averaging"]["total"] == 2 == d["averaging"]["runs"] and d["averaging"]["made"]
     assert set(runs["candidates"]) == set(CANDIDATES) and runs["budget"] is None and not runs["left_out"]
     for r in [runs["baseline"], *runs["candidates"].values()]:
         assert r["fit"] > 0 and r["heldout"] > 0 and r["total"] == r["fit"] + r["heldout"]
@@ -89,7 +91,9 @@ def test_a_budget_bounds_the_runs_and_names_what_it_left_out(logged_fmu, counted
     # (its baseline may have made a few runs fewer than the unbudgeted one: the process already knew whether the
     # FMU's sensitivities pay, and did not time them again)
     assert runs["baseline"]["total"] <= base_runs
-    assert sum(r["total"] for r in runs["candidates"].values()) == runs["total"] - runs["baseline"]["total"]
+    # (the block averaging's check takes what the budget has left, if anything)
+    checks = sum(r["total"] for r in runs["checks"].values())
+    assert sum(r["total"] for r in runs["candidates"].values()) == runs["total"] - runs["baseline"]["total"] - checks
     write_report(d, [experiment], tmp_path, [])
     text = (tmp_path / "report.md").read_text(encoding="utf-8")
     assert f"The run budget ({budget} FMU runs) ended" in text and "`sensor_offset`" in text
@@ -152,7 +156,9 @@ def test_a_chain_fit_that_cannot_be_significant_makes_no_heldout_runs(counted):
     # plus the longest of each chain step
     assert all(r["rounds"] == r["total"] for r in [runs["baseline"], *runs["candidates"].values()])
     first_round = max(r["rounds"] for r in [runs["baseline"], *runs["candidates"].values()])
-    assert runs["depth"] == first_round + max(r["rounds"] for r in runs["chain"].values())
+    # (and the checks after the fits, one after another)
+    checks = sum(r["rounds"] for r in runs["checks"].values())
+    assert runs["depth"] == first_round + max(r["rounds"] for r in runs["chain"].values()) + checks
 
 
 def test_heldout_refits_at_once_are_the_same_as_one_after_another(fmu_path, experiment):

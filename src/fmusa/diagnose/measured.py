@@ -39,7 +39,7 @@ from fmusa.errors import FmusaError
 __all__ = [
     "MeasuredDataError", "ColumnSpec", "Experiment", "load_experiment", "load_experiments",
     "downsample", "parse_rate", "DRIVES", "ROLES", "LENGTH_UNITS", "FORCE_UNITS", "TIME_UNITS",
-    "RATE_UNITS", "MIN_ROWS", "OPTIONS", "DELIMITERS", "DECIMALS", "sniff_dialect",
+    "RATE_UNITS", "MIN_ROWS", "OPTIONS", "DELIMITERS", "DECIMALS", "sniff_dialect", "Blocks",
 ]
 
 #: What a test may impose.
@@ -536,6 +536,52 @@ def load_experiment(path, drive: str, spec: ColumnSpec = ColumnSpec(), zero_driv
 
 
 # ============================================================================ downsampling
+@dataclass(frozen=True, eq=False)
+class Blocks:
+    """The samples a block-averaged experiment was made from, as much of them as the averaging check needs
+    (:mod:`fmusa.diagnose.averaging`): the original time and drive (SI, zeroed as the experiment), and which
+    samples make each block: ``starts[i]`` the first original sample of block i (blocks are consecutive), and
+    ``weight`` each sample's weight in its block's mean (None: equal weights, 1 / the block's size).
+    ``experiment.meta['blocks']`` of a downsampled experiment; the response is not kept (the check compares
+    the model with itself)."""
+    t: np.ndarray
+    drive: np.ndarray
+    starts: np.ndarray
+    weight: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _frozen(self.t))
+        object.__setattr__(self, "drive", _frozen(self.drive))
+        starts = np.array(self.starts, dtype=np.int64)
+        starts.flags.writeable = False
+        object.__setattr__(self, "starts", starts)
+        if self.weight is not None:
+            object.__setattr__(self, "weight", _frozen(self.weight))
+
+    @property
+    def n(self) -> int:
+        """Original samples."""
+        return int(self.t.size)
+
+    @property
+    def sizes(self) -> np.ndarray:
+        """Original samples per block."""
+        return np.diff(np.append(self.starts, self.n))
+
+    def weights(self) -> np.ndarray:
+        """Each original sample's weight in its block's mean (each block's weights sum to 1)."""
+        if self.weight is not None:
+            return self.weight
+        return np.repeat(1.0 / self.sizes, self.sizes)
+
+    def mean(self, values) -> np.ndarray:
+        """Block means of ``values`` (one per original sample), as the experiment's samples were made."""
+        v = np.asarray(values, float)
+        if v.shape != self.t.shape:
+            raise ValueError(f"{v.shape[0] if v.ndim else 0} values for {self.n} original samples")
+        return np.add.reduceat(v * self.weights(), self.starts)
+
+
 def downsample(exp: Experiment, max_points: int) -> Experiment:
     """At most ``max_points`` samples by block averaging; ``exp`` itself when already that small.
 
@@ -544,6 +590,10 @@ def downsample(exp: Experiment, max_points: int) -> Experiment:
     averaged in consecutive blocks of equal size (the last block may be shorter), time included, so
     a linear stretch stays on its line. Averaging, unlike picking every k-th sample, also reduces
     the noise that a piecewise-linear drive would turn into velocity noise.
+
+    The averaged experiment keeps the original time and drive and the blocks (``meta['blocks']``, a
+    :class:`Blocks`): averaging is right only where the response is close to a straight line within a block,
+    and the diagnosis checks that on the fitted model (:mod:`fmusa.diagnose.averaging`).
     """
     if int(max_points) != max_points or max_points < 3:
         raise MeasuredDataError(f"{exp.name}: max_points {max_points!r} must be an integer >= 3 "
@@ -561,8 +611,16 @@ def downsample(exp: Experiment, max_points: int) -> Experiment:
         mid = np.add.reduceat(a[1:-1], starts - 1) / counts
         return np.concatenate(([a[0]], mid, [a[-1]]))
 
+    edges = np.concatenate(([0], starts, [n - 1]))       # each block's first sample, the end ones alone
+    before = exp.meta.get("blocks")
+    if isinstance(before, Blocks):     # averaged again: the blocks of blocks, in the first samples' terms
+        sizes = np.diff(np.append(edges, n))
+        w = before.weights() * np.repeat(1.0 / sizes, sizes)[np.repeat(np.arange(n), before.sizes)]
+        blocks = Blocks(before.t, before.drive, before.starts[edges], w)
+    else:
+        blocks = Blocks(exp.t, exp.drive_signal, edges)
     return replace(exp, t=block(exp.t), displacement=block(exp.displacement),
-                   force=block(exp.force), meta=dict(exp.meta, downsampled_from=n, block=int(k)))
+                   force=block(exp.force), meta=dict(exp.meta, downsampled_from=blocks.n, block=int(k), blocks=blocks))
 
 
 # ============================================================================ several files

@@ -486,8 +486,14 @@ def _warnings_section(diag: Mapping) -> str:
     out = "## Warnings\n\n"
     for w in ws:
         out += f"- {w['message']}\n"
-    return out + ("\nThe fit adapts its bounds to the data, so it cannot notice a wrong unit: the results below are "
-                  "for the data as read.\n")
+    if any(w.get("kind", "units") == "units" for w in ws):
+        out += ("\nThe fit adapts its bounds to the data, so it cannot notice a wrong unit: the results below are "
+                "for the data as read.\n")
+    if any(w.get("kind") == "averaging" for w in ws):
+        out += ("\nThe residuals cannot show a bias from block averaging (the fit has absorbed it): it was found by "
+                "running the fitted model at every original sample of the averaged tests and averaging that in the "
+                "same blocks. The results below are for the block means.\n")
+    return out
 
 
 def _chain_section(diag: Mapping) -> str:

@@ -246,6 +246,17 @@ def _refit_worse_than_baseline(results: dict, base: Fit, fmu: str, drive: str, e
     return notes
 
 
+def averaging_check(fmu: str, drive: str, interface: ModelInterface, base: Fit, final: Fit, steps: list,
+                    experiments: Sequence, budget: RunBudget | None, cache_dir, key: str) -> dict:
+    """The block averaging's check (:func:`fmusa.diagnose.averaging.check_averaging`) of the final model and the
+    baseline: one run of each per averaged test at its original samples, counted in the diagnosis's runs."""
+    from fmusa.diagnose.averaging import check_averaging
+
+    name = "+".join(s["effect"] for s in steps) if steps else ""
+    fits = {f"final model ({name})": final, "baseline": base} if name else {"baseline": base}
+    return check_averaging(fmu, drive, interface, fits, experiments, budget, cache_dir, key)
+
+
 def refit_note(first: Fit, refit: Fit, previous: Fit, what: str = "the model it extends") -> dict:
     """A step whose first fit was worse than the model it extends and whose refit from that model's optimum was
     not: the three RMSEs and what it means (the first fit stalled; the kept fit is the refit)."""
@@ -284,16 +295,25 @@ def _stage_runs(r) -> dict:
     return {"fit": fit, "heldout": held, "total": fit + held, "failed": True}
 
 
-def run_count(results: dict, chain_results: dict, budget: RunBudget) -> dict:
+def run_count(results: dict, chain_results: dict, budget: RunBudget, averaging: dict | None = None) -> dict:
     """Every FMU run of the diagnosis by stage (the baseline, each candidate, each step of the chain; per
-    fit the runs of its own fit and of its held-out refits), the total the shared counter saw, the budget,
-    and what the budget left out. Fits reused from a cache spent their runs in an earlier diagnosis: they
-    are listed (``cached``) but not in the total."""
+    fit the runs of its own fit and of its held-out refits; the checks after the fits: the block averaging's,
+    :func:`averaging_check`), the total the shared counter saw, the budget, and what the budget left out. Fits
+    reused from a cache spent their runs in an earlier diagnosis: they are listed (``cached``) but not in the
+    total."""
     stages = {"baseline": _stage_runs(results["none"]),
               "candidates": {n: _stage_runs(r) for n, r in results.items() if n != "none"},
-              "chain": {n: _stage_runs(r) for n, r in chain_results.items()}}
+              "chain": {n: _stage_runs(r) for n, r in chain_results.items()},
+              "checks": {}}
+    if averaging is not None and (averaging.get("tests") or averaging.get("runs")):
+        stages["checks"]["averaging"] = {
+            "fit": 0, "heldout": 0, "check": int(averaging["runs"]), "total": int(averaging["runs"]),
+            "rounds": int(averaging.get("rounds", averaging["runs"])),
+            **({"cached": True} if averaging.get("cached") and not averaging["runs"] else {}),
+            **({"not_made": averaging["why"]} if not averaging.get("made") else {})}
     by_fits = sum(s["total"] for s in [stages["baseline"], *stages["candidates"].values(),
-                                       *stages["chain"].values()] if not s.get("cached"))
+                                       *stages["chain"].values(), *stages["checks"].values()]
+                  if not s.get("cached"))
     left = [n for n, r in {**results, **chain_results}.items() if isinstance(r, LeftOut)]
     return {"total": budget.used, "counted_by_fits": by_fits, "budget": budget.limit,
             "budget_ended": bool(left), "left_out": left, "depth": run_depth(stages), **stages}
@@ -308,6 +328,7 @@ def run_depth(stages: dict) -> int:
         return 0 if r.get("cached") else int(r.get("rounds", 0))
 
     depth = max([rounds(stages["baseline"])] + [rounds(r) for r in stages["candidates"].values()])
+    depth += sum(rounds(r) for r in (stages.get("checks") or {}).values())     # after the fits, one after another
     steps: dict[int, int] = {}
     for n, r in stages["chain"].items():
         if n.endswith("(refit)"):
@@ -513,6 +534,10 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
                          chain_results, removed)
     final = steps[-1]["fit"] if steps else ext
     res_final = _structure(final, experiments, drive) if len(steps) > 1 else res_ext
+    averaging = averaging_check(fmu, drive, interface, base, final, steps, experiments, budget, cache_dir, key)
+    if progress:
+        for w in averaging["warnings"]:
+            print(f"warning: {w['message']}", flush=True)
     features = protocol_features(experiments)
     eff_names = [p.name for p in model_parameters(lead, drive, sc)][2:] if effect != "none" else []
     group = {m: {"params": dict(fits[m].params), "main_parameter": main_parameter(m, drive),
@@ -534,7 +559,7 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "ranking": ranking,
         "failed": {n: r for n, r in results.items() if isinstance(r, str)},
         "refitted": refitted,
-        "runs": run_count(results, chain_results, budget),
+        "runs": run_count(results, chain_results, budget, averaging),
         "indistinguishable": _with_cannot_tell_first(
             indistinguishable(effect, ties, ranking, features, fits, drive) + damping_look_alikes(base, members, effect),
             removed),
@@ -559,7 +584,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
                      if interface.attached else {})},
         "thresholds": _thresholds(thresholds),
         "units": units,
-        "warnings": [dict(w) for w in units["warnings"]],
+        "warnings": [dict(w) for w in units["warnings"]] + [dict(w) for w in averaging["warnings"]],
+        "averaging": {k: v for k, v in averaging.items() if k != "warnings"},
         "_fits": {"none": base, **fits, **({effect: ext} if len(members) > 1 else {}),
                   **({"+".join(s["effect"] for s in steps): final} if len(steps) > 1 else {})},
     }

@@ -15,6 +15,17 @@ def _row(stage: str, r: Mapping) -> list[str]:
     return [stage, str(r.get("fit", 0)), str(r.get("heldout", 0)), str(r.get("total", 0)), note]
 
 
+#: what each check after the fits is, as its row of the table names it
+CHECKS = {"averaging": ("check: block averaging", "the fitted models at every original sample of the averaged tests")}
+
+
+def _check_row(name: str, r: Mapping) -> list[str]:
+    label, what = CHECKS.get(name, (f"check: {name}", ""))
+    note = ("reused from an earlier diagnosis (not counted now)" if r.get("cached")
+            else f"not made: {r['not_made']}" if r.get("not_made") else what)
+    return [label, "", "", str(r.get("total", 0)), note]
+
+
 def runs_section(diag: Mapping) -> str:
     """## FMU runs: one row per fit (the baseline, each candidate, each candidate of the chain's steps)."""
     runs = diag.get("runs")
@@ -23,6 +34,7 @@ def runs_section(diag: Mapping) -> str:
     rows = [_row("baseline", runs["baseline"])]
     rows += [_row(f"`{n}`", r) for n, r in runs.get("candidates", {}).items()]
     rows += [_row(f"chain: `{n}`", r) for n, r in runs.get("chain", {}).items()]
+    rows += [_check_row(n, r) for n, r in (runs.get("checks") or {}).items()]
     head = ["fit", "runs of the fit", "runs of the held-out refits", "total", ""]
     table = "| " + " | ".join(head) + " |\n|" + "---|" * len(head) + "\n"
     table += "".join("| " + " | ".join(r) + " |\n" for r in rows)
