@@ -25,7 +25,7 @@ from fmusa.diagnose import motion as mo
 from fmusa.diagnose import residuals as rs
 from fmusa.diagnose.budget import LeftOut, RunBudget
 from fmusa.diagnose.calibrate import MIN_EXPERIMENTS_LEFT_OUT, Fit, unify_equivalent
-from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, DAMPING, STIFFNESS, DiagnoseError,
+from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, DAMPING, STIFFNESS, UNITS, DiagnoseError,
                                     data_scales, equivalent_by_construction, equivalent_parameters,
                                     main_parameter, model_parameters)
 from fmusa.diagnose.fitcache import data_key, run_fits
