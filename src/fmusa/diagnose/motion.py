@@ -1,15 +1,16 @@
 """Translation or rotation: the units and words of the interface a diagnosis fits.
 
 The interface element and the fits are unit-agnostic: ``s`` is a displacement or an angle, ``F`` a force or a
-torque, and the effect catalogue's parameters (``c_y``, ``gap``, ``fric_F``, …) are the same numbers either way.
+torque, and the effect catalogue's parameters (effects.UNITS, effects.ROTATION_UNITS) are the same numbers either
+way.
 What changes is what the user reads and writes: the units a measured column may be in, the SI unit each value
 is held in (m and N, or rad and N·m) and the units the report, the console and the figures show. This module
 holds those tables; every other module asks it by the motion's name (``translation``, the default, or
 ``rotation``).
 
     from fmusa.diagnose.motion import si_unit, natural_unit, channel_word
-    si_unit("c_y", "rotation")            # 'N·m/rad'
-    natural_unit("gap", "rotation")       # ('deg', 57.29...): the value in rad times the factor
+    si_unit(STIFFNESS, "rotation")        # 'N·m/rad' (STIFFNESS of fmusa.diagnose.effects)
+    natural_unit("rad", "rotation")       # ('deg', 57.29...): the value in rad times the factor
     channel_word("force", "rotation")     # 'torque'
 """
 from __future__ import annotations
@@ -20,7 +21,7 @@ import math
 from typing import Iterator, Mapping
 
 __all__ = ["MOTIONS", "TRANSLATION", "ROTATION", "ANGLE_UNITS", "TORQUE_UNITS", "ROTATION_RATE_UNITS",
-           "ROTATION_UNITS", "ROTATION_NATURAL", "motion_of", "si_unit", "natural_unit", "channel_word",
+           "ROTATION_NATURAL", "motion_of", "si_unit", "natural_unit", "channel_word",
            "channel_unit", "current", "use"]
 
 TRANSLATION, ROTATION = "translation", "rotation"
@@ -39,11 +40,6 @@ ROTATION_RATE_UNITS = {
     "force": {"N·m/s": 1.0, "N*m/s": 1.0, "Nm/s": 1.0, "N.m/s": 1.0},
 }
 
-#: The SI unit of each catalogue parameter of a rotational interface (translation: effects.UNITS).
-ROTATION_UNITS = {"c_y": "N·m/rad", "d_y": "N·m·s/rad", "gap": "rad", "nl_ratio": "1", "nl_y_b": "rad",
-                  "yield_ratio": "1", "yield_F": "N·m", "fric_F": "N·m", "fric_x": "rad", "ve_k": "N·m/rad",
-                  "ve_tau": "s", "F_offset": "N·m", "y_offset": "rad", "dmg_y0": "rad", "dmg_rate": "1/rad",
-                  "dmg_F_res": "N·m"}
 #: SI unit of a rotational value -> (the unit the report shows, factor SI -> shown): angles in degrees, torques
 #: and stiffnesses as SI (N·m, N·m/rad, N·m·s/rad: the units rotational stiffness is quoted in).
 ROTATION_NATURAL = {"rad": ("deg", 1.0 / _DEG), "rad/s": ("deg/s", 1.0 / _DEG), "1/rad": ("1/rad", 1.0),
@@ -85,7 +81,7 @@ def use(motion: str | Mapping | None) -> Iterator[str]:
 
 def si_unit(name: str, motion: str | None = None) -> str:
     """The SI unit of catalogue parameter ``name`` ('' when it has none)."""
-    from fmusa.diagnose.effects import UNITS
+    from fmusa.diagnose.effects import ROTATION_UNITS, UNITS
 
     table = ROTATION_UNITS if (motion or current()) == ROTATION else UNITS
     return table.get(name, "")
