@@ -85,7 +85,7 @@ def test_study_reads_deg_and_newton_metres(tmp_path, rotor):
     with pytest.raises(StudyError, match=r"'mm' is a translation unit.*allowed: rad, deg, mrad"):
         load_diagnosis_study(write_study(tmp_path, rotor, "backlash_gap",
                                          units="{time: s, displacement: mm, force: N·m}"))
-    with pytest.raises(StudyError, match=r"'N' is a force unit, but the interface is a rotation one; accepted "
+    with pytest.raises(StudyError, match=r"'N' is a force unit, but the interface is rotational; accepted "
                                          r"torque units: N·m"):
         load_diagnosis_study(write_study(tmp_path, rotor, "backlash_gap", motion=None,
                                          units="{time: s, displacement: deg, force: N}"))

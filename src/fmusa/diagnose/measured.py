@@ -120,6 +120,9 @@ def infer_motion(units: Mapping[str, str | None], rate: str | None = None) -> st
     return ROTATION if rot else TRANSLATION if tra else None
 
 
+_ADJ = {TRANSLATION: "translational", ROTATION: "rotational"}
+
+
 def _a(word: str) -> str:
     return ("an " if word[0] in "aeiou" else "a ") + word
 
@@ -132,7 +135,7 @@ def _unit_error(role: str, unit: str, where: str, motion: str = TRANSLATION) -> 
                                          else (_ROT_UNITS, _ROT_QUANTITY, ROTATION))
         if unit in other_units[role]:
             return MeasuredDataError(
-                f"{where}{role} unit: '{unit}' is {_a(other_q[role])} unit, but the interface is a {motion} one; accepted {quantity[role]} units: {accepted} "
+                f"{where}{role} unit: '{unit}' is {_a(other_q[role])} unit, but the interface is {_ADJ[motion]}; accepted {quantity[role]} units: {accepted} "
                 f"({OPTIONS[role + '_unit']}, ColumnSpec.{role}_unit), or declare the interface's motion as "
                 f"{other_m} (model: motion: {other_m} in the study file, ColumnSpec.motion)")
     other = [q for r, q in quantity.items() if r != role and unit in units[r]]
