@@ -40,9 +40,9 @@ from fmusa.errors import FmusaError
 __all__ = [
     "MeasuredDataError", "ColumnSpec", "Experiment", "load_experiment", "load_experiments",
     "downsample", "parse_rate", "DRIVES", "ROLES", "LENGTH_UNITS", "FORCE_UNITS", "TIME_UNITS",
-    "RATE_UNITS", "MIN_ROWS", "OPTIONS", "DELIMITERS", "DECIMALS", "sniff_dialect", "ANGLE_UNITS", "TORQUE_UNITS",
-    "ROTATION_RATE_UNITS", "unit_table", "infer_motion",
+    "RATE_UNITS", "MIN_ROWS", "OPTIONS", "DELIMITERS", "DECIMALS", "sniff_dialect",
 ]
+__all__ += ["ANGLE_UNITS", "TORQUE_UNITS", "ROTATION_RATE_UNITS", "unit_table", "infer_motion"]   # rotation
 
 #: What a test may impose.
 DRIVES = ("force", "displacement")
