@@ -15,7 +15,7 @@ import numpy as np
 
 from fmusa.errors import FmusaError
 
-__all__ = ["CANDIDATES", "STIFFNESS", "DAMPING", "BASELINE", "PARAM_MEANING", "EFFECT_MEANING", "SEPARATING_TESTS", "UNITS", "MAIN_PARAMETER", "DiagnoseError", "Param", "Scales",
+__all__ = ["CANDIDATES", "STIFFNESS", "DAMPING", "BASELINE", "PARAM_MEANING", "EFFECT_MEANING", "SEPARATING_TESTS", "UNITS", "ROTATION_UNITS", "MAIN_PARAMETER", "DiagnoseError", "Param", "Scales",
            "data_scales", "with_bounds", "constant_rate", "model_parameters", "main_parameter", "separating_test", "EQUIVALENT_BY_CONSTRUCTION",
            "equivalent_by_construction", "equivalent_parameters", "equivalent_intervals", "BASELINE_LOOK_ALIKES"]
 
@@ -203,6 +203,12 @@ EFFECT_MEANING = {
 UNITS = {"c_y": "N/m", "d_y": "N.s/m", "gap": "m", "nl_ratio": "1", "nl_y_b": "m", "yield_ratio": "1",
          "yield_F": "N", "fric_F": "N", "fric_x": "m", "ve_k": "N/m", "ve_tau": "s", "F_offset": "N", "y_offset": "m",
          "dmg_y0": "m", "dmg_rate": "1/m", "dmg_F_res": "N"}
+#: The same parameters' SI units when the interface is rotational (``model: motion: rotation``): an angle for a
+#: displacement, a torque for a force (:mod:`fmusa.diagnose.motion`).
+ROTATION_UNITS = {"c_y": "N·m/rad", "d_y": "N·m·s/rad", "gap": "rad", "nl_ratio": "1", "nl_y_b": "rad",
+                  "yield_ratio": "1", "yield_F": "N·m", "fric_F": "N·m", "fric_x": "rad", "ve_k": "N·m/rad",
+                  "ve_tau": "s", "F_offset": "N·m", "y_offset": "rad", "dmg_y0": "rad", "dmg_rate": "1/rad",
+                  "dmg_F_res": "N·m"}
 
 MAIN_PARAMETER = {"nonlinear_stiffness": "nl_ratio", "viscoelastic_relaxation": "ve_tau",
                   "coulomb_friction": "fric_F", "yield_softening": "yield_F", "backlash_gap": "gap",

@@ -22,7 +22,8 @@ import numpy as np  # noqa: E402
 
 from fmusa.diagnose import residuals as rs  # noqa: E402
 from fmusa.diagnose.views import (by_loading_direction, experiment_motion, extended_name, final_label, final_name, fit_predictions,  # noqa: E402
-                                  p_text, residual_series, response_channel)
+                                  p_text, residual_series, response_channel, channel_units)
+from fmusa.diagnose.motion import channel_word, motion_of
 from fmusa.format import fmt  # noqa: E402
 from fmusa.figure_check import MAX_HEIGHT_IN, MAX_WIDTH_IN  # noqa: E402
 from fmusa.files import save_figure  # noqa: E402
@@ -179,7 +180,7 @@ def fig_fit_time(diag: Mapping, experiments: Sequence, path: Path) -> Path:
         if vals_all and max(vals_all) / min(vals_all) > 30:
             ax.set_yscale("log")
         ax.grid(alpha=0.3, axis="y")
-    drive = diag["data"]["drive"]
+    drive = channel_word(diag["data"]["drive"], motion_of(diag))
     lines = _suptitle(fig, f"{resp.capitalize()} response to the imposed {drive}: data, baseline and "
                       f"{'final model (' + final_label(diag) + ')' if extended_name(diag) != 'none' else 'no extension (effect: none)'}")
     _top_legend(fig, axes[0] if axes else None, len(models) + 1, lines)
@@ -189,29 +190,31 @@ def fig_fit_time(diag: Mapping, experiments: Sequence, path: Path) -> Path:
 def fig_loops(diag: Mapping, experiments: Sequence, path: Path) -> Path:
     """Force–displacement loops per experiment: data points, baseline, extended (mm, N)."""
     drive = diag["data"]["drive"]
+    (yu, yf), (fu, ff) = (channel_units(diag)[r] for r in ("displacement", "force"))
+    yw, fw = (channel_word(r, motion_of(diag)) for r in ("displacement", "force"))
     models = _models(diag, experiments)
     shown = _shown(experiments)
     fig, axes = _grid(len(shown), height=3.2)
     for ax, i in zip(axes, shown):
         e = experiments[i]
-        y = np.asarray(e.displacement, float) * 1e3
-        F = np.asarray(e.force, float)
+        y = np.asarray(e.displacement, float) * yf
+        F = np.asarray(e.force, float) * ff
         ms = 2.5 if len(y) > 400 else 3.5
         ax.plot(y, F, ".", color=DATA_COLOR, ms=ms, alpha=0.55, label="measured", zorder=4)
         for key, label, color, preds in models:
             ls = "--" if key == "none" else "-"
             if drive == "displacement":
-                xm, ym = y, preds[i]
+                xm, ym = y, preds[i] * ff
             else:
-                xm, ym = preds[i] * 1e3, F
+                xm, ym = preds[i] * yf, F
             ax.plot(xm, ym, ls, color=color, lw=1.5, label=label, zorder=3 if key != "none" else 2)
         ax.set_title(_short(e.name), fontsize=9.5)
-        ax.set_xlabel("displacement [mm]")
-        ax.set_ylabel("force [N]")
+        ax.set_xlabel(f"{yw} [{yu}]")
+        ax.set_ylabel(f"{fw} [{fu}]")
         ax.axhline(0, color="0.7", lw=0.6, zorder=0)
         ax.axvline(0, color="0.7", lw=0.6, zorder=0)
         ax.grid(alpha=0.3)
-    lines = _suptitle(fig, f"Force–displacement loops ({drive} imposed)")
+    lines = _suptitle(fig, f"{fw.capitalize()}–{yw} loops ({channel_word(drive, motion_of(diag))} imposed)")
     _top_legend(fig, axes[0] if axes else None, len(models) + 1, lines,
                 bottom=0.4 if len(experiments) > len(shown) else 0.0)
     _not_shown_note(fig, experiments, shown)
@@ -288,13 +291,13 @@ def fig_residuals(diag: Mapping, experiments: Sequence, path: Path) -> Path:
     data = [d for d in data if d[3] is not None]
     motion = experiment_motion(diag, experiments)
     t = np.concatenate([np.asarray(e.t, float) for e in experiments])
-    y_mm = np.concatenate([m[0] for m in motion]) * 1e3
-    v_mm = np.concatenate([m[1] for m in motion]) * 1e3
-    peaks = [float(np.max(np.abs(m[1]))) * 1e3 for m in motion]
-    vlabel = "velocity [mm/s]" if diag["data"]["drive"] == "displacement" else \
-        "measured velocity [mm/s] (smoothed)"
-    ylabel_disp = "displacement [mm]" if diag["data"]["drive"] == "displacement" else \
-        "measured displacement [mm]"
+    cu, mot = channel_units(diag), motion_of(diag)
+    y_mm = np.concatenate([m[0] for m in motion]) * cu["displacement"][1]
+    v_mm = np.concatenate([m[1] for m in motion]) * cu["velocity"][1]
+    peaks = [float(np.max(np.abs(m[1]))) * cu["velocity"][1] for m in motion]
+    vw, yw = (f"{channel_word(r, mot)} [{cu[r][0]}]" for r in ("velocity", "displacement"))
+    vlabel = vw if diag["data"]["drive"] == "displacement" else f"measured {vw} (smoothed)"
+    ylabel_disp = yw if diag["data"]["drive"] == "displacement" else f"measured {yw}"
     nblock = max(len(data), 1)       # one 2 × 2 block of panels per model: time, displacement / velocity, direction
     fig, axes = plt.subplots(2 * nblock, 2, figsize=(PAGE_W, min(2 * nblock * 2.45 + 0.9, PAGE_H)), squeeze=False)
     if not data:

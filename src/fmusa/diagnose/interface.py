@@ -77,6 +77,10 @@ class ModelInterface:
     attached: AttachedElement | None = None
     #: what the description is called in messages (the FMU's model name or the study's)
     name: str = "model"
+    #: None (translation: displacement and force, m and N) or ``rotation`` (an angle and a torque, rad and N·m):
+    #: the units the report, the console and the figures write (:mod:`fmusa.diagnose.motion`); not in the repr,
+    #: which keys the fit cache: the fits are the same numbers either way
+    motion: str | None = field(default=None, repr=False)
 
     def drives(self) -> tuple[str, ...]:
         """The drives this model can impose: those with an input for the drive and an output for the response."""

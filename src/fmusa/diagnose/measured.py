@@ -29,11 +29,12 @@ import math
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
 
+from fmusa.diagnose.motion import ANGLE_UNITS, MOTIONS, ROTATION, ROTATION_RATE_UNITS, TORQUE_UNITS, TRANSLATION
 from fmusa.errors import FmusaError
 
 __all__ = [
@@ -41,6 +42,7 @@ __all__ = [
     "downsample", "parse_rate", "DRIVES", "ROLES", "LENGTH_UNITS", "FORCE_UNITS", "TIME_UNITS",
     "RATE_UNITS", "MIN_ROWS", "OPTIONS", "DELIMITERS", "DECIMALS", "sniff_dialect", "Blocks",
 ]
+__all__ += ["ANGLE_UNITS", "TORQUE_UNITS", "ROTATION_RATE_UNITS", "unit_table", "infer_motion"]   # rotation
 
 #: What a test may impose.
 DRIVES = ("force", "displacement")
@@ -61,6 +63,10 @@ RATE_UNITS = {
 }
 _UNITS = {"time": TIME_UNITS, "displacement": LENGTH_UNITS, "force": FORCE_UNITS}
 _QUANTITY = {"time": "time", "displacement": "length", "force": "force"}
+#: A rotational interface (``model: motion: rotation``): the displacement channel is an angle (SI rad), the force
+#: channel a torque (SI N·m); the code's role names stay displacement and force.
+_ROT_UNITS = {"time": TIME_UNITS, "displacement": ANGLE_UNITS, "force": TORQUE_UNITS}
+_ROT_QUANTITY = {"time": "time", "displacement": "angle", "force": "torque"}
 _SI = {"time": "s", "displacement": "m", "force": "N"}
 
 #: The ``fmusa diagnose`` options that set each ColumnSpec field; error messages name them.
@@ -86,40 +92,86 @@ class MeasuredDataError(FmusaError, ValueError):
 
 
 # ============================================================================ units
-def _unit_error(role: str, unit: str, where: str) -> MeasuredDataError:
-    accepted = ", ".join(_UNITS[role])
-    other = [q for r, q in _QUANTITY.items() if r != role and unit in _UNITS[r]]
+def unit_table(role: str, motion: str = TRANSLATION) -> Mapping[str, float]:
+    """Unit -> factor to SI of channel ``role`` (time, displacement, force) of a ``motion`` interface."""
+    return (_ROT_UNITS if motion == ROTATION else _UNITS)[role]
+
+
+def infer_motion(units: Mapping[str, str | None], rate: str | None = None) -> str | None:
+    """``rotation`` when a declared unit (displacement or force, or the rate's) is rotational only, ``translation``
+    when one is translational only, None when the units say nothing (SI defaults); a mix raises."""
+    rot, tra = [], []
+    for role in ("displacement", "force"):
+        u = (units.get(role) or "").strip()
+        if u in _ROT_UNITS[role] and u not in _UNITS[role]:
+            rot.append(f"{role} in {u}")
+        elif u in _UNITS[role] and u not in _ROT_UNITS[role] and u not in ("m", "N"):
+            tra.append(f"{role} in {u}")
+    m = _RATE.match(str(rate)) if rate else None
+    if m:
+        if any(m.group(2) in t for t in ROTATION_RATE_UNITS.values()):
+            rot.append(f"rate {rate}")
+        elif any(m.group(2) in t for t in RATE_UNITS.values()):
+            tra.append(f"rate {rate}")
+    if rot and tra:
+        raise MeasuredDataError(f"ColumnSpec: {', '.join(rot)} are rotational and {', '.join(tra)} translational "
+                                f"units; an interface is one or the other: give angle (rad, deg, mrad) and torque "
+                                f"(N·m, N·mm, kN·m) units, or length and force units")
+    return ROTATION if rot else TRANSLATION if tra else None
+
+
+_ADJ = {TRANSLATION: "translational", ROTATION: "rotational"}
+
+
+def _a(word: str) -> str:
+    return ("an " if word[0] in "aeiou" else "a ") + word
+
+
+def _unit_error(role: str, unit: str, where: str, motion: str = TRANSLATION) -> MeasuredDataError:
+    units, quantity = (_ROT_UNITS, _ROT_QUANTITY) if motion == ROTATION else (_UNITS, _QUANTITY)
+    accepted = ", ".join(units[role])
+    if role != "time":
+        other_units, other_q, other_m = ((_UNITS, _QUANTITY, TRANSLATION) if motion == ROTATION
+                                         else (_ROT_UNITS, _ROT_QUANTITY, ROTATION))
+        if unit in other_units[role]:
+            return MeasuredDataError(
+                f"{where}{role} unit: '{unit}' is {_a(other_q[role])} unit, but the interface is {_ADJ[motion]}; accepted {quantity[role]} units: {accepted} "
+                f"({OPTIONS[role + '_unit']}, ColumnSpec.{role}_unit), or declare the interface's motion as "
+                f"{other_m} (model: motion: {other_m} in the study file, ColumnSpec.motion)")
+    other = [q for r, q in quantity.items() if r != role and unit in units[r]]
     if any(unit in table for table in RATE_UNITS.values()):
         other.append("rate")
-    what = (f"'{unit}' is a {other[0]} unit, not a {_QUANTITY[role]} unit" if other
+    what = (f"'{unit}' is {_a(other[0])} unit, not {_a(quantity[role])} unit" if other
             else f"unknown unit '{unit}'")
     return MeasuredDataError(
-        f"{where}{role} unit: {what}; accepted {_QUANTITY[role]} units: {accepted} "
+        f"{where}{role} unit: {what}; accepted {quantity[role]} units: {accepted} "
         f"({OPTIONS[role + '_unit']}, ColumnSpec.{role}_unit)")
 
 
-def _scale(role: str, unit: str, where: str = "") -> float:
+def _scale(role: str, unit: str, where: str = "", motion: str = TRANSLATION) -> float:
     """SI factor of ``unit`` for channel ``role``; rejects unknown and wrong-dimension units."""
     try:
-        return _UNITS[role][unit.strip()]
+        return unit_table(role, motion)[unit.strip()]
     except (KeyError, AttributeError):
-        raise _unit_error(role, str(unit), where) from None
+        raise _unit_error(role, str(unit), where, motion) from None
 
 
 _RATE = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(\S+)\s*$")
 
 
-def parse_rate(text: str) -> tuple[float, str, str]:
-    """``"10 mm/s"`` -> ``(0.01, "mm/s", "displacement")``: the rate in SI (m/s or N/s), its unit
-    and the drive it belongs to. Raises :class:`MeasuredDataError` naming the accepted units."""
-    accepted = "; ".join(f"{d}: {', '.join(u)}" for d, u in RATE_UNITS.items())
+def parse_rate(text: str, motion: str = TRANSLATION) -> tuple[float, str, str]:
+    """``"10 mm/s"`` -> ``(0.01, "mm/s", "displacement")``: the rate in SI (m/s or N/s; rad/s or N·m/s for a
+    ``rotation`` interface), its unit and the drive it belongs to. Raises :class:`MeasuredDataError` naming the
+    accepted units."""
+    tables = ROTATION_RATE_UNITS if motion == ROTATION else RATE_UNITS
+    accepted = "; ".join(f"{d}: {', '.join(u)}" for d, u in tables.items())
     m = _RATE.match(str(text))
     if not m:
         raise MeasuredDataError(
             f"rate '{text}': expected a number and a unit, e.g. '10 mm/s' ({OPTIONS['rate']}, "
             f"ColumnSpec.rate); accepted units: {accepted}")
     value, unit = float(m.group(1)), m.group(2)
-    for drive, table in RATE_UNITS.items():
+    for drive, table in tables.items():
         if unit in table:
             if not (value > 0 and math.isfinite(value)):
                 raise MeasuredDataError(
@@ -158,8 +210,20 @@ class ColumnSpec:
     delimiter: str | None = None
     #: the decimal mark, "." or ","; None: detected from the file
     decimal: str | None = None
+    #: ``translation`` (lengths and forces) or ``rotation`` (angles and torques: rad, deg, mrad; N·m, N·mm, kN·m);
+    #: None: as the units say (translation when they say nothing)
+    motion: str | None = None
 
     def __post_init__(self) -> None:
+        if self.motion is not None and self.motion not in MOTIONS:
+            raise MeasuredDataError(f"ColumnSpec: motion {self.motion!r} is not one of {', '.join(MOTIONS)}")
+        if self.motion is None:
+            found = infer_motion({r: getattr(self, r + "_unit") for r in ("displacement", "force")}, self.rate)
+            object.__setattr__(self, "motion", found or TRANSLATION)
+        if self.motion == ROTATION:   # the default units are the SI ones of the motion: rad and N·m
+            for role, si in (("displacement", "rad"), ("force", "N·m")):
+                if getattr(self, role + "_unit") == _SI[role]:
+                    object.__setattr__(self, role + "_unit", si)
         if self.delimiter is not None and self.delimiter not in DELIMITERS:
             raise MeasuredDataError(f"ColumnSpec: delimiter {self.delimiter!r} is not one of "
                                     f"{', '.join(map(repr, DELIMITERS))} ({OPTIONS['delimiter']}, "
@@ -171,7 +235,7 @@ class ColumnSpec:
             raise MeasuredDataError(f"ColumnSpec: the delimiter and the decimal mark are both "
                                     f"{self.delimiter!r}; a file with decimal commas separates fields with ';'")
         for role in ROLES:
-            _scale(role, getattr(self, role + "_unit"), "ColumnSpec: ")
+            _scale(role, getattr(self, role + "_unit"), "ColumnSpec: ", self.motion)
             name = getattr(self, role)
             if not isinstance(name, str) or not name.strip():
                 raise MeasuredDataError(
@@ -183,7 +247,7 @@ class ColumnSpec:
                 f"ColumnSpec: time, displacement and force columns must differ, got "
                 f"{self.time!r}, {self.displacement!r}, {self.force!r}")
         if self.rate is not None:
-            parse_rate(self.rate)
+            parse_rate(self.rate, self.motion)
 
     def column(self, role: str) -> str:
         """The header name of channel ``role``."""
@@ -195,12 +259,12 @@ class ColumnSpec:
 
     def scale(self, role: str) -> float:
         """Factor from the file's unit of ``role`` to SI."""
-        return _scale(role, self.unit(role))
+        return _scale(role, self.unit(role), motion=self.motion)
 
     @property
     def rate_si(self) -> tuple[float, str, str] | None:
         """:func:`parse_rate` of ``rate``, or None."""
-        return None if self.rate is None else parse_rate(self.rate)
+        return None if self.rate is None else parse_rate(self.rate, self.motion)
 
 
 def _frozen(a) -> np.ndarray:
@@ -434,7 +498,7 @@ def _derive_time(path: Path, spec: ColumnSpec, drive: str, x: np.ndarray,
     """Time from a constant drive rate and uniform sampling: Δt = |LS slope per sample| / rate."""
     rate, unit, rate_drive = spec.rate_si
     if rate_drive != drive:
-        units = ", ".join(RATE_UNITS[drive])
+        units = ", ".join((ROTATION_RATE_UNITS if spec.motion == ROTATION else RATE_UNITS)[drive])
         raise MeasuredDataError(
             f"{path}: rate '{spec.rate}' is a {rate_drive} rate but the drive is {drive}; give a "
             f"{drive} rate ({units}) with {OPTIONS['rate']}, or check --drive")
@@ -531,6 +595,8 @@ def load_experiment(path, drive: str, spec: ColumnSpec = ColumnSpec(), zero_driv
         "downsampled_from": None, "block": None,
         "delimiter": delimiter, "decimal": decimal, "detected": detected,
     }
+    if spec.motion == ROTATION:   # angle in rad, torque in N·m (translation's meta stays as it was)
+        meta["motion"] = ROTATION
     return Experiment(name=_text_name(path.stem), path=path, drive=drive, t=t - time_shift,
                       displacement=si["displacement"], force=si["force"], meta=meta)
 

@@ -12,10 +12,13 @@ Nothing here runs the FMU: the checks read the fitted parameters and the measure
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
+
+from fmusa.diagnose import motion as mo
 
 __all__ = ["Support", "support_of", "implausible", "unidentifiable", "IDENTIFYING_FEATURES",
            "MIN_SAMPLES_PER_TAU"]
@@ -46,11 +49,15 @@ def support_of(experiments: Sequence) -> Support:
 
 
 def _mm(x: float) -> str:
+    """A displacement as the messages write it (an angle in deg for a rotational interface)."""
+    if mo.current() == mo.ROTATION:
+        return f"{x * 180.0 / math.pi:.3g} deg"
     return f"{x * 1e3:.3g} mm"
 
 
 def _n(x: float) -> str:
-    return f"{x:.3g} N"
+    """A force as the messages write it (a torque in N·m for a rotational interface)."""
+    return f"{x:.3g} N·m" if mo.current() == mo.ROTATION else f"{x:.3g} N"
 
 
 def _s(x: float) -> str:

@@ -6,7 +6,8 @@ Every number is read from the dict or computed from the predictions it holds; no
 
 Units are the ones a reader of a mechanical test expects: displacement in mm, force in N, time in s,
 stiffness in N/mm, damping in N·s/mm. Residuals are model − measured, in the response channel: N when the
-test imposed the displacement, mm when it imposed the force.
+test imposed the displacement, mm when it imposed the force. A rotational interface (``data.motion``) reads
+angle in deg, torque in N·m, stiffness in N·m/rad, damping in N·m·s/rad (:mod:`fmusa.diagnose.motion`).
 
     from fmusa.diagnose.run import diagnose
     from fmusa.diagnose.figures import write_figures
@@ -26,7 +27,8 @@ from fmusa.diagnose.effects import BASELINE, EFFECT_MEANING, PARAM_MEANING, STIF
 from fmusa.diagnose.runs_report import budget_notice, runs_section
 from fmusa.diagnose.views import (by_loading_direction, delta_text, experiment_motion, final_label, final_name,
                                   final_residuals, natural, p_text, ratio_text, residual_series, response_channel,
-                                  structure_text)
+                                  structure_text, channel_units)
+from fmusa.diagnose import motion as mo
 from fmusa.format import fmt, md_code, md_text
 from fmusa.files import atomic_write
 
@@ -80,6 +82,7 @@ def _summary_params(summary: Mapping) -> tuple[dict, dict]:
 def _data_section(diag: Mapping, experiments: Sequence) -> str:
     data = diag["data"]
     resp, unit, f = response_channel(diag)
+    cu = channel_units(diag)
     rows = []
     for e, de in zip(experiments, data.get("experiments") or [{}] * len(experiments)):
         t = np.asarray(e.t, float)
@@ -92,14 +95,20 @@ def _data_section(diag: Mapping, experiments: Sequence) -> str:
                    if meta.get("delimiter") else "")
         rows.append([md_text(e.name), md_code(e.path) + (f" (columns {cols}{dialect})" if cols else ""), pts,
                      fmt(e.duration, 4),
-                     fmt(float(np.max(np.abs(e.displacement))) * 1e3), fmt(float(np.max(np.abs(e.force)))),
-                     fmt(float(np.max(np.abs(v))) * 1e3)])
+                     fmt(float(np.max(np.abs(e.displacement))) * cu["displacement"][1]),
+                     fmt(float(np.max(np.abs(e.force))) * cu["force"][1]),
+                     fmt(float(np.max(np.abs(v))) * cu["velocity"][1])])
     out = "## Data\n\n"
     out += (f"{len(experiments)} experiment{'s, fitted jointly' if len(experiments) != 1 else ''}; "
-            f"the test imposed the **{data['drive']}**, the model is driven by it and predicts the "
-            f"**{data['response']}** ({unit}). {data['points']} points in all.\n\n")
-    out += _table(["experiment", "file", "points", "duration [s]", "peak |displacement| [mm]",
-                   "peak |force| [N]", "peak |velocity| [mm/s]"], rows) + "\n\n"
+            f"the test imposed the **{mo.channel_word(data['drive'])}**, the model is driven by it and predicts the "
+            f"**{mo.channel_word(data['response'])}** ({unit}). {data['points']} points in all.\n\n")
+    if mo.current() == mo.ROTATION:
+        out += ("The interface is rotational: the angle is stored in rad and the torque in N·m (diagnosis.json), "
+                "shown here in deg and N·m; stiffnesses in N·m/rad, dampings in N·m·s/rad.\n\n")
+    out += _table(["experiment", "file", "points", "duration [s]",
+                   f"peak |{mo.channel_word('displacement')}| [{cu['displacement'][0]}]",
+                   f"peak |{mo.channel_word('force')}| [{cu['force'][0]}]",
+                   f"peak |{mo.channel_word('velocity')}| [{cu['velocity'][0]}]"], rows) + "\n\n"
     out += (f"Held-out error: {data.get('heldout', '–')}. Each fold is left out, the model is refitted on the "
             f"rest, and the refit predicts the left-out points; the held-out RMSE pools the squared errors "
             f"of all folds.\n")
@@ -573,6 +582,17 @@ def _fit_checks_section(diag: Mapping) -> str:
     return "## Fit checks\n\n" + "\n".join(lines) + "\n" if lines else ""
 
 
+def _caption(name: str) -> str:
+    """A figure's caption, in the words of a rotational interface when it is one."""
+    text = CAPTIONS.get(name, "")
+    if mo.current() != mo.ROTATION:
+        return text
+    for a, b in (("Force against displacement", "Torque against angle"), ("displacement", "angle"),
+                 ("velocity", "angular velocity"), ("force", "torque")):
+        text = text.replace(a, b)
+    return text
+
+
 def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) -> Path:
     """``out_dir/report.md``: the data, the named effect and why, parameters with intervals, the ranking, the
     residual diagnosis before and after, look-alike candidates, caveats and the figures."""
@@ -583,8 +603,15 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
     title = " + ".join(f"`{e}`" for e in ((diag.get("final") or {}).get("effects") or [eff]))
     if len((diag.get("final") or {}).get("effects") or []) == 1:
         title = f"`{eff}`"
+    with mo.use(diag):
+        return _write_report(diag, experiments, out_dir, figures, title)
+
+
+def _write_report(diag: dict, experiments, out_dir: Path, figures: list[Path], title: str) -> Path:
+    eff = diag["effect"]
     parts = [f"# Diagnosis: {title}\n\n"
-             f"The measured {diag['data']['response']} under imposed {diag['data']['drive']} against the "
+             f"The measured {mo.channel_word(diag['data']['response'])} under imposed "
+             f"{mo.channel_word(diag['data']['drive'])} against the "
              f"baseline spring–damper (eq. 1: stiffness c, damping d) and against the baseline plus each "
              f"candidate effect ({len(diag.get('ranking') or [])} candidates); the effect is named only when "
              f"its gain is significant.\n",
@@ -600,7 +627,7 @@ def write_report(diag: dict, experiments, out_dir: Path, figures: list[Path]) ->
                 rel = p.relative_to(out_dir)
             except ValueError:
                 rel = Path("figures") / p.name
-            fig_txt += f"![{p.name}]({rel.as_posix()})\n\n*{p.name}*: {CAPTIONS.get(p.name, '')}\n\n"
+            fig_txt += f"![{p.name}]({rel.as_posix()})\n\n*{p.name}*: {_caption(p.name)}\n\n"
         parts.append(fig_txt)
     parts.append("## Files\n\n- `diagnosis.json`: every number of this report\n- `figures/`: the figures above\n")
     path = out_dir / "report.md"

@@ -11,6 +11,8 @@ folder as diagnosis.json, figures and report.md.
 """
 from __future__ import annotations
 
+import functools
+import inspect
 import json
 import math
 import os
@@ -19,6 +21,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fmusa.diagnose import motion as mo
 from fmusa.diagnose import residuals as rs
 from fmusa.diagnose.budget import LeftOut, RunBudget
 from fmusa.diagnose.calibrate import AGREE_DBIC, MIN_EXPERIMENTS_LEFT_OUT, Fit, unify_equivalent
@@ -56,6 +59,8 @@ def _structure(fit: Fit, experiments: Sequence, drive: str) -> dict:
     t_all = np.concatenate([e.t for e in experiments])
     r = np.concatenate([pr - e.response_signal for pr, e in zip(fit.predictions, experiments)])
     meas = np.concatenate([np.asarray(e.response_signal, float) for e in experiments])
+    if mo.current() == mo.ROTATION:   # a rotational interface: along the angle in deg or the torque in N·m
+        return _structure_rotation(fit, experiments, drive, t_all, r, meas, segments)
     # where a misfit is: along the drive channel, in mm or N
     if drive == "displacement":
         x, x_unit, x_name, resp = np.concatenate([e.displacement for e in experiments]) * 1e3, "mm", \
@@ -78,14 +83,32 @@ def _structure(fit: Fit, experiments: Sequence, drive: str) -> dict:
     return st
 
 
+def _structure_rotation(fit: Fit, experiments: Sequence, drive: str, t_all, r, meas, segments) -> dict:
+    """:func:`_structure` of a rotational interface: the drive axis and the response in deg and N·m."""
+    resp = "force" if drive == "displacement" else "displacement"
+    (xu, xf), (unit, f) = (mo.ROTATION_NATURAL[mo.channel_unit(c, mo.ROTATION)] for c in (drive, resp))
+    x = np.concatenate([np.asarray(getattr(e, drive), float) for e in experiments]) * xf
+    derived = all(e.meta.get("time_derived") and e.meta.get("rate_si") for e in experiments)
+    if derived:
+        t_all = np.concatenate([(np.asarray(e.t, float) - e.t[0]) * float(e.meta["rate_si"]) * xf
+                                for e in experiments])
+    st = rs.residual_structure(t_all, r, segments=segments, unit=mo.channel_unit(resp, mo.ROTATION), x=x,
+                               x_unit=xu, x_name=mo.channel_word(drive, mo.ROTATION), measured=meas,
+                               response=mo.channel_word(resp, mo.ROTATION))
+    st["axis"] = ({"name": mo.channel_word(drive, mo.ROTATION), "unit": xu, "derived_time": True} if derived else
+                  {"name": "time", "unit": "s", "derived_time": False})
+    st["description"] = structure_text(st, unit, f)
+    return st
+
+
 def _fit_summary(f: Fit) -> dict:
     """A fit as diagnosis.json states it (no predictions)."""
     out = {"params": dict(f.params), "ci95": {k: list(v) for k, v in f.ci95.items()},
-           "units": {k: UNITS.get(k, "") for k in f.params}, "rmse": f.rmse, "heldout_rmse": f.heldout_rmse,
+           "units": {k: mo.si_unit(k) for k in f.params}, "rmse": f.rmse, "heldout_rmse": f.heldout_rmse,
            "aic": f.aic, "bic": f.bic, "k": f.k, "n": f.n}
     if f.mapped_from:
         out.update(mapped_from=f.mapped_from, own=f.own)
-    out["at_bounds"] = [dict(b, unit=UNITS.get(b["name"], "")) for b in f.at_bounds]
+    out["at_bounds"] = [dict(b, unit=mo.si_unit(b["name"])) for b in f.at_bounds]
     out["held"] = dict(f.held)
     out["intervals"] = {k: ({n: list(v) for n, v in x.items()} if k == "gauss_newton" else x)
                         for k, x in f.intervals.items()}
@@ -440,8 +463,11 @@ def response_range(experiments: Sequence) -> float:
 
 
 def _data_summary(experiments: Sequence, drive: str) -> dict:
-    """What was fitted: drive, response, experiments and how the held-out folds were cut."""
-    return {"drive": drive, "response": "force" if drive == "displacement" else "displacement",
+    """What was fitted: drive, response, experiments and how the held-out folds were cut (and, of a rotational
+    interface, its motion and the SI units of its channels)."""
+    rot = ({"motion": mo.ROTATION, "units": {r: mo.channel_unit(r, mo.ROTATION) for r in ("displacement", "force")}}
+           if mo.current() == mo.ROTATION else {})
+    return {**rot, "drive": drive, "response": "force" if drive == "displacement" else "displacement",
             "experiments": [{"name": e.name, "points": len(e.t), "duration_s": float(e.t[-1] - e.t[0])}
                             for e in experiments],
             "points": int(sum(len(e.t) for e in experiments)),
@@ -464,6 +490,24 @@ def _thresholds(th: Thresholds) -> dict:
             "effect_range": th.effect_range, "effect_points": th.effect_points}
 
 
+def _in_motion(fn):
+    """``fn`` (:func:`diagnose`) run with the motion of its interface, else of its experiments, as the current one
+    (:func:`fmusa.diagnose.motion.use`): the units its results state."""
+    sig = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kw):
+        a = sig.bind_partial(*args, **kw).arguments
+        iface, exps = a.get("interface"), a.get("experiments") or ()
+        motion = getattr(iface, "motion", None) or next(
+            (e.meta.get("motion") for e in exps if isinstance(getattr(e, "meta", None), dict)
+             and e.meta.get("motion")), None)
+        with mo.use(motion):
+            return fn(*args, **kw)
+    return wrapper
+
+
+@_in_motion
 def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | None = None,
              candidates: Sequence[str] | None = None, workers: int | None = None,
              max_starts: int = 6, thresholds: Thresholds = Thresholds(), progress: bool = False,
@@ -550,7 +594,7 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "group": group,
         "lead": lead if effect != "none" else None,
         "main_parameter": main_parameter(lead, drive) if effect != "none" else None,
-        "effect_params": {n: {"value": ext.params[n], "ci95": list(ext.ci95[n]), "unit": UNITS.get(n, "")}
+        "effect_params": {n: {"value": ext.params[n], "ci95": list(ext.ci95[n]), "unit": mo.si_unit(n)}
                           for n in eff_names},
         "baseline": _fit_summary(base),
         "straight_line": line,
@@ -569,8 +613,8 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
         "chain": [{k: v for k, v in s.items() if k != "fit"} for s in steps],
         "chain_removed": removed,
         "final": {"effects": [s["effect"] for s in steps], "model": steps[-1]["model"] if steps else None,
-                  "at_bounds": [dict(b, unit=UNITS.get(b["name"], "")) for b in final.at_bounds],
-                  "params": {n: {"value": v, "ci95": list(final.ci95.get(n, (v, v))), "unit": UNITS.get(n, "")}
+                  "at_bounds": [dict(b, unit=mo.si_unit(b["name"])) for b in final.at_bounds],
+                  "params": {n: {"value": v, "ci95": list(final.ci95.get(n, (v, v))), "unit": mo.si_unit(n)}
                              for n, v in final.params.items()},
                   "intervals": {k: v for k, v in final.intervals.items() if k != "gauss_newton"},
                   "gauss_newton": {n: list(v) for n, v in (final.intervals.get("gauss_newton") or {}).items()},

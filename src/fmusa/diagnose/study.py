@@ -23,7 +23,9 @@ from yaml.nodes import MappingNode, Node, ScalarNode
 
 from fmusa.diagnose.effects import CANDIDATES, DAMPING, STIFFNESS, Scales, model_parameters
 from fmusa.diagnose.interface import DRIVES, WHERE, AttachedElement, ModelInterface
-from fmusa.diagnose.measured import FORCE_UNITS, LENGTH_UNITS, ColumnSpec, MeasuredDataError, TIME_UNITS
+from fmusa.diagnose.measured import (FORCE_UNITS, LENGTH_UNITS, ColumnSpec, MeasuredDataError, TIME_UNITS,
+                                     unit_table)
+from fmusa.diagnose.motion import ANGLE_UNITS, MOTIONS, ROTATION, TORQUE_UNITS, TRANSLATION
 from fmusa.study.loader import YamlMap, YamlParser, compose_yaml, read_study_text
 from fmusa.study.schema import StudyError
 
@@ -38,6 +40,8 @@ BASELINE_ROLES = {"stiffness": STIFFNESS, "damping": DAMPING}
 ELEMENT_BASELINE = {"stiffness": "c", "damping": "d"}
 TOP_KEYS = ("name", "description", "fmu", "model", "baseline", "effects", "tests", "diagnosis")
 _UNITS = {"displacement": LENGTH_UNITS, "force": FORCE_UNITS}
+#: the units a study may give a channel whose motion is not declared: translation's, then rotation's
+_ANY_UNITS = {"displacement": {**LENGTH_UNITS, **ANGLE_UNITS}, "force": {**FORCE_UNITS, **TORQUE_UNITS}}
 
 
 #: The built-in model descriptions (:mod:`fmusa.diagnose.models`): ``<modelName>.yaml``.
@@ -80,11 +84,13 @@ class ModelSection:
     :param fixed: FMU parameters set in every run, e.g. ``{mass.m: 0.5}``.
     :param tolerance_parameter: an FMU parameter that receives the solver's relative tolerance (the FMU's own solver), or null.
     :param scale: FMU parameters whose start values give the model's scale for the units check: ``stiffness`` [N/m], ``length`` [m], ``resolution`` [m], ``force`` [N].
+    :param motion: ``translation`` (displacement and force) or ``rotation`` (the interface's displacement is an angle, its force a torque: units rad, deg, mrad and N·m, N·mm, kN·m, SI rad and N·m); default: as the units of ``tests`` say, else translation.
     """
     drives: Mapping[str, DriveSection]
     fixed: Mapping[str, object] = field(default_factory=dict)
     tolerance_parameter: str | None = None
     scale: Mapping[str, str] = field(default_factory=dict)
+    motion: str | None = None
 
 
 @dataclass(frozen=True)
@@ -130,8 +136,8 @@ class TestsSection:
     :param drive: the channel the tests imposed (``displacement`` or ``force``); the model is driven by it and predicts the other.
     :param files: the CSV files (relative paths start at the study file's directory); an item ``{file: a.csv, rate: 10 mm/s}`` gives a file its own drive rate.
     :param columns: the header names of the channels: ``{time: t, displacement: disp, force: Fx}`` (default time, displacement, force).
-    :param units: the units of the channels: ``{time: s, displacement: mm, force: N}`` (default s, m, N).
-    :param rate: the constant drive rate (``10 mm/s``) for files without a time column, else null.
+    :param units: the units of the channels: ``{time: s, displacement: mm, force: N}`` (default s, m, N); of a rotational interface ``{displacement: deg, force: N·m}`` (angle: rad, deg, mrad; torque: N·m, N*m, Nm, N·mm, kN·m; default rad, N·m).
+    :param rate: the constant drive rate (``10 mm/s``; rotational ``5 deg/s`` or ``2 N·m/s``) for files without a time column, else null.
     :param flip: channels whose sign is flipped: a list of ``displacement``, ``force``.
     :param zero_drive: shift the drive to start at 0, where the model is at rest.
     :param max_points: block-average each test to at most this many samples for the fit.
@@ -234,17 +240,33 @@ def _values(p: YamlParser, node: Node | None, key: str, where: str) -> dict[str,
     return out
 
 
-def _unit(p: YamlParser, m: YamlMap, key: str, table: Mapping[str, float]) -> str:
+def _unit(p: YamlParser, m: YamlMap, key: str, table: Mapping[str, float],
+          shown: Mapping[str, float] | None = None, motion: str | None = None) -> str:
+    """A unit of ``table``; the error lists ``shown`` (default the table) and, for a unit of the other motion, says
+    which motion the study declares."""
     n = m.opt(key)
     if n is None:
         return ""
-    u = p.string(n, key, m.where, f"{key}: {next(iter(table))}").strip()
+    shown = shown or table
+    u = p.string(n, key, m.where, f"{key}: {next(iter(shown))}").strip()
     if u not in table:
-        raise p.error(n, f"{_where(key, m.where)}: unknown unit {u!r} (allowed: {', '.join(table)})")
+        other = ROTATION if motion == TRANSLATION else TRANSLATION
+        if motion is not None and key in _UNITS and u in unit_table(key, other):
+            raise p.error(n, f"{_where(key, m.where)}: {u!r} is a {other} unit, but the study declares "
+                             f"model.motion: {motion} (allowed: {', '.join(shown)}); give a {motion} unit or "
+                             f"declare motion: {other}")
+        raise p.error(n, f"{_where(key, m.where)}: unknown unit {u!r} (allowed: {', '.join(shown)})")
     return u
 
 
-def _parse_drive(p: YamlParser, node: Node, drive: str, where: str) -> DriveSection:
+def _tables(motion: str | None) -> dict:
+    """The units a study may give the displacement and force channels: the motion's, or both when undeclared."""
+    if motion is None:
+        return _ANY_UNITS
+    return {r: unit_table(r, motion) for r in ("displacement", "force")}
+
+
+def _parse_drive(p: YamlParser, node: Node, drive: str, where: str, motion: str | None = None) -> DriveSection:
     w = f"{where}.{drive}"
     hint = "{input: x_machine, response: F_sensor}"
     m = p.mapping(node, w, drive)
@@ -255,31 +277,36 @@ def _parse_drive(p: YamlParser, node: Node, drive: str, where: str) -> DriveSect
                         "input", w, "input: x_machine"),
         response=_variable(p, m.need("response", f"response: NAME  (the FMU output compared with the "
                                                  f"measured {response_channel})"), "response", w, hint),
-        input_unit=_unit(p, m, "input_unit", _UNITS[drive]),
-        response_unit=_unit(p, m, "response_unit", _UNITS[response_channel]),
+        input_unit=_unit(p, m, "input_unit", _tables(motion)[drive], motion=motion),
+        response_unit=_unit(p, m, "response_unit", _tables(motion)[response_channel], motion=motion),
         set=_values(p, m.opt("set"), "set", w))
 
 
 def _parse_model(p: YamlParser, node: Node) -> ModelSection:
     m = p.mapping(node, "model", "model")
-    m.allow(("drives", "fixed", "tolerance_parameter", "scale"))
+    m.allow(("drives", "fixed", "tolerance_parameter", "scale", "motion"))
+    motion = None if m.opt("motion") is None else p.choice(m.opt("motion"), "motion", "model", MOTIONS,
+                                                           "motion of the interface")
     dn = m.need("drives", "drives: {displacement: {input: x_machine, response: F_sensor}}")
     dm = p.mapping(dn, "model.drives", "drives")
     dm.allow(DRIVES)
     if not dm.items:
         raise p.error(dn, "key 'drives' in 'model' must name at least one drive (displacement, force) with its "
                           "FMU input and response output")
-    drives = {d: _parse_drive(p, vn, d, "model.drives") for d, _, vn in dm.entries()}
+    drives = {d: _parse_drive(p, vn, d, "model.drives", motion) for d, _, vn in dm.entries()}
     tol = m.opt("tolerance_parameter")
     scale = {}
     if m.opt("scale") is not None:
+        if motion == ROTATION:
+            raise p.error(m.key_node("scale"), "key 'scale' in 'model': the units check's scale (stiffness N/m, "
+                                               "length m, force N) is for a translational interface; remove it")
         sm = p.mapping(m.opt("scale"), "model.scale", "scale")
         sm.allow(("stiffness", "length", "resolution", "force"))
         scale = {k: _variable(p, vn, k, "model.scale", f"{k}: NAME") for k, _, vn in sm.entries()}
     return ModelSection(drives=drives, fixed=_values(p, m.opt("fixed"), "fixed", "model"),
                         tolerance_parameter=None if tol is None else _variable(p, tol, "tolerance_parameter",
                                                                                  "model", "tolerance_parameter: tol"),
-                        scale=scale)
+                        scale=scale, motion=motion)
 
 
 def _bounds(p: YamlParser, node: Node, key: str, where: str) -> tuple[float, float]:
@@ -383,7 +410,7 @@ def _catalogue_names() -> set[str]:
     return {p.name for c in ("none",) + CANDIDATES for d in DRIVES for p in model_parameters(c, d, sc)}
 
 
-def _parse_tests(p: YamlParser, node: Node | None, base_dir: Path) -> TestsSection | None:
+def _parse_tests(p: YamlParser, node: Node | None, base_dir: Path, motion: str | None = None) -> TestsSection | None:
     if node is None:
         return None
     m = p.mapping(node, "tests", "tests")
@@ -417,8 +444,8 @@ def _parse_tests(p: YamlParser, node: Node | None, base_dir: Path) -> TestsSecti
     if m.opt("units") is not None:
         um = p.mapping(m.opt("units"), "tests.units", "units")
         um.allow(("time", "displacement", "force"))
-        tables = {"time": TIME_UNITS, "displacement": LENGTH_UNITS, "force": FORCE_UNITS}
-        units = {k: _unit(p, um, k, tables[k]) for k in um.keys()}
+        tables = {"time": TIME_UNITS, **_tables(motion)}
+        units = {k: _unit(p, um, k, tables[k], motion=motion) for k in um.keys()}
         kw.update({f"{k}_unit": u for k, u in units.items()})
     rate = m.opt("rate")
     if rate is not None:
@@ -428,9 +455,14 @@ def _parse_tests(p: YamlParser, node: Node | None, base_dir: Path) -> TestsSecti
         flip = tuple(p.names_in(m.opt("flip"), "flip", "tests", {"displacement": 1, "force": 1}, "channel",
                                 "[force]"))
         kw.update({f"flip_{c}": True for c in flip})
+    kw["motion"] = motion
     try:
         spec = ColumnSpec(**kw)
         specs = tuple(spec if r is None else ColumnSpec(**{**kw, "rate": r}) for r in rates)
+        for k, u in units.items():   # a unit written out must be of the motion (ColumnSpec maps only its defaults)
+            if k != "time" and u not in unit_table(k, spec.motion):
+                from fmusa.diagnose.measured import _scale
+                _scale(k, u, "ColumnSpec: ", spec.motion)
     except MeasuredDataError as exc:
         raise p.error(m.node, f"in 'tests': {exc}") from None
     zero = m.opt("zero_drive")
@@ -450,16 +482,17 @@ def _parse_options(p: YamlParser, node: Node | None) -> DiagnosisOptions:
 
 
 def _interface(name: str, model: ModelSection, baseline: Mapping[str, BaselineParameter],
-               effects: EffectsSection, element_default: Path | None) -> ModelInterface:
-    """The model description the fits use."""
+               effects: EffectsSection, element_default: Path | None, motion: str | None = None) -> ModelInterface:
+    """The model description the fits use (``motion``: the interface's, default the model section's)."""
     d = model.drives
+    motion = motion or model.motion or TRANSLATION
     scale = {}
     for drive, sec in d.items():
         resp = "force" if drive == "displacement" else "displacement"
         if sec.input_unit:
-            scale.setdefault("in", {})[drive] = _UNITS[drive][sec.input_unit]
+            scale.setdefault("in", {})[drive] = unit_table(drive, motion)[sec.input_unit]
         if sec.response_unit:
-            scale.setdefault("out", {})[drive] = _UNITS[resp][sec.response_unit]
+            scale.setdefault("out", {})[drive] = unit_table(resp, motion)[sec.response_unit]
     names = {BASELINE_ROLES[r]: b.variable for r, b in baseline.items()}
     names.update(effects.parameters)
     bounds = {BASELINE_ROLES[r]: b.bounds for r, b in baseline.items() if b.bounds}
@@ -478,7 +511,8 @@ def _interface(name: str, model: ModelSection, baseline: Mapping[str, BaselinePa
         tolerance_parameter=model.tolerance_parameter, fixed_parameters=dict(model.fixed),
         parameter_names={k: v for k, v in names.items() if k != v}, scale_variables=dict(model.scale),
         input_scale=scale.get("in", {}), output_scale=scale.get("out", {}),
-        bounds=bounds, candidates=tuple(effects.candidates), attached=attached, name=name)
+        bounds=bounds, candidates=tuple(effects.candidates), attached=attached, name=name,
+        **({"motion": motion} if motion != TRANSLATION else {}))
 
 
 def _description(p: YamlParser, top: YamlMap, base_dir: Path, name: str) -> tuple[ModelInterface, EffectsSection,
@@ -548,7 +582,21 @@ def parse_diagnosis_study(text: str, path: str | os.PathLike = "<string>") -> Di
         if text_fmu != "default":
             fmu = _path(p, top.opt("fmu"), "fmu", "", base_dir, "fmu: model.fmu")
     interface, effects, model, baseline = _description(p, top, base_dir, name)
-    tests = _parse_tests(p, top.opt("tests"), base_dir)
+    declared = model.motion if isinstance(model, ModelSection) else interface.motion
+    tests = _parse_tests(p, top.opt("tests"), base_dir, declared)
+    if tests is not None and isinstance(model, ModelSection):
+        motion = declared or tests.specs[0].motion   # undeclared: as the tests' units say
+        for drive, sec in model.drives.items():
+            resp = "force" if drive == "displacement" else "displacement"
+            for key, role in (("input_unit", drive), ("response_unit", resp)):
+                u = getattr(sec, key)
+                if u and u not in unit_table(role, motion):
+                    raise StudyError(f"{label}:{_line_of(top, 'model')}: key '{key}' in 'model.drives.{drive}' is "
+                                     f"{u!r}, a unit of the other motion than the tests' ({motion}: "
+                                     f"{', '.join(unit_table(role, motion))}); declare model.motion or give the "
+                                     f"units of one motion")
+        if motion != (interface.motion or TRANSLATION):
+            interface = _interface(name, model, baseline, effects, None, motion)
     if tests is None:
         raise p.error(root, "key 'tests' is missing at the top level; add the measured tests, e.g. "
                             "tests: {drive: displacement, files: [test1.csv]}")

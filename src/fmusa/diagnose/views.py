@@ -12,10 +12,11 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from fmusa.diagnose import residuals as rs
+from fmusa.diagnose import motion as mo
 from fmusa.diagnose.effects import UNITS
 from fmusa.format import fmt
 
-__all__ = ["NATURAL_UNITS", "natural", "param_label", "p_text", "ratio_text", "delta_text", "response_channel",
+__all__ = ["NATURAL_UNITS", "natural", "channel_units", "param_label", "p_text", "ratio_text", "delta_text", "response_channel",
            "fit_predictions", "extended_name", "final_name", "final_label", "final_residuals", "structure_text", "residual_series", "experiment_motion", "by_loading_direction"]
 
 #: SI unit -> (natural unit, factor SI -> natural)
@@ -28,10 +29,23 @@ def _si_unit(name: str) -> str:
     return UNITS.get(name, "")
 
 
-def natural(name: str, value: float) -> tuple[float, str]:
-    """A parameter value in natural units: (value, unit), e.g. c_y 3.7e5 N/m -> (370, 'N/mm')."""
+def natural(name: str, value: float, motion: str | None = None) -> tuple[float, str]:
+    """A parameter value in natural units: (value, unit), e.g. c_y 3.7e5 N/m -> (370, 'N/mm'); of a rotational
+    interface (``motion``, default :func:`fmusa.diagnose.motion.current`) e.g. gap 0.01 rad -> (0.573, 'deg')."""
+    rot = mo.natural_unit(mo.si_unit(name, motion), motion)
+    if rot is not None:
+        return float(value) * rot[1], rot[0]
     unit, f = NATURAL_UNITS.get(_si_unit(name), (_si_unit(name), 1.0))
     return float(value) * f, unit
+
+
+def channel_units(diag: Mapping) -> dict[str, tuple[str, float]]:
+    """(natural unit, factor SI -> natural) of the displacement, force and velocity channels of a diagnosis:
+    mm, N, mm/s; of a rotational interface deg, N·m, deg/s."""
+    if mo.motion_of(diag) == mo.ROTATION:
+        return {r: mo.ROTATION_NATURAL[mo.channel_unit(r, mo.ROTATION)]
+                for r in ("displacement", "force", "velocity")}
+    return {"displacement": ("mm", 1e3), "force": ("N", 1.0), "velocity": ("mm/s", 1e3)}
 
 
 def param_label(name: str) -> str:
@@ -69,8 +83,12 @@ def delta_text(x) -> str:
 
 
 def response_channel(diag: Mapping) -> tuple[str, str, float]:
-    """(response channel, its natural unit, factor SI -> natural)."""
+    """(response channel, its natural unit, factor SI -> natural); of a rotational interface the channel's
+    word (torque, angle) and unit (N·m, deg)."""
     drive = diag["data"]["drive"]
+    if mo.motion_of(diag) == mo.ROTATION:
+        resp = "force" if drive == "displacement" else "displacement"
+        return (mo.channel_word(resp, mo.ROTATION), *channel_units(diag)[resp])
     return ("force", "N", 1.0) if drive == "displacement" else ("displacement", "mm", 1e3)
 
 

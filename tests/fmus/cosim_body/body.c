@@ -19,6 +19,17 @@
 #include <string.h>
 #include "fmi2Functions.h"
 
+/* the parameters' start values (another export of the same source: -DSTART_M=... in tests/rotor_fmu.py) */
+#ifndef START_M
+#define START_M 1.0
+#endif
+#ifndef START_K
+#define START_K 100.0
+#endif
+#ifndef START_B
+#define START_B 1.0
+#endif
+
 typedef struct {
     double p[4];      /* m, k, b, x0 */
     double f, df, t_f;
@@ -55,7 +66,7 @@ fmi2Component fmi2Instantiate(fmi2String name, fmi2Type type, fmi2String guid, f
 #ifdef WITH_GLOBAL
     instances_made++;
 #endif
-    c->p[0] = 1.0; c->p[1] = 100.0; c->p[2] = 1.0; c->p[3] = 0.0;
+    c->p[0] = START_M; c->p[1] = START_K; c->p[2] = START_B; c->p[3] = 0.0;
     c->log = cb ? cb->logger : NULL;
     c->env = cb ? cb->componentEnvironment : NULL;
     return c;
