@@ -107,12 +107,12 @@ def test_a_budget_bounds_the_runs_and_names_what_it_left_out(logged_fmu, counted
 def test_a_jacobian_round_in_parallel_is_the_same_as_one_run_after_another(fmu_path, experiment):
     """The columns of a finite-difference Jacobian run on several FMU instances at once give the same
     numbers as on one."""
-    from fmusa.diagnose.calibrate import Residuals, _bounds, _response_scale
+    from fmusa.diagnose.calibrate import Residuals, parameter_bounds, response_scale
     from fmusa.diagnose.effects import data_scales, model_parameters
 
     sc = data_scales([experiment])
     params = model_parameters("backlash_gap", "force", sc)
-    lo, hi = _bounds(params)
+    lo, hi = parameter_bounds(params)
     x = np.array([p.to_x(p.starts[0]) for p in params])
     jacs = []
     for lanes in (1, 3):
@@ -120,7 +120,7 @@ def test_a_jacobian_round_in_parallel_is_the_same_as_one_run_after_another(fmu_p
         model.has_sensitivities = False   # the finite differences, not the FMU's forward sensitivities
         try:
             fn = Residuals(model, params, [experiment], [np.ones(len(experiment.t), bool)],
-                           _response_scale("force", sc), lo, hi)
+                           response_scale("force", sc), lo, hi)
             jacs.append(fn.jac(x))
             assert model.runs == {"fit": 1 + len(params)}
         finally:

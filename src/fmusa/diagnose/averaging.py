@@ -208,7 +208,7 @@ def parameter_shifts(runner, fit, free: dict, drive: str, interface: ModelInterf
     Per parameter: its value, the shift in its units and relative, and the shift in standard errors: those of
     the fit's 95 % interval on the side it moves to (interval / 1.96), or Gauss-Newton's where that is not finite.
     None when the fit's model cannot be rebuilt (its parameters are not the catalogue's)."""
-    from fmusa.diagnose.calibrate import Residuals, _bounds, _response_scale
+    from fmusa.diagnose.calibrate import Residuals, parameter_bounds, response_scale
     from fmusa.diagnose.effects import data_scales, model_parameters, with_bounds
 
     sc = with_bounds(data_scales(experiments), interface.bounds)
@@ -218,8 +218,8 @@ def parameter_shifts(runner, fit, free: dict, drive: str, interface: ModelInterf
         return None
     if [p.name for p in params] != list(free):
         return None
-    lo, hi = _bounds(params)
-    scale = _response_scale(drive, sc)
+    lo, hi = parameter_bounds(params)
+    scale = response_scale(drive, sc)
     fn = Residuals(runner, params, list(experiments), [np.ones(e.n, bool) for e in experiments], scale, lo, hi)
     x = np.array([p.to_x(min(max(free[p.name], p.lower), p.upper)) for p in params])
     preds = list(getattr(fit, "predictions", None) or [])

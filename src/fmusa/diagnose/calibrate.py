@@ -340,7 +340,7 @@ class Lane:
 
 # ---------------------------------------------------------------------- calibration
 
-def _response_scale(drive: str, sc: Scales) -> float:
+def response_scale(drive: str, sc: Scales) -> float:
     """Residuals are divided by the peak of the response channel, so the optimiser sees numbers near 1."""
     return sc.F_pk if drive == "displacement" else sc.y_pk
 
@@ -453,7 +453,7 @@ def _starts(params: list[Param], max_starts: int) -> list[np.ndarray]:
     return [np.array(c) for c in combos[:max_starts]]
 
 
-def _bounds(params: list[Param]) -> tuple[np.ndarray, np.ndarray]:
+def parameter_bounds(params: list[Param]) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper bounds on the optimiser's scale."""
     return (np.array([p.to_x(p.lower) for p in params]), np.array([p.to_x(p.upper) for p in params]))
 
@@ -513,9 +513,9 @@ def calibrate(model: ModelRunner, effect: str, drive: str, experiments: Sequence
     stop trying starts once that many have reached the best cost so far (within :data:`AGREE_DBIC`); 0 tries
     them all. ``skip``: leave out that many starts from the front (those an earlier fit tried), but never all."""
     params = [p for p in model_parameters(effect, drive, sc) if p.name not in held]
-    scale = _response_scale(drive, sc)
+    scale = response_scale(drive, sc)
     masks = [np.ones(len(e.t), bool) for e in experiments]
-    lo, hi = _bounds(params)
+    lo, hi = parameter_bounds(params)
     fn = Residuals(model, params, experiments, masks, scale, lo, hi)
     best, nfev, starts = None, 0, _starts(params, max_starts)
     if start:
@@ -596,8 +596,8 @@ def heldout_folds(model: ModelRunner, fit: Fit, drive: str, experiments: Sequenc
     the instances shared out among them (:meth:`ModelRunner.lanes`): a slow FMU waits for the slowest refit,
     not for all of them one after another. Each refit is the same computation whichever lane runs it."""
     params = [p for p in model_parameters(fit.effect, drive, sc) if p.name not in held]
-    scale = _response_scale(drive, sc)
-    lo, hi = _bounds(params)
+    scale = response_scale(drive, sc)
+    lo, hi = parameter_bounds(params)
     x_full = np.array([p.to_x(min(max(fit.params[p.name], p.lower), p.upper)) for p in params])
     model.stage = "heldout"
     masks = heldout_masks(experiments)

@@ -148,7 +148,7 @@ def _unit_error(role: str, unit: str, where: str, motion: str = TRANSLATION) -> 
         f"({OPTIONS[role + '_unit']}, ColumnSpec.{role}_unit)")
 
 
-def _scale(role: str, unit: str, where: str = "", motion: str = TRANSLATION) -> float:
+def unit_scale(role: str, unit: str, where: str = "", motion: str = TRANSLATION) -> float:
     """SI factor of ``unit`` for channel ``role``; rejects unknown and wrong-dimension units."""
     try:
         return unit_table(role, motion)[unit.strip()]
@@ -235,7 +235,7 @@ class ColumnSpec:
             raise MeasuredDataError(f"ColumnSpec: the delimiter and the decimal mark are both "
                                     f"{self.delimiter!r}; a file with decimal commas separates fields with ';'")
         for role in ROLES:
-            _scale(role, getattr(self, role + "_unit"), "ColumnSpec: ", self.motion)
+            unit_scale(role, getattr(self, role + "_unit"), "ColumnSpec: ", self.motion)
             name = getattr(self, role)
             if not isinstance(name, str) or not name.strip():
                 raise MeasuredDataError(
@@ -259,7 +259,7 @@ class ColumnSpec:
 
     def scale(self, role: str) -> float:
         """Factor from the file's unit of ``role`` to SI."""
-        return _scale(role, self.unit(role), motion=self.motion)
+        return unit_scale(role, self.unit(role), motion=self.motion)
 
     @property
     def rate_si(self) -> tuple[float, str, str] | None:

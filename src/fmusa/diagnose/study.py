@@ -461,8 +461,8 @@ def _parse_tests(p: YamlParser, node: Node | None, base_dir: Path, motion: str |
         specs = tuple(spec if r is None else ColumnSpec(**{**kw, "rate": r}) for r in rates)
         for k, u in units.items():   # a unit written out must be of the motion (ColumnSpec maps only its defaults)
             if k != "time" and u not in unit_table(k, spec.motion):
-                from fmusa.diagnose.measured import _scale
-                _scale(k, u, "ColumnSpec: ", spec.motion)
+                from fmusa.diagnose.measured import unit_scale
+                unit_scale(k, u, "ColumnSpec: ", spec.motion)
     except MeasuredDataError as exc:
         raise p.error(m.node, f"in 'tests': {exc}") from None
     zero = m.opt("zero_drive")
