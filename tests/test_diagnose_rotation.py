@@ -146,3 +146,22 @@ def test_rotational_effect_is_named(tmp_path, rotor, effect, rival):
     shown = {"gap": f"{math.degrees(fit['gap']):.4g} deg" if effect == "backlash_gap" else None,
              "fric_F": f"{fit['fric_F']:.4g} N·m" if effect == "coulomb_friction" else None}[main]
     assert f"= {shown}" in report, shown
+
+
+def test_the_catalogue_speaks_of_torques_and_angles_under_rotation():
+    """What the report says an effect and a parameter mean follows the interface's motion."""
+    from fmusa.diagnose.effects import EFFECT_MEANING, PARAM_MEANING, in_motion
+    from fmusa.diagnose.report import _params_section
+
+    assert in_motion(PARAM_MEANING["fric_F"], "rotation") == "Coulomb friction torque"
+    assert in_motion(EFFECT_MEANING["nonlinear_stiffness"], "rotation").startswith("the torque–angle curve bends")
+    assert in_motion(PARAM_MEANING["dmg_y0"], "translation") == PARAM_MEANING["dmg_y0"]
+    for text in (*PARAM_MEANING.values(), *EFFECT_MEANING.values()):
+        rot = in_motion(text, "rotation")
+        assert "force" not in rot and "displacement" not in rot, rot
+    diag = {"effect": "coulomb_friction", "data": {"motion": "rotation"},
+            "baseline": {"params": {"c_y": 20.0}, "ci95": {"c_y": [19.0, 21.0]}},
+            "final": {"params": {"c_y": {"value": 20.0, "ci95": [19.0, 21.0]},
+                                 "fric_F": {"value": 0.3, "ci95": [0.29, 0.31]}}}}
+    text = _params_section(diag)
+    assert "Coulomb friction torque" in text and "friction force" not in text

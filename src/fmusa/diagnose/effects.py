@@ -184,6 +184,17 @@ PARAM_MEANING = {
     "dmg_F_res": "residual force of the failed interface (friction plateau)",
 }
 
+def in_motion(text: str, motion: str | None) -> str:
+    """A catalogue text (:data:`PARAM_MEANING`, :data:`EFFECT_MEANING`) in the words of the interface's motion:
+    under rotation an angle and a torque where translation has a displacement and a force."""
+    if motion != "rotation":
+        return text
+    for a, b in (("force–displacement", "torque–angle"), ("displacements", "angles"), ("displacement", "angle"),
+                 ("forces", "torques"), ("force", "torque")):
+        text = text.replace(a, b)
+    return text
+
+
 #: What each effect means physically (fmu/MODEL.md, "Effects beyond eq. 1").
 EFFECT_MEANING = {
     "none": "the baseline spring–damper (eq. 1) explains the data within their noise",
