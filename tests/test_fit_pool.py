@@ -19,7 +19,7 @@ def _take(n: int) -> int:
     return os.getpid()
 
 
-def test_workers_are_kept_between_calls_and_replaced_when_the_environment_changes(monkeypatch):
+def test_workers_are_kept_between_calls_and_replaced_when_the_environment_changes(monkeypatch, tmp_path):
     first = set(fitcache.map_in_pool(_pid, [()] * 6, 2))
     again = set(fitcache.map_in_pool(_pid, [()] * 6, 2))
     assert os.getpid() not in first
@@ -27,6 +27,9 @@ def test_workers_are_kept_between_calls_and_replaced_when_the_environment_change
     monkeypatch.setenv("FMUSA_TEST_POOL_ENV", "changed")
     changed = set(fitcache.map_in_pool(_pid, [()] * 6, 2))
     assert not changed & first, (first, changed)  # spawned again: they must see the new environment
+    monkeypatch.chdir(tmp_path)
+    moved = set(fitcache.map_in_pool(_pid, [()] * 6, 2))
+    assert not moved & changed, (changed, moved)  # and a new working directory (relative paths)
     fitcache._drop_pool()
 
 

@@ -291,8 +291,15 @@ class _SharedPool:
 
 
 def _environment() -> int:
-    """What spawned workers inherited from this process that can change between calls: its environment."""
-    return hash(tuple(sorted(os.environ.items())))
+    """What spawned workers inherited from this process that can change between calls: its environment, its
+    working directory (a relative path means what it means here) and its module search path."""
+    try:
+        cwd = os.getcwd()
+    except OSError:        # the directory is gone: a new pool would start elsewhere anyway
+        cwd = None
+    import sys
+
+    return hash((tuple(sorted(os.environ.items())), cwd, tuple(sys.path)))
 
 
 _POOL: _SharedPool | None = None
