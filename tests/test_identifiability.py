@@ -258,7 +258,10 @@ def run_cell(cell: Cell, fmu: str, cache_root: str) -> dict:
             "ranking": [{"effect": r["effect"], "significant": r["significant"],
                          "heldout_rmse_ratio": r["heldout_rmse_ratio"], "delta_bic": r["delta_bic"]}
                         for r in d["ranking"]],
-            "warnings": [w["message"] for w in d["warnings"]],
+            # the units check's warnings (the block averaging's check may warn on these blocks of 3-4 samples: it
+            # concerns the parameters' values, not which effect is named, and is kept apart)
+            "warnings": [w["message"] for w in d["warnings"] if w.get("kind", "units") == "units"],
+            "averaging_warnings": [w["message"] for w in d["warnings"] if w.get("kind") == "averaging"],
             "group_own": {m: g.get("own", {}).get("heldout_rmse") for m, g in d["group"].items()},
             "baseline_heldout": d["baseline"]["heldout_rmse"]}
 

@@ -28,7 +28,7 @@ from fmusa.diagnose.calibrate import AGREE_DBIC, MIN_EXPERIMENTS_LEFT_OUT, Fit, 
 from fmusa.diagnose.effects import (BASELINE_LOOK_ALIKES, CANDIDATES, DAMPING, STIFFNESS, UNITS, DiagnoseError,
                                     data_scales, equivalent_by_construction, equivalent_parameters,
                                     main_parameter, model_parameters)
-from fmusa.diagnose.fitcache import FailedFit, data_key, run_fits
+from fmusa.diagnose.fitcache import data_key, run_fits
 from fmusa.diagnose.interface import ModelInterface
 from fmusa.diagnose.plausibility import implausible, support_of, unidentifiable
 from fmusa.diagnose.rank import (Thresholds, choose_effect, group_members,
@@ -241,8 +241,8 @@ def _refit_worse_than_baseline(results: dict, base: Fit, fmu: str, drive: str, e
     """Every candidate nests the baseline (its effect switched off is the baseline), so a candidate's fit worse
     than the baseline's is an optimiser failure (seen: every start in a region where the FMU's runs fail, the
     fit stopped there after two evaluations). Each such fit is refitted from the baseline's optimum (the starts
-    it did not try); one still worse is reported failed with why. ``results`` is updated in place (the runs of
-    both fits kept together); returns the notes of the ones the refit rescued."""
+    it did not try); of one still worse the better fit is kept, and said so. ``results`` is updated in place
+    (the runs of both fits kept together); returns a note for each fit refitted."""
     notes = {}
     for name, first in list(results.items()):
         if name == "none" or not isinstance(first, Fit) or not worse_than(first, base):
@@ -259,10 +259,17 @@ def _refit_worse_than_baseline(results: dict, base: Fit, fmu: str, drive: str, e
             results[name] = refit
             notes[name] = refit_note(first, refit, base, "the baseline")
         elif isinstance(refit, Fit):
-            results[name] = FailedFit(
-                f"an optimiser failure: its fit (RMSE {first.rmse:.4g}) and its refit from the baseline's optimum "
-                f"(RMSE {refit.rmse:.4g}) are worse than the baseline (RMSE {base.rmse:.4g}), which it contains",
-                runs)
+            # still worse: the better of the two stays in the ranking (it cannot be significant there), said so
+            kept = refit if refit.rss < first.rss else first
+            kept.runs = runs
+            kept.rounds = {k: first.rounds.get(k, 0) + refit.rounds.get(k, 0)
+                           for k in set(first.rounds) | set(refit.rounds)}
+            results[name] = kept
+            notes[name] = {"first_rmse": first.rmse, "refit_rmse": refit.rmse, "previous_rmse": base.rmse,
+                           "text": f"its fit (RMSE {first.rmse:.4g}) and its refit from the baseline's optimum "
+                                   f"(RMSE {refit.rmse:.4g}) are worse than the baseline (RMSE {base.rmse:.4g}), "
+                                   f"which it contains: the optimiser found no point of this model as good as "
+                                   f"the baseline; the better of the two is ranked"}
         else:               # the run budget ended in the refit
             refit.runs = runs
             results[name] = refit
