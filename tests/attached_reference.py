@@ -57,14 +57,22 @@ def protocol(peak: float = 900.0, ramp: float = 0.5, hold: float = 0.5) -> tuple
 def simulate(element: dict, knots_t, knots_u, t_out, rtol: float = 1e-10) -> np.ndarray:
     """The mass's position y [m] at ``t_out`` under the force drive through the knots, with the element's
     parameters (catalogue names: c_y, d_y and the effect's)."""
-    p = er.full_params({**element, "m": MASS})
+    return simulate_on(element, knots_t, knots_u, t_out, MASS, SPRING, DAMPER, REST, rtol)
+
+
+def simulate_on(element: dict, knots_t, knots_u, t_out, mass: float, spring: float, damper: float,
+                rest: float = 0.0, rtol: float = 1e-10, atol_ve: float = 1e-8) -> np.ndarray:
+    """The position at ``t_out`` of a mass (or inertia) on a spring and damper (at rest at 0, the spring's rest
+    at ``rest``) with the element between it and the ground, under the drive through the knots: the equations
+    of the module's text, for any such model (a rotational one in angle and torque). ``atol_ve``: the absolute
+    tolerance of the Maxwell branch's force state."""
+    p = er.full_params({**element, "m": mass})
     ax = er._Axial(p)
     kt, ku = np.asarray(knots_t, float), np.asarray(knots_u, float)
     t_out = np.asarray(t_out, float)
     x = np.zeros(6)                       # y, v, z_y, z_f, F_ve, kappa: all 0 at the start (y(0) = 0, at rest)
     out = np.zeros(t_out.size)
-    out[t_out == 0.0] = 0.0
-    atol = np.array([1e-12, 1e-10, 1e-10, 1e-10, 1e-8, 1e-12])
+    atol = np.array([1e-12, 1e-10, 1e-10, 1e-10, atol_ve, 1e-12])
     for i in range(kt.size - 1):
         a, b = kt[i], kt[i + 1]
         k = (ku[i + 1] - ku[i]) / (b - a)
@@ -72,7 +80,7 @@ def simulate(element: dict, knots_t, knots_u, t_out, rtol: float = 1e-10) -> np.
         def fun(t, s, a=a, u0=ku[i], k=k):
             y, v, zy, zf, Fve, kappa = s
             F_el = ax.total(y, v, zy, zf, Fve, kappa)
-            acc = (u0 + k * (t - a) - SPRING * (y - REST) - DAMPER * v - F_el) / MASS
+            acc = (u0 + k * (t - a) - spring * (y - rest) - damper * v - F_el) / mass
             dzy, dzf, dFve = ax.internal_rates(y, v, zy, zf, Fve)
             return [v, acc, dzy, dzf, dFve, ax.kappa_rate(y, v, kappa)]
 

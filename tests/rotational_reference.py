@@ -17,9 +17,8 @@ import math
 
 import numpy as np
 import pandas as pd
-from scipy.integrate import solve_ivp
 
-import effects_reference as er
+import attached_reference as ar
 from rotor_fmu import B as DAMPER, J as INERTIA, K as SPRING
 
 #: The element's baseline (in parallel with the model's spring-damper) and the hidden effects at this model's
@@ -42,34 +41,9 @@ def protocol(peak: float = 2.0, ramp: float = 0.5, hold: float = 0.5) -> tuple[n
 
 def simulate(element: dict, knots_t, knots_u, t_out, rtol: float = 1e-10) -> np.ndarray:
     """The angle phi [rad] at ``t_out`` under the torque drive through the knots, with the element's parameters
-    (catalogue names)."""
-    p = er.full_params({**element, "m": INERTIA})
-    ax = er._Axial(p)
-    kt, ku = np.asarray(knots_t, float), np.asarray(knots_u, float)
-    t_out = np.asarray(t_out, float)
-    x = np.zeros(6)                       # phi, w, z_y, z_f, T_ve, kappa: at rest at 0
-    out = np.zeros(t_out.size)
-    atol = np.array([1e-12, 1e-10, 1e-10, 1e-10, 1e-10, 1e-12])
-    for i in range(kt.size - 1):
-        a, b = kt[i], kt[i + 1]
-        k = (ku[i + 1] - ku[i]) / (b - a)
-
-        def fun(t, s, a=a, u0=ku[i], k=k):
-            y, v, zy, zf, Tve, kappa = s
-            T_el = ax.total(y, v, zy, zf, Tve, kappa)
-            acc = (u0 + k * (t - a) - SPRING * y - DAMPER * v - T_el) / INERTIA
-            dzy, dzf, dTve = ax.internal_rates(y, v, zy, zf, Tve)
-            return [v, acc, dzy, dzf, dTve, ax.kappa_rate(y, v, kappa)]
-
-        sel = (t_out > a) & (t_out <= b)
-        sol = solve_ivp(fun, (a, b), x, method="LSODA", rtol=rtol, atol=atol, max_step=min(2e-3, b - a),
-                        dense_output=bool(sel.any()))
-        if not sol.success:
-            raise RuntimeError(f"reference failed on [{a}, {b}]: {sol.message}")
-        if sel.any():
-            out[sel] = sol.sol(t_out[sel])[0]
-        x = sol.y[:, -1].copy()
-    return out
+    (catalogue names): the attached reference's integration (tests/attached_reference.py) with the rotor's inertia,
+    spring and damper."""
+    return ar.simulate_on(element, knots_t, knots_u, t_out, INERTIA, SPRING, DAMPER, 0.0, rtol, atol_ve=1e-10)
 
 
 def synthesize(effect: str, rate_hz: float = 40.0, noise_deg: float = 0.01, seed: int = 0,

@@ -187,7 +187,7 @@ PARAM_MEANING = {
 def in_motion(text: str, motion: str | None) -> str:
     """A catalogue text (:data:`PARAM_MEANING`, :data:`EFFECT_MEANING`) in the words of the interface's motion:
     under rotation an angle and a torque where translation has a displacement and a force."""
-    if motion != "rotation":
+    if motion != "rotation":       # motion.ROTATION (motion reads the catalogue's units from here)
         return text
     for a, b in (("force–displacement", "torque–angle"), ("displacements", "angles"), ("displacement", "angle"),
                  ("forces", "torques"), ("force", "torque")):

@@ -120,8 +120,8 @@ def _named_text(diag: Mapping) -> str:
     eff, gain = diag["effect"], diag.get("gain") or {}
     resp, unit, f = response_channel(diag)
     base, ext = diag.get("baseline") or {}, diag.get("extended") or {}
-    mo = (diag.get("data") or {}).get("motion")
-    meaning = " — or, the same equations, ".join(in_motion(EFFECT_MEANING.get(m, ""), mo) for m in eff.split(" ≡ "))
+    motion = mo.motion_of(diag)
+    meaning = " — or, the same equations, ".join(in_motion(EFFECT_MEANING.get(m, ""), motion) for m in eff.split(" ≡ "))
     out = (f"**Effect: `{eff}`**: {meaning}.\n\n"
            f"Adding it to the baseline lowers the RMSE of the {resp} on the fitted data from "
            f"{fmt(base.get('rmse', float('nan')) * f)} {unit} to {fmt(ext.get('rmse', float('nan')) * f)} "
@@ -136,7 +136,7 @@ def _named_text(diag: Mapping) -> str:
     if mp and mp in ep:
         v, u = natural(mp, ep[mp]["value"])
         lo, hi = (natural(mp, c)[0] for c in ep[mp]["ci95"])
-        out += (f"Main parameter: {fmu_name(diag, mp)} ({in_motion(PARAM_MEANING.get(mp, ''), mo)}) = {fmt(v, 4)} {u} "
+        out += (f"Main parameter: {fmu_name(diag, mp)} ({in_motion(PARAM_MEANING.get(mp, ''), motion)}) = {fmt(v, 4)} {u} "
                 f"(95 % interval {fmt(lo)} to {fmt(hi)} {u}).\n\n")
     return out
 
@@ -165,7 +165,7 @@ def _none_text(diag: Mapping) -> str:
                "baseline explains the data: its residuals are structured (see below), but no single "
                "candidate effect removes that structure convincingly enough on held-out data.\n\n")
     else:
-        out = (f"**Effect: `none`**: {in_motion(EFFECT_MEANING['none'], (diag.get('data') or {}).get('motion'))}; "
+        out = (f"**Effect: `none`**: {in_motion(EFFECT_MEANING['none'], mo.motion_of(diag))}; "
                "no candidate's gain passes all three tests.\n\n")
     if ranking:
         crit = ranking[0]
@@ -246,7 +246,7 @@ def _params_section(diag: Mapping) -> str:
         unit = natural(n, 0.0)[1] or "–"
         b = _ci(n, base_p[n], base_ci.get(n)) if n in base_p else "–"
         x = _ci(n, ext_p[n], ext_ci.get(n)) if n in ext_p else "–"
-        rows.append([f"`{fmu_name(diag, n)}`", in_motion(PARAM_MEANING.get(n, ""), (diag.get("data") or {}).get("motion")),
+        rows.append([f"`{fmu_name(diag, n)}`", in_motion(PARAM_MEANING.get(n, ""), mo.motion_of(diag)),
                      unit, b, x])
     eff = diag["effect"]
     out = "## Parameters\n\n"
