@@ -57,6 +57,10 @@ class RunBudget:
                 raise BudgetExhausted(f"the run budget of {limit} FMU runs ended")
             self._value.value += n
 
+    def set_used(self, n: int) -> None:
+        """Set the count (a pool's counter lent to this budget gives its count back, :mod:`fitcache`)."""
+        self._value.value = int(n)
+
     def shared(self) -> tuple:
         """What a worker process needs to share this counter (for :func:`install`, as initializer args)."""
         return (self.limit, self._value)

@@ -287,7 +287,7 @@ class _SharedPool:
             yield
         finally:
             if budget is not None:
-                budget._value.value = int(self.count.value)
+                budget.set_used(self.count.value)
 
 
 def _environment() -> int:

@@ -249,31 +249,28 @@ def _refit_worse_than_baseline(results: dict, base: Fit, fmu: str, drive: str, e
             continue
         refit = _refit_from(fmu, name, drive, experiments, max_starts, interface, base, None,
                             jacobian_lanes(workers, 1), budget, skip=first.starts_tried)
-        runs = dict(first.runs)
-        for stage, n in (getattr(refit, "runs", None) or {}).items():
-            runs[stage] = runs.get(stage, 0) + n
-        if isinstance(refit, Fit) and not worse_than(refit, base):
-            refit.runs = runs
-            refit.rounds = {k: first.rounds.get(k, 0) + refit.rounds.get(k, 0)
-                            for k in set(first.rounds) | set(refit.rounds)}
+        runs = _added(first.runs, getattr(refit, "runs", None) or {})
+        if not isinstance(refit, Fit):
+            refit.runs = runs               # the run budget ended in the refit
             results[name] = refit
-            notes[name] = refit_note(first, refit, base, "the baseline")
-        elif isinstance(refit, Fit):
-            # still worse: the better of the two stays in the ranking (it cannot be significant there), said so
-            kept = refit if refit.rss < first.rss else first
-            kept.runs = runs
-            kept.rounds = {k: first.rounds.get(k, 0) + refit.rounds.get(k, 0)
-                           for k in set(first.rounds) | set(refit.rounds)}
-            results[name] = kept
-            notes[name] = {"first_rmse": first.rmse, "refit_rmse": refit.rmse, "previous_rmse": base.rmse,
-                           "text": f"its fit (RMSE {first.rmse:.4g}) and its refit from the baseline's optimum "
-                                   f"(RMSE {refit.rmse:.4g}) are worse than the baseline (RMSE {base.rmse:.4g}), "
-                                   f"which it contains: the optimiser found no point of this model as good as "
-                                   f"the baseline; the better of the two is ranked"}
-        else:               # the run budget ended in the refit
-            refit.runs = runs
-            results[name] = refit
+            continue
+        still = worse_than(refit, base)
+        # still worse: the better of the two stays in the ranking (it cannot be significant there), said so
+        kept = (refit if refit.rss < first.rss else first) if still else refit
+        kept.runs, kept.rounds = runs, _added(first.rounds, refit.rounds)
+        results[name] = kept
+        notes[name] = refit_note(first, refit, base, "the baseline") if not still else {
+            "first_rmse": first.rmse, "refit_rmse": refit.rmse, "previous_rmse": base.rmse,
+            "text": f"its fit (RMSE {first.rmse:.4g}) and its refit from the baseline's optimum "
+                    f"(RMSE {refit.rmse:.4g}) are worse than the baseline (RMSE {base.rmse:.4g}), "
+                    f"which it contains: the optimiser found no point of this model as good as "
+                    f"the baseline; the better of the two is ranked"}
     return notes
+
+
+def _added(a: dict, b: dict) -> dict:
+    """Runs (or rounds) by stage of two fits together."""
+    return {k: a.get(k, 0) + b.get(k, 0) for k in {**a, **b}}
 
 
 def averaging_check(fmu: str, drive: str, interface: ModelInterface, base: Fit, final: Fit, steps: list,
