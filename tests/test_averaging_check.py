@@ -211,3 +211,18 @@ def test_screw_backlash_under_a_force_drive_in_blocks_of_three(fmu_path):
     assert shift["shift_se"] < -2 and shift["shift"] < 0, shift
     assert abs(-shift["shift"] - actual) < 0.3 * abs(actual), (shift, actual)
     assert "'gap' (752 samples" in check["warnings"][0]["message"]
+
+
+def test_the_warning_never_states_a_value_past_a_bound_nor_a_translational_unit_under_rotation():
+    """A first-order shift that would take a parameter past its bound (a residual force below 0) is said to be
+    one, and a rotational interface's bias is in N·m and deg, not N and mm."""
+    from fmusa.diagnose import motion as mo
+    from fmusa.diagnose.averaging import _moves, _size
+
+    m = {"parameters": {"dmg_F_res": {"fmu_name": "dmg_F_res", "value": 10.0, "shift": -14.0, "relative": -1.4,
+                                      "shift_se": -3.3, "beyond": "lower"}}}
+    assert "past its lower bound" in _moves(m) and "-1.4e+02 %" in _moves(m)
+    assert _size(2.0, "displacement") == "2 N" and _size(2e-3, "force") == "2 mm"
+    with mo.use(mo.ROTATION):
+        assert _size(2.0, "displacement") == "2 N·m"
+        assert _size(0.01, "force") == f"{0.01 / (3.141592653589793 / 180):.3g} deg"

@@ -45,6 +45,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from fmusa.diagnose import motion as mo
 from fmusa.diagnose.interface import ModelInterface
 from fmusa.diagnose.measured import Blocks, Experiment
 
@@ -235,7 +236,8 @@ def parameter_shifts(runner, fit, free: dict, drive: str, interface: ModelInterf
     out = {}
     for j, p in enumerate(params):
         v = free[p.name]
-        moved = p.from_x(x[j] + dx[j]) - v
+        target = p.from_x(x[j] + dx[j])
+        moved = target - v
         lo_ci, hi_ci = (getattr(fit, "ci95", None) or {}).get(p.name, (float("nan"), float("nan")))
         side = (hi_ci - v) if moved > 0 else (v - lo_ci)
         se_gn = math.sqrt(max(cov[j, j], 0.0))
@@ -244,6 +246,8 @@ def parameter_shifts(runner, fit, free: dict, drive: str, interface: ModelInterf
         on_element = (getattr(runner, "on_element", None) or {}).get(p.name)
         out[p.name] = {"fmu_name": f"element.{interface.variable(p.name)}" if on_element else interface.variable(p.name),
                        "value": float(v), "shift": float(moved),
+                       # a first-order shift past a bound is no value the parameter can take: said so
+                       "beyond": "lower" if target < p.lower else "upper" if target > p.upper else "",
                        "relative": float(moved / v) if v else float("nan"),
                        "shift_se": float(moved / se) if math.isfinite(se) else float(shift_gn),
                        "shift_se_gauss_newton": float(shift_gn)}
@@ -251,7 +255,12 @@ def parameter_shifts(runner, fit, free: dict, drive: str, interface: ModelInterf
 
 
 def _size(v: float, drive: str) -> str:
-    """A response difference in the report's units: N under a displacement drive, mm under a force drive."""
+    """A response difference in the report's units: N under a displacement drive, mm under a force drive (of a
+    rotational interface N·m and deg)."""
+    role = "force" if drive == "displacement" else "displacement"
+    shown = mo.natural_unit(mo.channel_unit(role))
+    if shown is not None:
+        return f"{v * shown[1]:.3g} {shown[0]}"
     return f"{v:.3g} N" if drive == "displacement" else f"{v * 1e3:.3g} mm"
 
 
@@ -263,9 +272,9 @@ def _moves(m: Mapping) -> str:
     rows = [r for r in rows if abs(r["shift_se"]) >= NAME_SHIFT_SE][:3]
 
     def how(r):
-        if r["value"] and math.isfinite(r["relative"]):
-            return f"{r['relative'] * 100:+.2g} %"
-        return f"{r['shift']:+.3g}"
+        size = (f"{r['relative'] * 100:+.2g} %" if r["value"] and math.isfinite(r["relative"])
+                else f"{r['shift']:+.3g}")
+        return f"{size}, past its {r['beyond']} bound: to that bound at most" if r.get("beyond") else size
     return ", ".join(f"{r['fmu_name']} by {how(r)} ({r['shift_se']:+.2g} standard errors)" for r in rows)
 
 
