@@ -471,13 +471,24 @@ class Variant:
         return [f_rhs, f_lin, f_out]
 
 
-def sensitivity_functions(dae: Dae, v: Variant, outputs: tuple[str, ...]) -> list:
+#: columns of the sensitivity functions that take several at once (fmu/model.c calls them per batch): the columns
+#: of one call share the model's Jacobian and rates, unused ones cost as much as used ones, and each batch column
+#: adds as much generated code; four of the diagnosis's two to seven.
+SENS_BATCH = 4
+
+
+def sensitivity_functions(dae: Dae, v: Variant, outputs: tuple[str, ...], columns: int) -> list:
     """The forward sensitivities of a variant in one parameter direction E (the unit vector of the selected
     parameter; the FMU calls them once per selected parameter): S' = J S + (df/dp) E for S = dx/dp E, and
     the output sensitivities (dh/dx) S + (dh/dp) E. The derived parameters are functions of p in the variant's
     equations (Dae.fix), so these are total derivatives. For the solver's exponential step of S, the time
     derivative of S' along the states' own motion: d/dt (J S + f_p E) at fixed S, with x' = f and the inputs'
-    rates (``_sens_lin``); ``_sens_rhs`` gives S' alone."""
+    rates (``_sens_lin``); ``_sens_rhs`` gives S' alone. ``_sens_aug``: S', its Jacobian by the states at fixed S
+    (row-major) and its explicit time derivative (the inputs' rates, not the states' motion): the solver steps
+    (x, S) together with them, so that a ringing x moves S through that Jacobian instead of through a
+    polynomial in time. ``_sens_lin_all`` and ``_sens_rhs_all``: ``_sens_lin`` and ``_sens_rhs`` for all ``columns``
+    columns at once (S and E n x columns and np x columns, column-major; the columns share J and the states' rates,
+    which one column at a time cost as much as the states' own step)."""
     pre, name = dae.spec.prefix, v.name
     S = ca.SX.sym("S", len(dae.states))
     E = ca.SX.sym("E", dae.p.numel())
@@ -490,9 +501,22 @@ def sensitivity_functions(dae: Dae, v: Variant, outputs: tuple[str, ...]) -> lis
         sys.exit(f"SENSITIVITIES names {missing}, which are not outputs of the model")
     h = ca.vertcat(*[v.zs[o] for o in outputs])
     dh = ca.mtimes(ca.jacobian(h, dae.x), S) + ca.jtimes(h, dae.p, E)
-    out = [ca.Function(f"{pre}{name}_sens_lin", ins, [ca.densify(Fs), ca.densify(Fts)],
+    SK = ca.SX.sym("SK", len(dae.states), columns)
+    EK = ca.SX.sym("EK", dae.p.numel(), columns)
+    FsK = ca.mtimes(v.J, SK) + ca.jtimes(v.xd, dae.p, EK)
+    vK = ca.vec(FsK)
+    FtsK = ca.reshape(ca.jtimes(vK, dae.t, ca.SX(1)) + ca.jtimes(vK, dae.u, dae.ud) + ca.jtimes(vK, dae.x, v.xd),
+                      FsK.shape)
+    insK = [dae.t, dae.x, dae.p, dae.d, dae.u, dae.ud, SK, EK]
+    out = [ca.Function(f"{pre}{name}_sens_lin_all", insK, [ca.densify(FsK), ca.densify(FtsK)], names, ["Fs", "Fts"]),
+           ca.Function(f"{pre}{name}_sens_rhs_all", insK, [ca.densify(FsK)], names, ["Fs"])]
+    out += [ca.Function(f"{pre}{name}_sens_lin", ins, [ca.densify(Fs), ca.densify(Fts)],
                        names, ["Fs", "Fts"]),
            ca.Function(f"{pre}{name}_sens_rhs", ins, [ca.densify(Fs)], names, ["Fs"]),
+           ca.Function(f"{pre}{name}_sens_aug", ins,
+                       [ca.densify(Fs), ca.densify(ca.jacobian(Fs, dae.x).T),
+                        ca.densify(ca.jtimes(Fs, dae.t, ca.SX(1)) + ca.jtimes(Fs, dae.u, dae.ud))],
+                       names, ["Fs", "Fsx", "Fst"]),
            ca.Function(f"{pre}{name}_sens_out", ins, [ca.densify(dh)], names, ["dout"])]
     return out
 
@@ -591,7 +615,7 @@ def build(path: Path | None = None, spec: Spec | None = None) -> dict:
                 functions.append(drive_sensitivity_function(dae, v, f))
         # the sensitivities take the full variants: a core one fixes the effects' parameters
         if sens and v.name.endswith("_full"):
-            functions += sensitivity_functions(dae, v, tuple(sens["outputs"]))
+            functions += sensitivity_functions(dae, v, tuple(sens["outputs"]), SENS_BATCH)
     kinks = time_kinks(ca.vertcat(*[v.xd for v in variants]), dae) if spec.modes else []
     if spec.modes:
         fk = ca.Function(f"{PREFIX}kinks", [dae.p, dae.d], [ca.densify(ca.vertcat(*kinks))], ["p", "d"],
@@ -647,7 +671,8 @@ def header(info: dict) -> str:
     if info.get("sens"):
         sens = info["sens"]
         lines += ["/* Forward sensitivities (fmu/generate.py SENSITIVITIES): parameter directions, outputs */",
-                  f"#define SV_NSENS {sens['parameters']}", f"#define SV_NSENS_OUT {len(sens['outputs'])}"]
+                  f"#define SV_NSENS {sens['parameters']}", f"#define SV_NSENS_OUT {len(sens['outputs'])}",
+                  f"#define SV_NSENS_BATCH {SENS_BATCH}"]
         table("SV_SENS_OUTPUTS", list(sens["outputs"]), "output with sensitivities (the rows of dout of _sens_out)")
     if spec.modes:
         lines += _mode_lines(info, dae, table)

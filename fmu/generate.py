@@ -456,7 +456,7 @@ def parse_model(text: str, source: str = "<string>", model_name: str = MODEL_NAM
 
 def sensitivity_variables(model_name: str, variables: list[Variable]) -> list[Variable]:
     """The variables of the forward sensitivities (SENSITIVITIES) after the model's own: the selecting parameters
-    sens_p[k], then per output the derivatives sens_<output>[k]."""
+    sens_p[k], then per output the derivatives sens_<output>[k], then their tolerance sens_rtol."""
     facts = SENSITIVITIES.get(model_name)
     if not facts:
         return []
@@ -481,6 +481,11 @@ def sensitivity_variables(model_name: str, variables: list[Variable]) -> list[Va
                 description=f"Forward sensitivity of {name} by the parameter sens_p[{k}] selects: d {name} / d "
                             f"parameter, in {declared[name].unit or '1'} per the parameter's unit (0 when "
                             f"sens_p[{k}] = 0)"))
+    out.append(Variable(
+        vr=len(variables) + len(out) + 1, name="sens_rtol", type="Real", causality="parameter", variability="fixed",
+        initial="exact", start="0", unit="",
+        description="Relative local error tolerance of the forward sensitivities (0: rtol); a least-squares "
+                    "Jacobian needs a few digits, not the states' accuracy"))
     return out
 
 

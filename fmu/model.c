@@ -49,7 +49,7 @@ static int check(int ok, char *msg, size_t len, const char *fmt, const char *nam
  * another variable (an Integer or Boolean, a solver setting, not a parameter). */
 static int sens_index(double vr)
 {
-    static const int settings[] = {VR_rtol, VR_h_max, VR_max_wall_s, VR_eps_v_eq, VR_eps_a_eq};
+    static const int settings[] = {VR_rtol, VR_h_max, VR_max_wall_s, VR_eps_v_eq, VR_eps_a_eq, VR_sens_rtol};
     for (size_t i = 0; i < sizeof(settings) / sizeof(settings[0]); i++)
         if (vr == settings[i]) return -1;
     const VarInfo *v = (vr >= 1.0 && vr == (double)(unsigned int)vr) ? model_variable((unsigned int)vr) : NULL;
@@ -127,6 +127,10 @@ int model_validate(const ModelInstance *mi, char *msg, size_t len)
     if (check(isfinite(V(max_wall_s)) && V(max_wall_s) >= 0.0, msg, len,
               "parameter %s = %g is invalid: use 0 (no limit) or a positive number of seconds", "max_wall_s",
               V(max_wall_s)))
+        return 1;
+    if (check(isfinite(V(sens_rtol)) && (V(sens_rtol) == 0.0 || (V(sens_rtol) >= 1e-14 && V(sens_rtol) <= 0.1)), msg,
+              len, "parameter %s = %g is invalid: use 0 (the states' rtol) or a tolerance between 1e-14 and 0.1",
+              "sens_rtol", V(sens_rtol)))
         return 1;
     if (check(V(mode) == 1.0 || V(mode) == 2.0, msg, len,
               "parameter %s = %g is invalid: use 1 (force-driven) or 2 (motion-driven)", "mode", V(mode)))
@@ -237,6 +241,47 @@ static int sens(void *ctx, int col, double t, const double *x, const double *S, 
     if (domain(t, x, msg, len)) return 1;
     double *res[SV_SZ_RES] = {Fs, Fts};
     if (call_sens(mi, Fts ? mi->f_sens_lin : mi->f_sens_rhs, t, x, S, mi->E[col], res)) {
+        snprintf(msg, len, "the generated sensitivity equations failed at t = %.17g", t);
+        return 1;
+    }
+    return 0;
+}
+
+/* Every column at once, in batches of SV_NSENS_BATCH (S[c], Fs[c], Fts[c]: column c; a batch's unused columns are 0
+ * in E and S). */
+static int sens_all(void *ctx, int ns, double t, const double *x, const double (*S)[SOLVER_NMAX],
+                    double (*Fs)[SOLVER_NMAX], double (*Fts)[SOLVER_NMAX], char *msg, size_t len)
+{
+    ModelInstance *mi = ctx;
+    if (domain(t, x, msg, len)) return 1;
+    for (int c0 = 0; c0 < ns; c0 += SV_NSENS_BATCH) {      /* the generated functions take a batch of columns */
+        int nb = ns - c0 < SV_NSENS_BATCH ? ns - c0 : SV_NSENS_BATCH;
+        double SK[SV_NSENS_BATCH * NX] = {0}, EK[SV_NSENS_BATCH * SV_NP] = {0};
+        double FK[SV_NSENS_BATCH * NX], FtK[SV_NSENS_BATCH * NX];
+        for (int b = 0; b < nb; b++) {
+            memcpy(SK + b * NX, S[c0 + b], sizeof(double) * NX);
+            memcpy(EK + b * SV_NP, mi->E[c0 + b], sizeof(double) * SV_NP);
+        }
+        double *res[SV_SZ_RES] = {FK, Fts ? FtK : NULL};
+        if (call_sens(mi, Fts ? mi->f_sens_lin_all : mi->f_sens_rhs_all, t, x, SK, EK, res)) {
+            snprintf(msg, len, "the generated sensitivity equations failed at t = %.17g", t);
+            return 1;
+        }
+        for (int b = 0; b < nb; b++) {
+            memcpy(Fs[c0 + b], FK + b * NX, sizeof(double) * NX);
+            if (Fts) memcpy(Fts[c0 + b], FtK + b * NX, sizeof(double) * NX);
+        }
+    }
+    return 0;
+}
+
+static int sens_aug(void *ctx, int col, double t, const double *x, const double *S, double *Fs, double *Fsx,
+                    double *Fst, char *msg, size_t len)
+{
+    ModelInstance *mi = ctx;
+    if (domain(t, x, msg, len)) return 1;
+    double *res[SV_SZ_RES] = {Fs, Fsx, Fst};
+    if (call_sens(mi, mi->f_sens_aug, t, x, S, mi->E[col], res)) {
         snprintf(msg, len, "the generated sensitivity equations failed at t = %.17g", t);
         return 1;
     }
@@ -393,6 +438,9 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     mi->f_drive = motion ? sv_motion_full_drive : NULL;
     mi->f_sens_lin = motion ? sv_motion_full_sens_lin : sv_force_full_sens_lin;
     mi->f_sens_rhs = motion ? sv_motion_full_sens_rhs : sv_force_full_sens_rhs;
+    mi->f_sens_aug = motion ? sv_motion_full_sens_aug : sv_force_full_sens_aug;
+    mi->f_sens_lin_all = motion ? sv_motion_full_sens_lin_all : sv_force_full_sens_lin_all;
+    mi->f_sens_rhs_all = motion ? sv_motion_full_sens_rhs_all : sv_force_full_sens_rhs_all;
     mi->f_sens_out = motion ? sv_motion_full_sens_out : sv_force_full_sens_out;
     mi->f_sens_drive = motion ? sv_motion_full_sens_drive : NULL;
     mi->time = t0;
@@ -404,6 +452,7 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->ipos = SV_IX_POSITION;
     sv->ivel = SV_IX_VELOCITY;
     sv->rtol = V(rtol);
+    sv->sens_rtol = V(sens_rtol) > 0.0 ? V(sens_rtol) : V(rtol);
     sv->atol = 1e-15;            /* SI units: 1e-15 m, rad, m/s, rad/s: far below anything the study reads */
     sv->h_max = V(h_max);
     sv->monitors = V(monitors) != 0.0;
@@ -418,6 +467,8 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->breakpoint = next_breakpoint;
     sv->ns = mi->n_sens;
     sv->sens = sens;
+    sv->sens_aug = sens_aug;
+    sv->sens_all = sens_all;
     for (int c = 0; c < mi->n_sens; c++) sv->sens_p[c] = p_abs[c];
     sv->ctx = mi;
     sv->work = mi->work;

@@ -1167,11 +1167,16 @@ static int linear_piece(Solver *s, const Linearization *L, double h, double t_ne
  *     S_U = S + k phi1(kJ) G0 + k^2 phi2(kJ) G_t,  S1 = S_U + 2k phi3(kJ) D,
  *     D = G(t + k, u(t + k), S_U) - G0 - J (S_U - S) - k G_t,
  * with G = J S + f_p and G_t its derivative in time at fixed S along the states' motion (u' = f), so that the
- * change of J and f_p enters as the time dependence of a linear equation. A sub-step k of the state's step is
- * accepted when its correction 2k phi3 D is within rtol of the column's scale (each state's largest |S| so far, or
- * its largest |u| divided by |p|, what a change of p by itself moves it), else shortened (a fast transient of f_p within a long linear step of the states); the states inside the step come
- * from its linearised solution (exact where the step was linear), its end is the accepted u1. The block is that of
- * the states that move or whose sensitivity does (closed under J's coupling). The states' steps are their own, so
+ * change of J and f_p enters as the time dependence of a linear equation. The columns take their sub-steps together
+ * (one evaluation of the model's sensitivity equations for all, one set of phi functions). A sub-step k of the
+ * state's step is accepted when every column's correction 2k phi3 D is within sens_rtol (0: rtol) of the column's
+ * scale (each state's largest |S| so far, or its largest |u| divided by |p|, what a change of p by itself moves it).
+ * A column that misses it takes the sub-step again together with the states (sens_substep_aug: the states' motion
+ * enters S through the Jacobian of G by the states, not as a polynomial in time, which a screw ringing at kHz through
+ * a step of 30 ms needs a hundred sub-steps to follow); if that misses too, the sub-step is shortened. The states
+ * inside the step come from its linearised solution (exact where the step was linear), its end is the accepted u1.
+ * The block is that of the states that move or whose sensitivity does (closed under J's coupling). The states' steps
+ * are their own, so
  * a run with sensitivities has the same states as one without. Where the right-hand side switches (a kink of the
  * load, the Bouc-Wen switch of friction and yield, a rounded corner sharper than a step) S follows the side of the
  * step's start: the derivative is the one-sided one. */
@@ -1186,14 +1191,42 @@ static void sens_state_at(const Solver *s, const Linearization *L, const double 
     propagate_linear(s, L, u0, L->F0, tau, ph, u, NULL);
 }
 
-/* One exponential step of column c over [ta, ta + k] from S (ua, ub the states at its ends); S1 and the error of
- * its correction against rtol (0 when nothing moves). */
-static int sens_substep(Solver *s, const Linearization *L, int c, double ta, const double *ua, double k,
-                        const double *ub, const double *S, double *S1, double *err, char *msg, size_t len)
+/* The phi functions of the last sub-step's k J on its block, for the next column that takes the same sub-step
+ * (within one step of the states J is the same for every column, and most columns take the whole step). */
+typedef struct {
+    int valid, m, idx[NMAX];
+    double k, P1[NMAX * NMAX], P2[NMAX * NMAX], P3[NMAX * NMAX];
+} SensPhis;
+
+/* phi_1..3 of k J on the block idx (m states), kept while k and the block stay the same. */
+static void sens_phis(SensPhis *ph, const Linearization *L, int n, const int *idx, int m, double k)
+{
+    if (ph->valid && ph->k == k && ph->m == m && memcmp(ph->idx, idx, sizeof(int) * m) == 0) return;
+    double A[NMAX * NMAX], P0[NMAX * NMAX];
+    for (int a = 0; a < m; a++)
+        for (int b = 0; b < m; b++) A[a * m + b] = k * L->Jfull[idx[a] * n + idx[b]];
+    solver_phi(m, A, P0, ph->P1, ph->P2, ph->P3);
+    ph->valid = 1;
+    ph->k = k;
+    ph->m = m;
+    memcpy(ph->idx, idx, sizeof(int) * m);
+}
+
+/* One exponential step of column c over [ta, ta + k] together with the states: z = (u, S) on the block, z' = (f, G)
+ * with G = J S + f_p, whose Jacobian [[J, 0], [G_u, J]] carries the states' motion into S exactly where f and G
+ * are affine (a lightly damped screw rings at kHz through a step of 30 ms: as a polynomial in time that motion
+ * cost S a hundred sub-steps a step, through G_u none). The scheme is exprb32 on z (the states' Jacobian J at
+ * the step's start, G_u and the explicit time derivatives at the sub-step's start); S1, the states at the end
+ * (ub, the scheme's own: the caller keeps the accepted ones at the step's end) and the error of S's correction
+ * against sens_rtol. *done = 0 (nothing changed) when the block is too large for the doubled system: the caller
+ * takes sens_substep. */
+static int sens_substep_aug(Solver *s, const Linearization *L, int c, double ta, const double *ua, double k,
+                            const double *S, double *S1, double *ub, double *err, int *done, char *msg, size_t len)
 {
     int n = s->n;
-    double G0[NMAX], Gt[NMAX], G1[NMAX];
-    if (s->sens(s->ctx, c, ta, ua, S, G0, Gt, msg, len)) return 1;
+    double G0[NMAX], Gx[NMAX * NMAX], Gt[NMAX];
+    *done = 0;
+    if (s->sens_aug(s->ctx, c, ta, ua, S, G0, Gx, Gt, msg, len)) return 1;
     int act[NMAX], idx[NMAX], m = 0;
     for (int i = 0; i < n; i++) {
         if (!isfinite(G0[i]) || !isfinite(Gt[i])) {
@@ -1201,43 +1234,84 @@ static int sens_substep(Solver *s, const Linearization *L, int c, double ta, con
                      c + 1);
             return 1;
         }
-        act[i] = L->active[i] || S[i] != 0.0 || G0[i] != 0.0 || Gt[i] != 0.0;
+        for (int j = 0; j < n; j++)
+            if (!isfinite(Gx[i * n + j])) {
+                snprintf(msg, len, "the sensitivity equations' Jacobian is not finite at t = %.17g (state %d, "
+                         "column %d)", ta, i, c + 1);
+                return 1;
+            }
+        act[i] = L->active[i] || ua[i] != L->u[i] || S[i] != 0.0 || G0[i] != 0.0 || Gt[i] != 0.0;
     }
     for (int changed = 1; changed;) {
         changed = 0;
         for (int j = 0; j < n; j++)
             if (act[j])
                 for (int i = 0; i < n; i++)
-                    if (!act[i] && L->Jfull[i * n + j] != 0.0) { act[i] = 1; changed = 1; }
+                    if (!act[i] && (L->Jfull[i * n + j] != 0.0 || Gx[i * n + j] != 0.0)) { act[i] = 1; changed = 1; }
     }
     for (int i = 0; i < n; i++)
         if (act[i]) idx[m++] = i;
     memcpy(S1, S, sizeof(double) * n);
+    memcpy(ub, ua, sizeof(double) * n);
     *err = 0.0;
-    if (m == 0) return 0;
-    double A[NMAX * NMAX], P0[NMAX * NMAX], P1[NMAX * NMAX], P2[NMAX * NMAX], P3[NMAX * NMAX];
+    if (m == 0) { *done = 1; return 0; }
+    if (2 * m > NMAX) return 0;
+    int m2 = 2 * m;
+    /* f and its explicit time derivative at the sub-step's start */
+    double f0[NMAX];
+    if (ta == L->t && memcmp(ua, L->u, sizeof(double) * n) == 0) memcpy(f0, L->F0, sizeof(double) * n);
+    else if (eval_real(s, ta, ua, f0, msg, len)) return 1;
+    double M[NMAX * NMAX], P0[NMAX * NMAX], P1[NMAX * NMAX], P2[NMAX * NMAX], P3[NMAX * NMAX];
+    for (int a = 0; a < m2 * m2; a++) M[a] = 0.0;
     for (int a = 0; a < m; a++)
-        for (int b = 0; b < m; b++) A[a * m + b] = k * L->Jfull[idx[a] * n + idx[b]];
-    solver_phi(m, A, P0, P1, P2, P3);
-    double g0[NMAX], gt[NMAX], y1[NMAX], y2[NMAX], D[NMAX], corr[NMAX];
-    for (int a = 0; a < m; a++) { g0[a] = G0[idx[a]]; gt[a] = Gt[idx[a]]; }
-    matvec(m, P1, g0, y1);
-    matvec(m, P2, gt, y2);
-    for (int a = 0; a < m; a++) S1[idx[a]] += k * y1[a] + k * k * y2[a];
-    if (s->sens(s->ctx, c, ta + k, ub, S1, G1, NULL, msg, len)) return 1;
+        for (int b = 0; b < m; b++) {
+            double J = k * L->Jfull[idx[a] * n + idx[b]];
+            M[a * m2 + b] = J;
+            M[(m + a) * m2 + m + b] = J;
+            M[(m + a) * m2 + b] = k * Gx[idx[a] * n + idx[b]];
+        }
+    solver_phi(m2, M, P0, P1, P2, P3);
+    double v0[NMAX], vt[NMAX], y1[NMAX], y2[NMAX], D[NMAX], corr[NMAX];
     for (int a = 0; a < m; a++) {
-        int i = idx[a];
-        double d = G1[i] - G0[i] - k * Gt[i];
-        for (int b = 0; b < m; b++) d -= L->Jfull[i * n + idx[b]] * (S1[idx[b]] - S[idx[b]]);
-        D[a] = d;
+        v0[a] = f0[idx[a]];
+        v0[m + a] = G0[idx[a]];
+        vt[a] = L->Ft[idx[a]];
+        vt[m + a] = Gt[idx[a]];
     }
-    matvec(m, P3, D, corr);
+    matvec(m2, P1, v0, y1);
+    matvec(m2, P2, vt, y2);
+    double uU[NMAX], SU[NMAX], fU[NMAX], GU[NMAX];
+    memcpy(uU, ua, sizeof(double) * n);
+    memcpy(SU, S, sizeof(double) * n);
+    for (int a = 0; a < m; a++) {
+        uU[idx[a]] += k * y1[a] + k * k * y2[a];
+        SU[idx[a]] += k * y1[m + a] + k * k * y2[m + a];
+    }
+    if (eval_real(s, ta + k, uU, fU, msg, len)) return 1;
+    if (s->sens(s->ctx, c, ta + k, uU, SU, GU, NULL, msg, len)) return 1;
+    /* the defect D = F(z_U) - F(z0) - M (z_U - z0) / k - k F_t, on the block */
     for (int a = 0; a < m; a++) {
         int i = idx[a];
-        double cc = 2.0 * k * corr[a];
+        double du = fU[i] - f0[i] - k * L->Ft[i], dS = GU[i] - G0[i] - k * Gt[i];
+        for (int b = 0; b < m; b++) {
+            int j = idx[b];
+            du -= L->Jfull[i * n + j] * (uU[j] - ua[j]);
+            dS -= Gx[i * n + j] * (uU[j] - ua[j]) + L->Jfull[i * n + j] * (SU[j] - S[j]);
+        }
+        D[a] = du;
+        D[m + a] = dS;
+    }
+    matvec(m2, P3, D, corr);
+    memcpy(S1, SU, sizeof(double) * n);
+    memcpy(ub, uU, sizeof(double) * n);
+    double rt = s->sens_rtol > 0.0 ? s->sens_rtol : s->rtol;
+    for (int a = 0; a < m; a++) {
+        int i = idx[a];
+        ub[i] += 2.0 * k * corr[a];
+        double cc = 2.0 * k * corr[m + a];
         S1[i] += cc;
-        double sc = s->rtol * fmax(fmax(fmax(fabs(S[i]), fabs(S1[i])), s->Smax[c][i]),
-                                   s->sens_p[c] > 0.0 ? s->umax[i] / s->sens_p[c] : INFINITY);
+        double sc = rt * fmax(fmax(fmax(fabs(S[i]), fabs(S1[i])), s->Smax[c][i]),
+                              s->sens_p[c] > 0.0 ? s->umax[i] / s->sens_p[c] : INFINITY);
         if (sc > 0.0) *err = fmax(*err, fabs(cc) / sc);
     }
     for (int i = 0; i < n; i++)
@@ -1245,35 +1319,113 @@ static int sens_substep(Solver *s, const Linearization *L, int c, double ta, con
             snprintf(msg, len, "the sensitivities are not finite at t = %.17g (state %d, column %d)", ta + k, i, c + 1);
             return 1;
         }
+    *done = 1;
     return 0;
 }
 
+/* The columns over the states' accepted step from (t, u0) to (t + h, u1): every column at once (one call of the
+ * model's sensitivity equations for all, which share its Jacobian and rates) with one sub-step size; a column whose
+ * sub-step misses its tolerance steps with the states (sens_substep_aug) before the sub-step is shortened. */
 static int sens_step(Solver *s, const Linearization *L, double t, const double *u0, double h, const double *u1,
                      char *msg, size_t len)
 {
-    int n = s->n;
-    for (int c = 0; c < s->ns; c++) {
-        double tau = 0.0, k = h, ua[NMAX], ub[NMAX], S1[NMAX];
-        memcpy(ua, u0, sizeof(double) * n);
-        while (tau < h) {
-            k = fmin(k, h - tau);
-            int last = tau + k >= h;
-            if (last) memcpy(ub, u1, sizeof(double) * n);
-            else sens_state_at(s, L, u0, tau + k, ub);
-            double err;
-            if (sens_substep(s, L, c, t + tau, ua, k, ub, s->S[c], S1, &err, msg, len)) return 1;
-            double fac = err > 0.0 ? 0.9 * pow(err, -1.0 / 3.0) : 4.0;
-            if (err <= 1.0 || k <= h * 1e-3) {
-                memcpy(s->S[c], S1, sizeof(double) * n);
-                for (int i = 0; i < n; i++) s->Smax[c][i] = fmax(s->Smax[c][i], fabs(S1[i]));
-                tau = last ? h : tau + k;
-                memcpy(ua, ub, sizeof(double) * n);
-                /* never below the smallest sub-step accepted anyway: a huge error there (a column that blows up
-                 * across a switch) would otherwise shrink k until tau + k == tau, and the step never ends */
-                k = fmax(k * fmin(fac, 4.0), h * 1e-3);
-            } else {
-                k *= fmax(0.1, fmin(fac, 0.5));
+    int n = s->n, ns = s->ns;
+    double tau = 0.0, k = h, ua[NMAX], ub[NMAX];
+    double S1[SOLVER_SMAX][NMAX], G0[SOLVER_SMAX][NMAX], Gt[SOLVER_SMAX][NMAX], G1[SOLVER_SMAX][NMAX];
+    SensPhis ph;
+    ph.valid = 0;
+    memcpy(ua, u0, sizeof(double) * n);
+    while (tau < h) {
+        k = fmin(k, h - tau);
+        int last = tau + k >= h;
+        if (last) memcpy(ub, u1, sizeof(double) * n);
+        else sens_state_at(s, L, u0, tau + k, ub);
+        double ta = t + tau;
+        if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, Gt, msg, len)) return 1;
+        int act[NMAX], idx[NMAX], m = 0;
+        for (int i = 0; i < n; i++) {
+            act[i] = L->active[i];
+            for (int c = 0; c < ns; c++) {
+                if (!isfinite(G0[c][i]) || !isfinite(Gt[c][i])) {
+                    snprintf(msg, len, "the sensitivity equations are not finite at t = %.17g (state %d, column %d)",
+                             ta, i, c + 1);
+                    return 1;
+                }
+                act[i] = act[i] || s->S[c][i] != 0.0 || G0[c][i] != 0.0 || Gt[c][i] != 0.0;
             }
+        }
+        for (int changed = 1; changed;) {
+            changed = 0;
+            for (int j = 0; j < n; j++)
+                if (act[j])
+                    for (int i = 0; i < n; i++)
+                        if (!act[i] && L->Jfull[i * n + j] != 0.0) { act[i] = 1; changed = 1; }
+        }
+        for (int i = 0; i < n; i++)
+            if (act[i]) idx[m++] = i;
+        double err = 0.0, errc[SOLVER_SMAX] = {0.0};
+        for (int c = 0; c < ns; c++) memcpy(S1[c], s->S[c], sizeof(double) * n);
+        double rt = s->sens_rtol > 0.0 ? s->sens_rtol : s->rtol;
+        if (m > 0) {
+            sens_phis(&ph, L, n, idx, m, k);
+            for (int c = 0; c < ns; c++) {
+                double g0[NMAX], gt[NMAX], y1[NMAX], y2[NMAX];
+                for (int a = 0; a < m; a++) { g0[a] = G0[c][idx[a]]; gt[a] = Gt[c][idx[a]]; }
+                matvec(m, ph.P1, g0, y1);
+                matvec(m, ph.P2, gt, y2);
+                for (int a = 0; a < m; a++) S1[c][idx[a]] += k * y1[a] + k * k * y2[a];
+            }
+            if (s->sens_all(s->ctx, ns, ta + k, ub, (const double (*)[NMAX])S1, G1, NULL, msg, len)) return 1;
+            for (int c = 0; c < ns; c++) {
+                double D[NMAX], corr[NMAX];
+                for (int a = 0; a < m; a++) {
+                    int i = idx[a];
+                    double d = G1[c][i] - G0[c][i] - k * Gt[c][i];
+                    for (int b = 0; b < m; b++) d -= L->Jfull[i * n + idx[b]] * (S1[c][idx[b]] - s->S[c][idx[b]]);
+                    D[a] = d;
+                }
+                matvec(m, ph.P3, D, corr);
+                for (int a = 0; a < m; a++) {
+                    int i = idx[a];
+                    double cc = 2.0 * k * corr[a];
+                    S1[c][i] += cc;
+                    double sc = rt * fmax(fmax(fmax(fabs(s->S[c][i]), fabs(S1[c][i])), s->Smax[c][i]),
+                                          s->sens_p[c] > 0.0 ? s->umax[i] / s->sens_p[c] : INFINITY);
+                    if (sc > 0.0) errc[c] = fmax(errc[c], fabs(cc) / sc);
+                }
+                if (errc[c] > 1.0 && s->sens_aug) {
+                    /* the states' motion inside the sub-step too fast for a polynomial in time (a ringing):
+                     * this column steps with the states */
+                    double Sa[NMAX], uba[NMAX], erra;
+                    int done;
+                    if (sens_substep_aug(s, L, c, ta, ua, k, s->S[c], Sa, uba, &erra, &done, msg, len)) return 1;
+                    if (done) {
+                        errc[c] = erra;
+                        memcpy(S1[c], Sa, sizeof(double) * n);
+                    }
+                }
+                for (int i = 0; i < n; i++)
+                    if (!isfinite(S1[c][i])) {
+                        snprintf(msg, len, "the sensitivities are not finite at t = %.17g (state %d, column %d)",
+                                 ta + k, i, c + 1);
+                        return 1;
+                    }
+                err = fmax(err, errc[c]);
+            }
+        }
+        double fac = err > 0.0 ? 0.9 * pow(err, -1.0 / 3.0) : 4.0;
+        if (err <= 1.0 || k <= h * 1e-3) {
+            for (int c = 0; c < ns; c++) {
+                memcpy(s->S[c], S1[c], sizeof(double) * n);
+                for (int i = 0; i < n; i++) s->Smax[c][i] = fmax(s->Smax[c][i], fabs(S1[c][i]));
+            }
+            tau = last ? h : tau + k;
+            memcpy(ua, ub, sizeof(double) * n);
+            /* never below the smallest sub-step accepted anyway: a huge error there (a column that blows up across
+             * a switch) would otherwise shrink k until tau + k == tau, and the step never ends */
+            k = fmax(k * fmin(fac, 4.0), h * 1e-3);
+        } else {
+            k *= fmax(0.1, fmin(fac, 0.5));
         }
     }
     return 0;

@@ -22,6 +22,15 @@ typedef int (*solver_lin_fn)(void *ctx, double t, const double *u, double *du, d
 typedef int (*solver_sens_fn)(void *ctx, int col, double t, const double *u, const double *S, double *Fs, double *Fts,
                               char *msg, size_t msglen);
 
+/* solver_sens_fn for the first ns columns at once: S[c], Fs[c], Fts[c] (Fts NULL: not wanted) are column c. */
+typedef int (*solver_sens_all_fn)(void *ctx, int ns, double t, const double *u, const double (*S)[SOLVER_NMAX],
+                                  double (*Fs)[SOLVER_NMAX], double (*Fts)[SOLVER_NMAX], char *msg, size_t msglen);
+
+/* The same column's Fs = J S + df/dp e_col at (t, u), its Jacobian by the states at fixed S (n x n, row-major) and its
+ * explicit time derivative (the inputs' rates at fixed u and S). Returns as solver_rhs_fn. */
+typedef int (*solver_sens_aug_fn)(void *ctx, int col, double t, const double *u, const double *S, double *Fs,
+                                  double *Fsx, double *Fst, char *msg, size_t msglen);
+
 /* Next time > t at which the right-hand side has a kink in time (a load ramp starts or ends). */
 typedef double (*solver_breakpoint_fn)(void *ctx, double t);
 
@@ -70,7 +79,10 @@ typedef struct {
     double Smax[SOLVER_SMAX][SOLVER_NMAX];   /* running max |S|: the scale of their error control */
     double sens_p[SOLVER_SMAX];  /* |p| of each column: S_i is also measured against umax_i / |p| (a state's change
                                   * for a change of p by itself) */
+    double sens_rtol;            /* their local error tolerance (0: rtol; a least-squares Jacobian needs a few digits) */
     solver_sens_fn sens;
+    solver_sens_all_fn sens_all; /* NULL: one column at a time */
+    solver_sens_aug_fn sens_aug; /* NULL: the columns step alone, the states' motion in them a polynomial in time */
 } Solver;
 
 /* Bytes of the workspace (Solver.work) the solver uses for the phi functions applied to vectors. */

@@ -25,7 +25,7 @@ MO = ROOT / "modelica" / "ScrewVertebra.mo"
 GENERATED = ("sv_generated.c", "sv_generated.h", "sv_model.h")
 #: What fmu/model.c may read besides the parameters' validation: the solver's settings, the structural mode,
 #: the monitors and counters the solver fills.
-SOLVER_SIDE = {"mode", "rtol", "h_max", "monitors", "max_steps", "max_wall_s", "eps_v_eq", "eps_a_eq",
+SOLVER_SIDE = {"mode", "rtol", "sens_rtol", "h_max", "monitors", "max_steps", "max_wall_s", "eps_v_eq", "eps_a_eq",
                "a_y", "y_max", "v_y_max", "y_mean", "v_y_mean", "t_eq", "n_steps",
                # the forward sensitivities' selection and outputs (VR_sens_##name##_1: the generated outputs' names)
                "sens_p_1", "sens_"}

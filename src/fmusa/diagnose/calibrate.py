@@ -99,10 +99,17 @@ def can_be_significant(ext: Fit, base: Fit, delta_bic: float, p_value: float) ->
 
 #: per process, whether an FMU's runs with sensitivities cost less than the finite differences' runs, by FMU,
 #: drive, input and output: the first runner times it (:meth:`ModelRunner.sensitivities_pay`), the others of the
-#: process take its answer. Runs with sensitivities cost the states' run plus about the same per parameter
+#: process take its answer. Runs with sensitivities cost the states' run plus a part of it per parameter
 #: column, so the answer (that per-column cost below a run's) does not depend on how many parameters a candidate
 #: fits; timing it again for every candidate's runner cost a quarter of a force-driven diagnosis's CPU.
 _SENS_PAYS: dict[tuple, bool] = {}
+#: the local error tolerance of the forward sensitivities (the FMU's parameter ``sens_rtol``, where it has one): a
+#: least-squares Jacobian steers the steps and sizes the intervals, for which three digits are plenty; at the states'
+#: rtol (1e-5) the sensitivities' sub-steps made a run cost 15-90 plain ones (force-driven stiffening test, every
+#: candidate at its starts); at 1e-3, with the columns stepped together, 2.5-5 (k = 2-5). The Jacobian stays
+#: within 1e-3 of central differences of fresh runs (tests/test_sensitivities.py)
+SENS_RTOL = 1e-3
+SENS_RTOL_VARIABLE = "sens_rtol"
 
 
 class ModelRunner:
@@ -230,6 +237,8 @@ class ModelRunner:
             fmu_path, drive, names, fixed, rtol, interface = self._args
             md_vars = {v.name: v for v in self.runner.model_description.modelVariables}
             select = {f"sens_p[{k + 1}]": md_vars[interface.variable(n)].valueReference for k, n in enumerate(names)}
+            if SENS_RTOL_VARIABLE in md_vars:   # the Jacobian to a few digits, not to the states' rtol
+                select[SENS_RTOL_VARIABLE] = max(rtol, SENS_RTOL)
             runner = FMURunner(fmu_path, instance_name="diagnose")
             try:
                 plan = DrivenPlan(runner, [interface.variable(n) for n in names],
