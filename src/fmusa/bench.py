@@ -937,14 +937,18 @@ def _synthetic_force_test():
 
 
 def _timed_diagnosis(exps, drive: str, fmu, workers: int) -> dict:
-    """One whole diagnosis (every candidate, the chain, cold cache): wall and CPU seconds (this process
-    and its worker processes), its FMU runs by its own count, and its verdict."""
+    """One whole diagnosis (every candidate, the chain, cold cache, its fit workers started for it, as a new
+    user's first): wall and CPU seconds (this process and its worker processes), its FMU runs by its own count,
+    and its verdict."""
+    from fmusa.diagnose.fitcache import close_workers
     from fmusa.diagnose.run import diagnose
 
+    close_workers()
     c0, k0 = _cpu_s()
     t0 = time.perf_counter()
     d = diagnose(exps, drive, fmu_path=fmu, workers=workers)
     wall = time.perf_counter() - t0
+    close_workers()            # kept workers' CPU is counted once they have ended
     c1, k1 = _cpu_s()
     return {"wall_s": wall, "cpu_s": (c1 - c0) + (k1 - k0), "runs": d["runs"]["total"], "workers": workers,
             "runs_counted_by_fits": d["runs"]["counted_by_fits"], "depth": d["runs"]["depth"], "effect": d["effect"], "chain": [s["effect"] for s in d["chain"]],

@@ -64,6 +64,8 @@ class Fit:
     rounds: dict[str, int] = field(default_factory=dict)
     #: why the held-out refits were not made (a fit that cannot be significant: :func:`can_be_significant`)
     heldout_skipped: str = ""
+    #: wall seconds the fit took (its held-out refits included): the chain submits its costliest steps first
+    seconds: float = 0.0
 
     @property
     def aic(self) -> float:
@@ -107,7 +109,8 @@ _SENS_PAYS: dict[tuple, bool] = {}
 #: least-squares Jacobian steers the steps and sizes the intervals, for which three digits are plenty; at the states'
 #: rtol (1e-5) the sensitivities' sub-steps made a run cost 15-90 plain ones (force-driven stiffening test, every
 #: candidate at its starts); at 1e-3, with the columns stepped together, 2.5-5 (k = 2-5). The Jacobian stays
-#: within 1e-3 of central differences of fresh runs (tests/test_sensitivities.py)
+#: within 4e-4 of central differences of fresh runs there, but the damping's column under backlash, 1.8 %
+#: (fmu/MODEL.md)
 SENS_RTOL = 1e-3
 SENS_RTOL_VARIABLE = "sens_rtol"
 
@@ -711,6 +714,9 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
     fixed = {DAMPING: 0.0} if const else {}
     names = [p.name for p in model_parameters(effect, drive, sc) if p.name not in fixed]
     model = make_runner(fmu_path, drive, names, fixed, interface, parallel=parallel)
+    import time
+
+    t0 = time.perf_counter()
     try:
         fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed),
                         agree=agree, start=start, skip=skip)
@@ -721,6 +727,7 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
             fit.heldout_rmse = pooled_heldout(fit.heldout_folds)
         fit.runs = dict(model.runs)
         fit.rounds = dict(getattr(model, "rounds", {}) or {})
+        fit.seconds = time.perf_counter() - t0
     except Exception as exc:   # the runs spent go with the error (BudgetExhausted, or a fit that failed)
         exc.runs = dict(model.runs)
         raise

@@ -29,7 +29,7 @@ from fmusa.diagnose.calibrate import Fit, fit_candidate
 from fmusa.diagnose.interface import ModelInterface
 from fmusa.files import atomic_write
 
-__all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits", "map_in_pool"]
+__all__ = ["FitJob", "data_key", "fit_to_json", "fit_from_json", "run_fits", "map_in_pool", "close_workers"]
 
 #: (fmu path, candidate, drive, experiments, max_starts, interface[, parallel, agree, start, gate]): the
 #: arguments of fit_candidate.
@@ -121,7 +121,7 @@ def fit_to_json(f: Fit, key: str) -> dict:
             "predictions": [p.tolist() for p in f.predictions], "starts_tried": f.starts_tried, "nfev": f.nfev,
             "heldout_folds": list(f.heldout_folds), "at_bounds": list(f.at_bounds), "held": dict(f.held),
             "runs": dict(f.runs), "start_costs": list(f.start_costs), "rounds": dict(f.rounds),
-            "heldout_skipped": f.heldout_skipped,
+            "heldout_skipped": f.heldout_skipped, "seconds": f.seconds,
             "intervals": {k: ({n: list(v) for n, v in x.items()} if k == "gauss_newton" else x)
                           for k, x in f.intervals.items()}}
 
@@ -135,6 +135,7 @@ def fit_from_json(d: dict) -> Fit:
                at_bounds=list(d.get("at_bounds") or []), held=dict(d.get("held") or {}),
                runs=dict(d.get("runs") or {}), start_costs=list(d.get("start_costs") or []),
                rounds=dict(d.get("rounds") or {}), heldout_skipped=str(d.get("heldout_skipped") or ""),
+               seconds=float(d.get("seconds") or 0.0),
                intervals={k: ({n: tuple(v) for n, v in x.items()} if k == "gauss_newton" else x)
                           for k, x in (d.get("intervals") or {}).items()})
 
@@ -327,6 +328,12 @@ def _drop_pool(kill: bool = False) -> None:
         _kill_workers(pool.ex)
     else:
         pool.ex.shutdown(wait=True)
+
+
+def close_workers() -> None:
+    """End the kept fit workers (they stay alive from one diagnosis to the next): a benchmark's diagnosis then
+    starts them as a new user's first one does, and their CPU time reaches this process's children's."""
+    _drop_pool()
 
 
 def map_in_pool(fn, calls: Sequence[tuple], workers: int) -> list:

@@ -129,7 +129,7 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
                  experiments: Sequence, drive: str, fmu: str, max_starts: int, interface: ModelInterface,
                  workers: int, cache_dir, key: str, progress: bool, th: Thresholds, chain: int,
                  budget: RunBudget | None = None, agree: int = 0, runs: dict | None = None,
-                 removed: list | None = None) -> list[dict]:
+                 removed: list | None = None, singles: dict | None = None) -> list[dict]:
     """After the first effect, each remaining candidate on top of the model so far, while the best addition
     passes the same tests as the first (significant against the model so far: ΔBIC, held-out ratio, F test)
     and matters (:func:`rank.effect_size`). Each step: the effect, its gain over the model before it (fitted
@@ -143,7 +143,8 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
     ``runs``: filled with each step's fits (candidate name -> Fit or LeftOut; a refit under its own name), for
     the run count; when the run budget ends within a step, the chain stops there.
 
-    To spend fewer runs, each fit tries its first start (the model so far at its optimum) and at most
+    To spend fewer runs, each fit tries its first start (the model so far at its optimum, the added effect's own
+    parameters at their optimum alone, from ``singles``, the candidates' fits) and at most
     :data:`CHAIN_STARTS` generic ones, and an addition that fails the in-sample tests against the model so
     far or the physics check gets no held-out refits (:func:`calibrate.fit_candidate`'s ``gate``): neither
     can be the next step whatever its held-out score."""
@@ -172,8 +173,10 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
         # first start: the model so far at its optimum, the added effect at its own first start; no held-out
         # refits for an addition that cannot be significant against the model so far
         gate, lanes, starts = _gate(current, th), jacobian_lanes(workers, len(rest)), min(max_starts, CHAIN_STARTS)
+        # the costliest first (by its fit alone): the pool's last job is then a short one
+        cost = {c: getattr((singles or {}).get(c), "seconds", 0.0) for c in rest}
         jobs = [(fmu, f"{name}+{c}", drive, list(experiments), starts, interface, lanes, agree,
-                 dict(current.params), gate) for c in rest]
+                 _chain_start(current, (singles or {}).get(c)), gate) for c in sorted(rest, key=lambda c: -cost[c])]
         results = run_fits(jobs, workers, Path(cache_dir) if cache_dir else None, key, progress, budget)
         runs.update(results)
         if any(isinstance(r, LeftOut) for r in results.values()):
@@ -187,7 +190,7 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
                 # already): none left, and it would make the same runs again to the same end
                 if worse.starts_tried < 1 + starts:
                     refit = _refit_from(fmu, f"{name}+{c}", drive, experiments, starts, interface, current, gate,
-                                        jacobian_lanes(workers, 1), budget, skip=worse.starts_tried)
+                                        jacobian_lanes(workers, 1), budget, skip=worse.starts_tried, agree=agree)
                     runs[f"{name}+{c} (refit)"] = refit
                     if isinstance(refit, LeftOut):
                         ended = True
@@ -228,6 +231,14 @@ def effect_chain(base: Fit, ext: Fit, lead: str, members: Sequence[str], effect:
     return steps
 
 
+def _chain_start(current: Fit, single) -> dict:
+    """A chain step's first start: the model so far at its optimum; the added effect's own parameters at their
+    optimum alone where it was fitted (a generic start of interface damage on top of a stiffening let the
+    interface fail and run away, and its refit from the next starts was the diagnosis's longest tail)."""
+    own = single.params.items() if isinstance(single, Fit) else ()
+    return {**{k: v for k, v in own if k not in current.params}, **current.params}
+
+
 def worse_than(fit: Fit, nested: Fit) -> bool:
     """Whether a model's fit is worse than that of a model it contains by more than the optimiser's tolerance:
     a higher residual sum of squares by more than :data:`calibrate.AGREE_DBIC` in BIC units (n ln(rss/rss0)),
@@ -237,7 +248,7 @@ def worse_than(fit: Fit, nested: Fit) -> bool:
 
 def _refit_worse_than_baseline(results: dict, base: Fit, fmu: str, drive: str, experiments: Sequence,
                                max_starts: int, interface: ModelInterface, workers: int,
-                               budget: RunBudget | None) -> dict:
+                               budget: RunBudget | None, agree: int = 0) -> dict:
     """Every candidate nests the baseline (its effect switched off is the baseline), so a candidate's fit worse
     than the baseline's is an optimiser failure (seen: every start in a region where the FMU's runs fail, the
     fit stopped there after two evaluations). Each such fit is refitted from the baseline's optimum (the starts
@@ -248,7 +259,7 @@ def _refit_worse_than_baseline(results: dict, base: Fit, fmu: str, drive: str, e
         if name == "none" or not isinstance(first, Fit) or not worse_than(first, base):
             continue
         refit = _refit_from(fmu, name, drive, experiments, max_starts, interface, base, None,
-                            jacobian_lanes(workers, 1), budget, skip=first.starts_tried)
+                            jacobian_lanes(workers, 1), budget, skip=first.starts_tried, agree=agree)
         runs = _added(first.runs, getattr(refit, "runs", None) or {})
         if not isinstance(refit, Fit):
             refit.runs = runs               # the run budget ended in the refit
@@ -367,17 +378,17 @@ def run_depth(stages: dict) -> int:
 
 def _refit_from(fmu: str, model: str, drive: str, experiments: Sequence, max_starts: int,
                 interface: ModelInterface, previous: Fit, gate: dict | None = None, parallel: int = 1,
-                budget: RunBudget | None = None, skip: int = 0) -> Fit | LeftOut:
+                budget: RunBudget | None = None, skip: int = 0, agree: int = 0) -> Fit | LeftOut:
     """The extended ``model`` fitted again from every start, the first at the optimum of the model it extends,
-    less the first ``skip`` (tried already) (in this process, alone: on ``parallel`` FMU instances, its runs
-    taken from ``budget``; what it spent when that ended)."""
+    less the first ``skip`` (tried already), until ``agree`` starts agree as in the first fit (in this process,
+    alone: on ``parallel`` FMU instances, its runs taken from ``budget``; what it spent when that ended)."""
     from fmusa.diagnose import budget as rb
     from fmusa.diagnose.calibrate import fit_candidate
 
     old = rb.set_current(budget) if budget is not None else None
     try:
         return fit_candidate(fmu, model, drive, list(experiments), max_starts, interface, parallel=parallel,
-                             start=dict(previous.params), gate=gate, skip=skip)
+                             start=dict(previous.params), gate=gate, skip=skip, agree=agree)
     except rb.BudgetExhausted as exc:
         return LeftOut(f"{model} (refit)", dict(getattr(exc, "runs", {}) or {}))
     finally:
@@ -561,7 +572,7 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     if not isinstance(base, Fit):
         raise FMURunError(f"the baseline could not be fitted: {base}")
     refitted = _refit_worse_than_baseline(results, base, fmu, drive, experiments, max_starts, interface, workers,
-                                          budget)
+                                          budget, agree)
     line = straight_line(experiments, drive)
     line["baseline_not_worse"] = bool(base.rmse <= line["rmse"] * (1 + 1e-3) + 1e-12 * sc.F_pk)
     # the same equations under two parametrisations are scored as one model
@@ -579,7 +590,7 @@ def diagnose(experiments: Sequence, drive: str, fmu_path: str | os.PathLike | No
     chain_results: dict = {}
     steps = effect_chain(base, ext, lead, members, effect, candidates, experiments, drive, fmu, max_starts,
                          interface, workers, cache_dir, key, progress, thresholds, chain, budget, agree,
-                         chain_results, removed)
+                         chain_results, removed, fits)
     final = steps[-1]["fit"] if steps else ext
     res_final = _structure(final, experiments, drive) if len(steps) > 1 else res_ext
     averaging = averaging_check(fmu, drive, interface, base, final, steps, experiments, budget, cache_dir, key)
