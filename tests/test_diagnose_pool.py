@@ -52,8 +52,8 @@ def experiment():
 
 
 def assert_same_fit(a: Fit, b: Fit) -> None:
-    """The same fit but for its run counts: the Jacobian's method is chosen by timing runs of each kind
-    (:meth:`ModelRunner.sensitivities_pay`), and a busy machine can make that take a few runs fewer."""
+    """The same fit but for its run counts: the first fit of each process spends two runs on the choice of the
+    Jacobian's method (:meth:`ModelRunner.sensitivities_pay`)."""
     for k in ("effect", "n", "k", "starts_tried", "at_bounds", "heldout_skipped"):
         assert getattr(a, k) == getattr(b, k), k
     assert a.params.keys() == b.params.keys()

@@ -99,12 +99,13 @@ def can_be_significant(ext: Fit, base: Fit, delta_bic: float, p_value: float) ->
 
 # ---------------------------------------------------------------------- simulation
 
-#: per process, whether an FMU's runs with sensitivities cost less than the finite differences' runs, by FMU,
-#: drive, input and output: the first runner times it (:meth:`ModelRunner.sensitivities_pay`), the others of the
-#: process take its answer. Runs with sensitivities cost the states' run plus a part of it per parameter
-#: column, so the answer (that per-column cost below a run's) does not depend on how many parameters a candidate
-#: fits; timing it again for every candidate's runner cost a quarter of a force-driven diagnosis's CPU.
+#: per process, whether an FMU's Jacobians come from its sensitivities, by FMU, drive, input and output: the first
+#: runner decides (:meth:`ModelRunner.sensitivities_pay`), the others of the process take its answer.
 _SENS_PAYS: dict[tuple, bool] = {}
+#: a run with sensitivities that costs more than this many times the 1 + k runs of forward differences is not
+#: taken (measured on the force-driven stiffening test at every candidate's starts: 0.6-1.1 times; ScrewVertebra's
+#: sensitivities before their columns stepped together: up to 40 times)
+SENS_TOO_SLOW = 10.0
 #: the local error tolerance of the forward sensitivities (the FMU's parameter ``sens_rtol``, where it has one): a
 #: least-squares Jacobian steers the steps and sizes the intervals, for which three digits are plenty; at the states'
 #: rtol (1e-5) the sensitivities' sub-steps made a run cost 15-90 plain ones (force-driven stiffening test, every
@@ -191,10 +192,11 @@ class ModelRunner:
         return self._simulate(self.plan, values, experiments)
 
     def sensitivities_pay(self, values: Sequence[float], experiments: Sequence) -> bool:
-        """Whether a run with the forward sensitivities costs less than the 1 + k runs of a forward-difference
-        Jacobian (k parameters): timed once per runner, the faster of two runs of each kind at ``values`` (all
-        counted), so that a busy machine's pauses do not decide. A fast FMU whose sensitivities cost more than the
-        runs they save keeps the finite differences."""
+        """Whether the Jacobians come from the FMU's forward sensitivities (one run) rather than forward
+        differences (1 + k runs): yes, unless a run with them fails or costs far more than the differences' runs
+        (timed once per runner, one run of each kind at ``values``, both counted). The choice is otherwise not
+        a race of timings: on a busy machine a close one would go either way, and the fit's last digits with
+        it, from one diagnosis of the same data to the next."""
         key = (str(self._args[0]), self._args[1], self.input_name, self.output)
         if self._sens_pays is None and key in _SENS_PAYS:
             self._sens_pays = _SENS_PAYS[key]
@@ -211,22 +213,13 @@ class ModelRunner:
                 # (not remembered for the FMU: a failed run says nothing of what the sensitivities cost)
                 self._sens_pays = False
                 return False
-            if time.perf_counter() - t1 > 10.0 * (1 + len(self._sens_outputs)) * (t1 - t0) + 0.05:
-                # far slower even with the instance's opening: not worth two more runs to time it (seen: 2.6 s
-                # against 6.5 ms plain, a column whose sub-steps all sit at the smallest size): not remembered for
-                # the FMU either, since such a column is a matter of this point
+            if time.perf_counter() - t1 > SENS_TOO_SLOW * (1 + len(self._sens_outputs)) * (t1 - t0) + 0.05:
+                # far slower even with the instance's opening (seen: 2.6 s against 6.5 ms plain, a column whose
+                # sub-steps all sat at the smallest size): not remembered for the FMU either, since such a column
+                # is a matter of this point
                 self._sens_pays = False
                 return False
-            plain, sens = [], []
-            for _ in range(2):
-                t0 = time.perf_counter()
-                self.predict(values, experiments[:1])
-                t1 = time.perf_counter()
-                self.predict_with_jacobian(values, experiments[:1])
-                plain.append(t1 - t0)
-                sens.append(time.perf_counter() - t1)
-            self._sens_pays = min(sens) < (1 + len(self._sens_outputs)) * min(plain)
-            _SENS_PAYS[key] = self._sens_pays
+            self._sens_pays = _SENS_PAYS[key] = True
         return self._sens_pays
 
     def predict_with_jacobian(self, values: Sequence[float], experiments: Sequence) -> tuple[list, list]:

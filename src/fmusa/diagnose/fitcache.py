@@ -255,7 +255,8 @@ def _new_pool(n: int, budget: rb.RunBudget | None, started) -> ProcessPoolExecut
 class _SharedPool:
     """The fit workers kept from one :func:`run_fits` to the next (a diagnosis calls it once per stage, a
     shear study once per stage of each of its 30 units): a spawned worker costs about 2 s of CPU to start
-    (the interpreter, numpy, scipy, fmpy) and times an FMU's sensitivities once (``calibrate._SENS_PAYS``).
+    (the interpreter, numpy, scipy, fmpy) and decides once whether to take an FMU's sensitivities
+    (``calibrate._SENS_PAYS``).
 
     The run budget passes to workers only at their start, so the pool has a counter and a limit of its own,
     lent to each call's budget (:meth:`lent`); the started flags (which job a dead worker may have held) are
