@@ -258,7 +258,7 @@ def generated(tmp_path_factory) -> tuple[str, str]:
 def with_sensitivities(modelica: list[Var], model: str = MODEL) -> list[Var]:
     """The model's variables and after them those of its forward sensitivities, as the generator's
     SENSITIVITIES states them (k = 1..K): Integer parameters sens_p[k] (start 0), then per named output the Real
-    outputs sens_<output>[k], value references continuing the model's."""
+    outputs sens_<output>[k], then their tolerance sens_rtol (start 0), value references continuing the model's."""
     facts = contract.generator().SENSITIVITIES.get(model)
     units = {v.name: v.unit for v in modelica}
     if not facts or not any(name in units for name in facts["outputs"]):
@@ -278,6 +278,10 @@ def with_sensitivities(modelica: list[Var], model: str = MODEL) -> list[Var]:
                            description=f"Forward sensitivity of {name} by the parameter sens_p[{k}] selects: d {name} "
                                        f"/ d parameter, in {units[name] or '1'} per the parameter's unit (0 when "
                                        f"sens_p[{k}] = 0)"))
+    out.append(Var(vr=len(out) + 1, name="sens_rtol", type="Real", causality="parameter", variability="fixed",
+                   initial="exact", unit=None, start=0, declared_start=0,
+                   description="Relative local error tolerance of the forward sensitivities (0: rtol); a "
+                               "least-squares Jacobian needs a few digits, not the states' accuracy"))
     return out
 
 
