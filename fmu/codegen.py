@@ -478,22 +478,21 @@ SENS_BATCH = 4
 
 
 def sensitivity_functions(dae: Dae, v: Variant, outputs: tuple[str, ...], columns: int) -> list:
-    """The forward sensitivities of a variant in one parameter direction E (the unit vector of the selected
-    parameter; the FMU calls them once per selected parameter): S' = J S + (df/dp) E for S = dx/dp E, and
-    the output sensitivities (dh/dx) S + (dh/dp) E. The derived parameters are functions of p in the variant's
-    equations (Dae.fix), so these are total derivatives. For the solver's exponential step of S, the time
-    derivative of S' along the states' own motion: d/dt (J S + f_p E) at fixed S, with x' = f and the inputs'
-    rates (``_sens_lin``); ``_sens_rhs`` gives S' alone. ``_sens_aug``: S', its Jacobian by the states at fixed S
-    (row-major) and its explicit time derivative (the inputs' rates, not the states' motion): the solver steps
-    (x, S) together with them, so that a ringing x moves S through that Jacobian instead of through a
-    polynomial in time. ``_sens_lin_all`` and ``_sens_rhs_all``: ``_sens_lin`` and ``_sens_rhs`` for all ``columns``
-    columns at once (S and E n x columns and np x columns, column-major; the columns share J and the states' rates,
-    which one column at a time cost as much as the states' own step)."""
+    """The forward sensitivities of a variant: S' = J S + (df/dp) E for S = dx/dp E in the parameter direction E
+    (the unit vector of a selected parameter), and the output sensitivities (dh/dx) S + (dh/dp) E. The derived
+    parameters are functions of p in the variant's equations (Dae.fix), so these are total derivatives.
+    ``_sens_lin_all``: S' for ``columns`` columns at once (S and E n x columns and np x columns, column-major: the
+    columns share J and the states' rates, which one column at a time cost as much as the states' own step) and,
+    for the solver's exponential step of S, its time derivative along the states' own motion, d/dt (J S + f_p E)
+    at fixed S with x' = f and the inputs' rates; ``_sens_rhs_all``: S' alone. ``_sens_rhs``: S' of one column.
+    ``_sens_aug`` (a variant whose states move freely, not a prescribed motion): one column's S', its Jacobian by
+    the states at fixed S (row-major) and its explicit time derivative (the inputs' rates): the solver steps
+    (x, S) together with them where a ringing x would move S faster than a polynomial in time can follow.
+    ``_sens_out``: the outputs' sensitivities of one column."""
     pre, name = dae.spec.prefix, v.name
     S = ca.SX.sym("S", len(dae.states))
     E = ca.SX.sym("E", dae.p.numel())
     Fs = ca.mtimes(v.J, S) + ca.jtimes(v.xd, dae.p, E)
-    Fts = ca.jtimes(Fs, dae.t, ca.SX(1)) + ca.jtimes(Fs, dae.u, dae.ud) + ca.jtimes(Fs, dae.x, v.xd)
     ins = [dae.t, dae.x, dae.p, dae.d, dae.u, dae.ud, S, E]
     names = ["t", "x", "p", "d", "u", "ud", "S", "E"]
     missing = [o for o in outputs if o not in v.zs]
@@ -509,15 +508,14 @@ def sensitivity_functions(dae: Dae, v: Variant, outputs: tuple[str, ...], column
                       FsK.shape)
     insK = [dae.t, dae.x, dae.p, dae.d, dae.u, dae.ud, SK, EK]
     out = [ca.Function(f"{pre}{name}_sens_lin_all", insK, [ca.densify(FsK), ca.densify(FtsK)], names, ["Fs", "Fts"]),
-           ca.Function(f"{pre}{name}_sens_rhs_all", insK, [ca.densify(FsK)], names, ["Fs"])]
-    out += [ca.Function(f"{pre}{name}_sens_lin", ins, [ca.densify(Fs), ca.densify(Fts)],
-                       names, ["Fs", "Fts"]),
-           ca.Function(f"{pre}{name}_sens_rhs", ins, [ca.densify(Fs)], names, ["Fs"]),
-           ca.Function(f"{pre}{name}_sens_aug", ins,
-                       [ca.densify(Fs), ca.densify(ca.jacobian(Fs, dae.x).T),
-                        ca.densify(ca.jtimes(Fs, dae.t, ca.SX(1)) + ca.jtimes(Fs, dae.u, dae.ud))],
-                       names, ["Fs", "Fsx", "Fst"]),
-           ca.Function(f"{pre}{name}_sens_out", ins, [ca.densify(dh)], names, ["dout"])]
+           ca.Function(f"{pre}{name}_sens_rhs_all", insK, [ca.densify(FsK)], names, ["Fs"]),
+           ca.Function(f"{pre}{name}_sens_rhs", ins, [ca.densify(Fs)], names, ["Fs"])]
+    if not v.drive:
+        out.append(ca.Function(f"{pre}{name}_sens_aug", ins,
+                               [ca.densify(Fs), ca.densify(ca.jacobian(Fs, dae.x).T),
+                                ca.densify(ca.jtimes(Fs, dae.t, ca.SX(1)) + ca.jtimes(Fs, dae.u, dae.ud))],
+                               names, ["Fs", "Fsx", "Fst"]))
+    out.append(ca.Function(f"{pre}{name}_sens_out", ins, [ca.densify(dh)], names, ["dout"]))
     return out
 
 

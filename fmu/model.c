@@ -234,13 +234,12 @@ static int lin(void *ctx, double t, const double *x, double *du, double *J, doub
     return 0;
 }
 
-static int sens(void *ctx, int col, double t, const double *x, const double *S, double *Fs, double *Fts, char *msg,
-                size_t len)
+static int sens(void *ctx, int col, double t, const double *x, const double *S, double *Fs, char *msg, size_t len)
 {
     ModelInstance *mi = ctx;
     if (domain(t, x, msg, len)) return 1;
-    double *res[SV_SZ_RES] = {Fs, Fts};
-    if (call_sens(mi, Fts ? mi->f_sens_lin : mi->f_sens_rhs, t, x, S, mi->E[col], res)) {
+    double *res[SV_SZ_RES] = {Fs};
+    if (call_sens(mi, mi->f_sens_rhs, t, x, S, mi->E[col], res)) {
         snprintf(msg, len, "the generated sensitivity equations failed at t = %.17g", t);
         return 1;
     }
@@ -436,9 +435,8 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     mi->f_lin = motion ? sv_motion_full_lin : core ? sv_force_core_lin : sv_force_full_lin;
     mi->f_out = motion ? sv_motion_full_out : core ? sv_force_core_out : sv_force_full_out;
     mi->f_drive = motion ? sv_motion_full_drive : NULL;
-    mi->f_sens_lin = motion ? sv_motion_full_sens_lin : sv_force_full_sens_lin;
     mi->f_sens_rhs = motion ? sv_motion_full_sens_rhs : sv_force_full_sens_rhs;
-    mi->f_sens_aug = motion ? sv_motion_full_sens_aug : sv_force_full_sens_aug;
+    mi->f_sens_aug = motion ? NULL : sv_force_full_sens_aug;   /* a prescribed motion does not ring */
     mi->f_sens_lin_all = motion ? sv_motion_full_sens_lin_all : sv_force_full_sens_lin_all;
     mi->f_sens_rhs_all = motion ? sv_motion_full_sens_rhs_all : sv_force_full_sens_rhs_all;
     mi->f_sens_out = motion ? sv_motion_full_sens_out : sv_force_full_sens_out;
@@ -467,7 +465,7 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->breakpoint = next_breakpoint;
     sv->ns = mi->n_sens;
     sv->sens = sens;
-    sv->sens_aug = sens_aug;
+    sv->sens_aug = mi->f_sens_aug ? sens_aug : NULL;
     sv->sens_all = sens_all;
     for (int c = 0; c < mi->n_sens; c++) sv->sens_p[c] = p_abs[c];
     sv->ctx = mi;

@@ -53,7 +53,7 @@ typedef struct ModelInstance {
     int n_sens;
     int sens_col[SV_NSENS];  /* k of sens_p[k] (0-based) of each solver column */
     double E[SV_NSENS][SV_NP];
-    sv_function f_sens_lin, f_sens_rhs, f_sens_lin_all, f_sens_rhs_all, f_sens_aug, f_sens_out, f_sens_drive;
+    sv_function f_sens_rhs, f_sens_lin_all, f_sens_rhs_all, f_sens_aug, f_sens_out, f_sens_drive;
     int iw[SV_SZ_IW];        /* work arrays of the generated functions */
     double w[SV_SZ_W];
     Solver solver;

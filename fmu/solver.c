@@ -1288,7 +1288,7 @@ static int sens_substep_aug(Solver *s, const Linearization *L, int c, double ta,
         SU[idx[a]] += k * y1[m + a] + k * k * y2[m + a];
     }
     if (eval_real(s, ta + k, uU, fU, msg, len)) return 1;
-    if (s->sens(s->ctx, c, ta + k, uU, SU, GU, NULL, msg, len)) return 1;
+    if (s->sens(s->ctx, c, ta + k, uU, SU, GU, msg, len)) return 1;
     /* the defect D = F(z_U) - F(z0) - M (z_U - z0) / k - k F_t, on the block */
     for (int a = 0; a < m; a++) {
         int i = idx[a];

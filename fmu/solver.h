@@ -17,12 +17,12 @@ typedef int (*solver_rhs_fn)(void *ctx, double t, const double *u, double *du, c
 typedef int (*solver_lin_fn)(void *ctx, double t, const double *u, double *du, double *J, double *Ft, char *msg,
                              size_t msglen);
 
-/* Forward sensitivities, column col: Fs = J S + df/dp e_col at (t, u) for S = du/dp e_col, and (Fts not NULL) its
- * time derivative at fixed S along the states' motion. Returns as solver_rhs_fn. */
-typedef int (*solver_sens_fn)(void *ctx, int col, double t, const double *u, const double *S, double *Fs, double *Fts,
-                              char *msg, size_t msglen);
+/* Forward sensitivities, column col: Fs = J S + df/dp e_col at (t, u) for S = du/dp e_col. Returns as solver_rhs_fn. */
+typedef int (*solver_sens_fn)(void *ctx, int col, double t, const double *u, const double *S, double *Fs, char *msg,
+                              size_t msglen);
 
-/* solver_sens_fn for the first ns columns at once: S[c], Fs[c], Fts[c] (Fts NULL: not wanted) are column c. */
+/* The first ns columns at once: Fs[c] as solver_sens_fn's for S[c], and (Fts not NULL) Fts[c], its time derivative
+ * at fixed S along the states' motion. Returns as solver_rhs_fn. */
 typedef int (*solver_sens_all_fn)(void *ctx, int ns, double t, const double *u, const double (*S)[SOLVER_NMAX],
                                   double (*Fs)[SOLVER_NMAX], double (*Fts)[SOLVER_NMAX], char *msg, size_t msglen);
 
@@ -82,7 +82,7 @@ typedef struct {
     double sens_rtol;            /* their local error tolerance (0: rtol; a least-squares Jacobian needs a few digits) */
     solver_sens_fn sens;
     solver_sens_all_fn sens_all; /* NULL: one column at a time */
-    solver_sens_aug_fn sens_aug; /* NULL: the columns step alone, the states' motion in them a polynomial in time */
+    solver_sens_aug_fn sens_aug; /* NULL: the states' motion enters the columns only as a polynomial in time */
 } Solver;
 
 /* Bytes of the workspace (Solver.work) the solver uses for the phi functions applied to vectors. */
