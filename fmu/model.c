@@ -246,6 +246,8 @@ static int sens(void *ctx, int col, double t, const double *x, const double *S, 
     return 0;
 }
 
+typedef char sens_batches_tile_E[(SV_NSENS % SV_NSENS_BATCH == 0) ? 1 : -1];   /* a batch never runs past E */
+
 /* Every column at once, in batches of SV_NSENS_BATCH (S[c], Fs[c], Fts[c]: column c; a batch's unused columns are 0
  * in E and S). */
 static int sens_all(void *ctx, int ns, double t, const double *x, const double (*S)[SOLVER_NMAX],
@@ -255,14 +257,11 @@ static int sens_all(void *ctx, int ns, double t, const double *x, const double (
     if (domain(t, x, msg, len)) return 1;
     for (int c0 = 0; c0 < ns; c0 += SV_NSENS_BATCH) {      /* the generated functions take a batch of columns */
         int nb = ns - c0 < SV_NSENS_BATCH ? ns - c0 : SV_NSENS_BATCH;
-        double SK[SV_NSENS_BATCH * NX] = {0}, EK[SV_NSENS_BATCH * SV_NP] = {0};
-        double FK[SV_NSENS_BATCH * NX], FtK[SV_NSENS_BATCH * NX];
-        for (int b = 0; b < nb; b++) {
-            memcpy(SK + b * NX, S[c0 + b], sizeof(double) * NX);
-            memcpy(EK + b * SV_NP, mi->E[c0 + b], sizeof(double) * SV_NP);
-        }
+        double SK[SV_NSENS_BATCH * NX] = {0}, FK[SV_NSENS_BATCH * NX], FtK[SV_NSENS_BATCH * NX];
+        for (int b = 0; b < nb; b++) memcpy(SK + b * NX, S[c0 + b], sizeof(double) * NX);
+        /* E's rows are the batch's columns as they stand (column-major np x batch), the unselected ones 0 */
         double *res[SV_SZ_RES] = {FK, Fts ? FtK : NULL};
-        if (call_sens(mi, Fts ? mi->f_sens_lin_all : mi->f_sens_rhs_all, t, x, SK, EK, res)) {
+        if (call_sens(mi, Fts ? mi->f_sens_lin_all : mi->f_sens_rhs_all, t, x, SK, mi->E[c0], res)) {
             snprintf(msg, len, "the generated sensitivity equations failed at t = %.17g", t);
             return 1;
         }

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
@@ -201,8 +202,6 @@ class ModelRunner:
         if self._sens_pays is None and key in _SENS_PAYS:
             self._sens_pays = _SENS_PAYS[key]
         if self._sens_pays is None:
-            import time
-
             try:
                 t0 = time.perf_counter()
                 self.predict(values, experiments[:1])
@@ -707,8 +706,6 @@ def fit_candidate(fmu_path: str, effect: str, drive: str, experiments: Sequence,
     fixed = {DAMPING: 0.0} if const else {}
     names = [p.name for p in model_parameters(effect, drive, sc) if p.name not in fixed]
     model = make_runner(fmu_path, drive, names, fixed, interface, parallel=parallel)
-    import time
-
     t0 = time.perf_counter()
     try:
         fit = calibrate(model, effect, drive, experiments, sc, max_starts=max_starts, held=tuple(fixed),
