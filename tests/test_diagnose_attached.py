@@ -23,7 +23,9 @@ SHARED = Path(os.environ.get("FMUSA_SHARED_DIR") or ROOT.parent / "shared")
 OM = SHARED / "vendor-fmus" / "OM1193_Mass_Damper.fmu"
 ELEMENT = ROOT / "dist" / "InterfaceElement.fmu"
 
-pytestmark = pytest.mark.skipif(not ELEMENT.is_file(), reason="dist/InterfaceElement.fmu is not built (make fmu)")
+pytestmark = [pytest.mark.skipif(not ELEMENT.is_file(), reason="dist/InterfaceElement.fmu is not built (make fmu)"),
+              pytest.mark.skipif(not OM.is_file(), reason=f"{OM} is not there (the shared vendor exports; "
+                                                          "set FMUSA_SHARED_DIR)")]
 
 #: the effect whose coupled run is checked in `make test` (the others with --run-slow)
 CI_EFFECTS = ("backlash_gap",)
