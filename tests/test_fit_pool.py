@@ -4,6 +4,10 @@ a run budget lent to them counts for the diagnosis that lent it."""
 from __future__ import annotations
 
 import os
+import time
+from concurrent.futures.process import BrokenProcessPool
+
+import pytest
 
 from fmusa.diagnose import budget as rb
 from fmusa.diagnose import fitcache
@@ -30,6 +34,26 @@ def test_workers_are_kept_between_calls_and_replaced_when_the_environment_change
     monkeypatch.chdir(tmp_path)
     moved = set(fitcache.map_in_pool(_pid, [()] * 6, 2))
     assert not moved & changed, (changed, moved)  # and a new working directory (relative paths)
+    fitcache._drop_pool()
+
+
+def _square_or_die(i: int, die: int) -> int:
+    """i squared, or the worker's process ends (as an FMU that crashes ends it) when i is ``die``."""
+    if i == die:
+        time.sleep(0.5)            # the others are done first
+        os._exit(3)
+    return i * i
+
+
+def test_each_in_pool_gives_each_result_when_done_and_what_was_done_when_a_worker_died():
+    assert dict(fitcache.each_in_pool(_square_or_die, [(i, -1) for i in range(5)], 2)) == {i: i * i for i in range(5)}
+    got = {}
+    with pytest.raises(BrokenProcessPool, match="worker process died"):
+        for i, r in fitcache.each_in_pool(_square_or_die, [(i, 4) for i in range(5)], 2):
+            got[i] = r
+    assert got == {i: i * i for i in range(4)}       # every call done before the crash, none after
+    assert fitcache._POOL is None                      # the broken pool is dropped
+    assert dict(fitcache.each_in_pool(_square_or_die, [(2, -1), (3, -1)], 2)) == {0: 4, 1: 9}   # a new one
     fitcache._drop_pool()
 
 

@@ -306,3 +306,25 @@ def test_build_without_cmake_falls_back_to_the_c_compiler(tmp_path, monkeypatch)
         assert me.interface == "model-exchange"
         assert me.run_final({"c": 400.0}, 3.0, ["y"])["y"] == pytest.approx(0.025, rel=1e-4)
     assert (built / "binaries" / "linux64" / "spring.so").is_file()   # a directory is used in place
+
+
+# ---------------------------------------------------------------------------- a driven run that fails
+def test_a_driven_run_that_fails_names_the_step_the_call_and_the_fmus_words(fmu_path):
+    """A measured drive through ScrewVertebra with a work budget of five internal steps: the run stops in its
+    first communication step that needs more. The error names that step, fmi2DoStep and its status, and the
+    FMU's own message; the instance is usable for the next run (which then succeeds)."""
+    from fmusa.fmi.info import FMURunError
+    from fmusa.fmi.plans import DrivenPlan
+
+    t = np.linspace(0.0, 1.0, 21)
+    y = np.interp(t, [0.0, 0.5, 1.0], [0.0, 1e-3, 1e-3])
+    with FMURunner(fmu_path) as r:
+        fixed = {"mode": 2.0, "use_y_in": 1.0, "max_steps": 5.0}
+        plan = DrivenPlan(r, ["c_y", "d_y"], fixed, "y_in", ["F_meas"])
+        with pytest.raises(FMURunError) as info:
+            plan([2e5, 100.0], t, y)
+        msg = str(info.value)
+        assert re.search(r"in the communication step from t = [0-9.e-]+ s to [0-9.e-]+ s", msg), msg
+        assert "fmi2DoStep" in msg and "work budget used up" in msg, msg
+        ok = DrivenPlan(r, ["c_y", "d_y"], {"mode": 2.0, "use_y_in": 1.0}, "y_in", ["F_meas"])([2e5, 100.0], t, y)
+    assert np.all(np.isfinite(ok)) and ok[-1, 0] == pytest.approx(2e5 * 1e-3, rel=0.05)

@@ -195,9 +195,55 @@ def test_the_sensitivity_outputs_are_found_in_the_model_description(fmu_path):
 
     md = read_model_description(str(fmu_path))
     assert sensitivity_outputs(md, "F_meas", ["c_y", "d_y"]) == ["sens_F_meas[1]", "sens_F_meas[2]"]
-    assert sensitivity_outputs(md, "y_meas", ["c_y"] * 9) == []       # more than the FMU offers
+    # more parameters than the FMU offers sensitivities for: the first eight (the others by differences)
+    assert sensitivity_outputs(md, "y_meas", ["c_y"] * 9) == [f"sens_y_meas[{k}]" for k in range(1, 9)]
+    assert sensitivity_outputs(md, "y_meas", ["c_y", "no_such"]) == []    # a parameter the FMU lacks
     assert sensitivity_outputs(md, "F_pull", ["c_y"]) == []             # an output without them
 
+
+
+def test_a_model_with_more_parameters_than_sensitivities_differences_the_rest(fmu_path):
+    """Nine parameters (a stiffening, interface damage and a Maxwell branch under a prescribed motion, a chain
+    step of a real shear unit): eight columns of the Jacobian from the run's sensitivities, the ninth from one
+    more run, where nine finite-difference runs were taken before (a third of that unit's runs). Every column
+    agrees with forward differences of fresh runs; the runs are counted."""
+    from fmusa.diagnose.calibrate import ModelRunner, Residuals, parameter_bounds, response_scale
+    from fmusa.diagnose.effects import data_scales, model_parameters
+    from fmusa.diagnose.measured import Experiment
+
+    t = np.linspace(0.0, 1.3, 60)
+    y = np.interp(t, [0.0, 1.0, 1.3], [0.0, 1.2e-3, 1.2e-3])
+    exp = Experiment(name="synthetic", path=Path("synthetic.csv"), drive="displacement", t=t, displacement=y,
+                     force=150.0 * y / 1.2e-3)
+    sc = data_scales([exp])
+    effect = "nonlinear_stiffness+interface_damage+viscoelastic_relaxation"
+    params = model_parameters(effect, "displacement", sc)
+    assert len(params) == 9
+    lo, hi = parameter_bounds(params)
+    x = lo + 0.37 * (hi - lo)
+    jacobians, runs = {}, {}
+    # the sensitivities (the ninth by the optimiser's differences), the optimiser's differences (a step of 1e-4 on
+    # its scale: a fifth of nl_y_b), and differences at a step of 1e-7 as the reference
+    for mode, rel_step in (("exact", 1e-4), ("fd", 1e-4), ("reference", 1e-7)):
+        model = ModelRunner(fmu_path, "displacement", [p.name for p in params])
+        try:
+            assert model.has_sensitivities and len(model._sens_outputs) == 8
+            model.has_sensitivities = mode == "exact"
+            fn = Residuals(model, params, [exp], [np.ones(len(t), bool)], response_scale("displacement", sc), lo, hi,
+                           rel_step=rel_step)
+            fn(x)
+            jacobians[mode] = fn.jac(x)
+            runs[mode] = model.runs["fit"]
+        finally:
+            model.close()
+    assert runs["exact"] == 2 and runs["fd"] == 1 + 9, runs    # one run with sensitivities and one difference
+    ex, ref = jacobians["exact"], jacobians["reference"]
+    for j, p in enumerate(params[:8]):
+        err = np.max(np.abs(ex[:, j] - ref[:, j])) / np.max(np.abs(ref[:, j]))
+        # measured: 7.6e-9 (d_y) to 1.1e-2 (nl_y_b, the rounded corner), at the sensitivities' tolerance of 1e-3
+        assert err <= 3e-2, f"d r / d {p.name}: {err:.2e} of its largest value off the reference differences"
+    np.testing.assert_array_equal(ex[:, 8], jacobians["fd"][:, 8])      # the ninth: the optimiser's differences
+    assert np.max(np.abs(ex[:, 8] - ref[:, 8])) <= 1e-3 * np.max(np.abs(ref[:, 8]))
 
 
 def _damage_case():

@@ -198,9 +198,22 @@ def test_report_on_other_specimens_names_them(fmu_path, tmp_path):
     _copy_specimen(data, "H10", "Ant")
     _copy_specimen(data, "H11", "Pos")
     out = tmp_path / "out"
-    s = run_shear_diagnosis(out, data, fmu_path=str(fmu_path), max_points=60, workers=1, max_starts=2,
+    # two workers: the units side by side, each in a worker with its fits one after another
+    s = run_shear_diagnosis(out, data, fmu_path=str(fmu_path), max_points=60, workers=2, max_starts=2,
                             candidates=("nonlinear_stiffness", "sensor_offset"))
     assert list(s["groups"]) == ["H10_Ant", "H11_Pos"]
+    # the same diagnosis as the unit's own, run here with its fits one after another
+    from fmusa.applications.shear_c67 import data as shear_c67
+    from fmusa.diagnose.run import run_diagnosis
+
+    tests = shear_c67.list_tests(data)
+    exps = [shear_c67.load_test(r, max_points=60) for _, r in tests[tests.specimen == "H11"].iterrows()]
+    alone = run_diagnosis(exps, "displacement", tmp_path / "alone", fmu_path=str(fmu_path), workers=1, max_starts=2,
+                          candidates=("nonlinear_stiffness", "sensor_offset"), progress=False)
+    unit = json.loads((out / "H11_Pos" / "diagnosis.json").read_text())
+    assert unit["effect"] == alone["effect"] and unit["runs"]["total"] == alone["runs"]["total"]
+    for name, v in alone["baseline"]["params"].items():
+        assert unit["baseline"]["params"][name] == pytest.approx(v, rel=1e-12), name
     assert s["data"]["specimens"] == ["H10", "H11"] and s["data"]["tests"] == 6
     assert json.loads((out / "summary.json").read_text())["data"]["specimens"] == ["H10", "H11"]
     text = (out / "report.md").read_text()

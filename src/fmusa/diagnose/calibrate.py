@@ -224,14 +224,16 @@ class ModelRunner:
     def predict_with_jacobian(self, values: Sequence[float], experiments: Sequence) -> tuple[list, list]:
         """:meth:`predict` and, from the same run, the derivatives of each experiment's response by the fitted
         parameters in natural units (samples x parameters), from the FMU's forward sensitivities (one run per
-        experiment, as :meth:`predict`). Only when :attr:`has_sensitivities`."""
+        experiment, as :meth:`predict`): by the first of them, as many as the FMU offers sensitivities for
+        (:func:`sensitivity_outputs`). Only when :attr:`has_sensitivities`."""
         if self._sens is None:
             from fmusa.fmi.plans import DrivenPlan
             from fmusa.fmi.runner import FMURunner
 
             fmu_path, drive, names, fixed, rtol, interface = self._args
             md_vars = {v.name: v for v in self.runner.model_description.modelVariables}
-            select = {f"sens_p[{k + 1}]": md_vars[interface.variable(n)].valueReference for k, n in enumerate(names)}
+            select = {f"sens_p[{k + 1}]": md_vars[interface.variable(n)].valueReference
+                      for k, n in enumerate(names[:len(self._sens_outputs)])}
             if SENS_RTOL_VARIABLE in md_vars:   # the Jacobian to a few digits, not to the states' rtol
                 select[SENS_RTOL_VARIABLE] = max(rtol, SENS_RTOL)
             runner = FMURunner(fmu_path, instance_name="diagnose")
@@ -305,19 +307,20 @@ class ModelRunner:
 
 
 def sensitivity_outputs(model_description, output: str, parameters: Sequence[str]) -> list[str]:
-    """The FMU's outputs of the derivatives of ``output`` by each of ``parameters``, when it declares forward
+    """The FMU's outputs of the derivatives of ``output`` by ``parameters``, when it declares forward
     sensitivities (Integer parameters ``sens_p[k]`` selecting a Real parameter by value reference, Real
-    outputs ``sens_<output>[k]``, k = 1.. as many as the parameters): [] when it does not, or offers fewer."""
+    outputs ``sens_<output>[k]``, k = 1, 2, ...): one for each of the first parameters, as many as it offers
+    (a model with more parameters takes the others' columns by finite differences); [] when it offers none."""
     md_vars = {v.name: v for v in model_description.modelVariables}
+    if any(md_vars.get(p) is None or md_vars[p].type != "Real" for p in parameters):
+        return []
     out = []
     for k in range(1, len(parameters) + 1):
         sel, der = md_vars.get(f"sens_p[{k}]"), md_vars.get(f"sens_{output}[{k}]")
         if sel is None or der is None or sel.type != "Integer" or sel.causality != "parameter" \
                 or der.type != "Real" or der.causality != "output":
-            return []
+            break
         out.append(der.name)
-    if any(md_vars.get(p) is None or md_vars[p].type != "Real" for p in parameters):
-        return []
     return out
 
 
@@ -417,10 +420,13 @@ class Residuals:
         if failed:
             J = np.zeros((len(f), len(x)))
         else:
-            dpdx = np.array([v if p.log else 1.0 for p, v in zip(self.params, values)])
-            J = np.concatenate([jac[m] for jac, m in zip(jacs, self.masks)]) * (dpdx / self.scale)
+            m = jacs[0].shape[1]
+            dpdx = np.array([v if p.log else 1.0 for p, v in zip(self.params[:m], values[:m])])
+            J = np.concatenate([jac[mk] for jac, mk in zip(jacs, self.masks)]) * (dpdx / self.scale)
             if not np.all(np.isfinite(J)):
-                J = np.zeros((len(f), len(x)))
+                J = np.zeros((len(f), m))
+            if m < len(x):      # more parameters than the FMU has sensitivities for: the rest by differences
+                J = np.hstack([J, self._differences(x, f, range(m, len(x)))])
         self._last = (x, f)
         self._last_jac = (x, J)
         return f
@@ -432,17 +438,21 @@ class Residuals:
         if self.exact:
             return self._last_jac[1]
         f0 = self._last[1] if self._last is not None and np.array_equal(self._last[0], x) else self(x)
+        return self._differences(x, f0, range(len(x)))
+
+    def _differences(self, x: np.ndarray, f0: np.ndarray, columns: Sequence[int]) -> np.ndarray:
+        """The Jacobian's ``columns`` by forward differences from the residuals ``f0`` at x, as one round."""
         h = self.rel_step * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
         out = (x + h < self.lo) | (x + h > self.hi)
         h[out] *= -1
         points, steps = [], []
-        for j in range(len(x)):
+        for j in columns:
             xj = x.copy()
             xj[j] = x[j] + h[j]
             steps.append(xj[j] - x[j])
             points.append(self._values(xj))
         preds = self.model.predict_many(points, self.experiments)
-        J = np.empty((len(f0), len(x)))
+        J = np.empty((len(f0), len(steps)))
         for j, (pr, dx) in enumerate(zip(preds, steps)):
             J[:, j] = (self._scaled(pr) - f0) / dx
         return J

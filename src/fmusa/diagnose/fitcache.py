@@ -20,7 +20,7 @@ import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -353,6 +353,34 @@ def map_in_pool(fn, calls: Sequence[tuple], workers: int) -> list:
     except BaseException:
         _drop_pool(kill=True)
         raise
+
+
+def each_in_pool(fn, calls: Sequence[tuple], workers: int) -> Iterator[tuple[int, Any]]:
+    """:func:`map_in_pool`'s calls in the kept pool, each ``(index, result)`` as soon as it is done (a caller
+    that says, and keeps, what finished). An exception of a call is raised here. A worker that dies breaks the
+    pool: it is dropped, the calls done before are yielded, and BrokenProcessPool is raised for the caller to
+    run the others its own way (one of them crashed its process)."""
+    pool, _ = _shared_pool(workers, 0)
+    with pool.lent(None), _sigint_ignored():
+        futs = {pool.ex.submit(fn, *args): i for i, args in enumerate(calls)}
+    given: set[int] = set()
+    try:
+        for fut in as_completed(futs):
+            if isinstance(fut.exception(), BrokenProcessPool):
+                break
+            given.add(futs[fut])
+            yield futs[fut], fut.result()
+        else:
+            return
+    except BaseException:
+        _drop_pool(kill=True)
+        raise
+    done = [(i, f) for f, i in futs.items()
+            if i not in given and f.done() and not isinstance(f.exception(), BrokenProcessPool)]
+    _drop_pool(kill=True)
+    for i, f in done:
+        yield i, f.result()
+    raise BrokenProcessPool("a worker process died (an FMU that crashed?): the calls not done did not run")
 
 
 def _supervised(todo: list[FitJob], workers: int, budget: rb.RunBudget | None, keep) -> None:

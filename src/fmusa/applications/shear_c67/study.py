@@ -14,6 +14,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import time
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Sequence
 
@@ -27,7 +29,7 @@ from fmusa.diagnose.calibrate import Fit, ModelRunner, calibrate, fit_candidate
 from fmusa.diagnose.effects import CANDIDATES, data_scales
 from fmusa.diagnose.measured import MeasuredDataError
 from fmusa.diagnose.population import MIN_SPECIMENS, leave_one_out, population_of_diagnoses, random_effects
-from fmusa.diagnose.fitcache import data_key, map_in_pool, run_fits
+from fmusa.diagnose.fitcache import data_key, each_in_pool, map_in_pool, run_fits
 from fmusa.diagnose.models import resolve
 from fmusa.diagnose.run import AGREE_STARTS, run_diagnosis
 from fmusa.fmi.info import FMURunError
@@ -213,6 +215,75 @@ def _post_stage(kind: str, args: tuple):
     return fit_bilinear_per_test(tests, fmu, max_points, max_starts, model_specimens=chosen)
 
 
+def _unit_job(exps: list, out_dir: Path, fmu: str, max_starts: int, candidates: Sequence[str]) -> tuple:
+    """One unit's diagnosis, rate dependence and prediction bands in a worker, its fits one after another
+    there (a job of :func:`diagnose_units`); with the seconds its diagnosis took."""
+    t0 = time.perf_counter()
+    diag = run_diagnosis(exps, "displacement", out_dir, fmu_path=fmu, workers=1, max_starts=max_starts,
+                         candidates=candidates, progress=False)
+    seconds = time.perf_counter() - t0
+    return diag, _post_stage("rate", _rate_args(exps, fmu, diag, max_starts, out_dir)), \
+        _post_stage("bands", (exps, fmu, max_starts)), seconds
+
+
+def _rate_args(exps: list, fmu: str, diag: dict, max_starts: int, out_dir: Path) -> tuple:
+    """:func:`rate_dependence`'s arguments: the unit's two-phase fit, its fit cache."""
+    return (exps, fmu, {"_fits": {k: f for k, f in diag["_fits"].items() if k == "nonlinear_stiffness"}},
+            max_starts, out_dir / "fits")
+
+
+def _pipeline_job(kind: str, args: tuple):
+    """A job of :func:`diagnose_units`' pool: a unit (:func:`_unit_job`) or a specimen's two-line fits."""
+    return _unit_job(*args) if kind == "unit" else _post_stage(kind, args)
+
+
+def diagnose_units(unit_exps: dict[str, list], specimens: dict[str, tuple], out: Path, fmu: str, workers: int,
+                   max_starts: int, candidates: Sequence[str]) -> tuple[dict, dict, dict, dict]:
+    """Every unit's diagnosis (written to out/<key>), rate dependence (:func:`rate_dependence`) and prediction
+    bands (:func:`held_out_rate_bands`), and every specimen's two-line fits (``specimens``: specimen ->
+    :func:`fit_bilinear_per_test`'s arguments), each a dict by unit or specimen.
+
+    The units run side by side, one per worker with its fits one after another, the two-line fits in the same
+    queue: a unit's own stages wait for one another (the baseline before the candidates, the chain after
+    them), so one unit with its fits on all workers left them idle a third of the time. A worker that dies (an
+    FMU that crashed) ends that: what is not done runs as before, a unit's fits spread over supervised workers
+    as for a single diagnosis (the fits finished are in its cache), the stages after it on the pool."""
+    keys = list(unit_exps)
+    groups, rates, bands, lines = {}, {}, {}, {}
+    if workers > 1 and len(keys) + len(specimens) > 1:
+        calls = [("unit", (unit_exps[k], out / k, fmu, max_starts, candidates)) for k in keys]
+        calls += [("bilinear", args) for args in specimens.values()]
+        names = keys + list(specimens)
+        try:
+            for i, r in each_in_pool(_pipeline_job, calls, workers):
+                if i >= len(keys):
+                    lines[names[i]] = r
+                    continue
+                key = keys[i]
+                groups[key], rates[key], bands[key], seconds = r
+                print(f"{key.replace('_', ' ')}: {len(unit_exps[key])} tests, {groups[key]['effect']} "
+                      f"({groups[key]['runs']['total']} runs, {seconds:.0f} s)", flush=True)
+        except BrokenProcessPool as exc:
+            print(f"{exc}; the {len(keys) - len(groups)} units left one after another", flush=True)
+    for key in keys:
+        if key not in groups:
+            print(f"{key.replace('_', ' ')}: {len(unit_exps[key])} tests", flush=True)
+            groups[key] = run_diagnosis(unit_exps[key], "displacement", out / key, fmu_path=fmu, workers=workers,
+                                        max_starts=max_starts, candidates=candidates)
+    calls = [("rate", key, _rate_args(unit_exps[key], fmu, groups[key], max_starts, out / key))
+             for key in keys if key not in rates]
+    calls += [("bands", key, (unit_exps[key], fmu, max_starts)) for key in keys if key not in bands]
+    calls += [("bilinear", spec, args) for spec, args in specimens.items() if spec not in lines]
+    if calls:
+        print(f"rate dependence and prediction bands of {sum(c[0] == 'rate' for c in calls)} units, two-line "
+              f"fits of {sum(c[0] == 'bilinear' for c in calls)} specimens ({workers} processes)", flush=True)
+    for (kind, key, _), r in zip(calls, map_in_pool(_post_stage, [(kind, args) for kind, _, args in calls],
+                                                     workers)):
+        {"rate": rates, "bands": bands, "bilinear": lines}[kind][key] = r
+    return ({k: groups[k] for k in keys}, {k: rates[k] for k in keys}, {k: bands[k] for k in keys},
+            {s: lines[s] for s in specimens})
+
+
 #: Specimens diagnosed through the FMU by default (the first of the folder): the per-unit diagnosis costs
 #: about a minute per unit on two cores; the two-line comparison with the authors covers every test.
 DEFAULT_DIAGNOSED = 3
@@ -237,27 +308,15 @@ def run_shear_diagnosis(out_dir: str | os.PathLike, root: str | os.PathLike, fmu
     chosen = names if diagnosed is None else names[:max(1, int(diagnosed))]
     authors = shear_c67.authors_bilinear(root)
     out.mkdir(parents=True, exist_ok=True)
-    groups, unit_exps = {}, {}
+    unit_exps = {}
     for (spec, direction), g in tests[tests.specimen.isin(chosen)].groupby(["specimen", "direction"], sort=False):
-        key = f"{spec}_{direction}"
-        unit_exps[key] = exps = [shear_c67.load_test(r, max_points=max_points) for _, r in g.iterrows()]
-        print(f"{spec} {direction}: {len(exps)} tests", flush=True)
-        groups[key] = run_diagnosis(exps, "displacement", out / key, fmu_path=fmu, workers=workers,
-                                    max_starts=max_starts, candidates=candidates)
-    # the stages after the diagnoses, independent unit by unit and test by test: all at once on the workers
+        unit_exps[f"{spec}_{direction}"] = [shear_c67.load_test(r, max_points=max_points) for _, r in g.iterrows()]
     n_workers = max(1, int(workers or os.cpu_count() or 1))
-    print(f"rate dependence and prediction bands of {len(groups)} units, two-line fits of {len(tests)} tests "
-          f"({n_workers} processes)", flush=True)
-    calls = [("rate", key, (unit_exps[key], fmu, {"_fits": {k: f for k, f in diag["_fits"].items()
-                                                              if k == "nonlinear_stiffness"}},
-                            max_starts, out / key / "fits")) for key, diag in groups.items()]
-    calls += [("bands", key, (unit_exps[key], fmu, max_starts)) for key in groups]
-    calls += [("bilinear", spec, (tests[tests.specimen == spec], fmu, max_points, max_starts, chosen))
-              for spec in dict.fromkeys(tests.specimen)]
-    done = map_in_pool(_post_stage, [(kind, args) for kind, _, args in calls], n_workers)
-    rate_models = {key: r for (kind, key, _), r in zip(calls, done) if kind == "rate"}
-    bands = {key: r for (kind, key, _), r in zip(calls, done) if kind == "bands"}
-    ours = pd.concat([r for (kind, _, _), r in zip(calls, done) if kind == "bilinear"], ignore_index=True)
+    specimens_args = {spec: (tests[tests.specimen == spec], fmu, max_points, max_starts, chosen)
+                      for spec in dict.fromkeys(tests.specimen)}
+    groups, rate_models, bands, lines = diagnose_units(unit_exps, specimens_args, out, fmu, n_workers, max_starts,
+                                                       candidates)
+    ours = pd.concat(list(lines.values()), ignore_index=True)
     cmp_ = ours.merge(authors, on=["specimen", "direction", "rate_mm_s"], how="left")
     data = describe_data(root, tests, max_points)
     data["diagnosed_specimens"] = chosen
