@@ -481,13 +481,14 @@ def sensitivity_functions(dae: Dae, v: Variant, outputs: tuple[str, ...], column
     """The forward sensitivities of a variant: S' = J S + (df/dp) E for S = dx/dp E in the parameter direction E
     (the unit vector of a selected parameter), and the output sensitivities (dh/dx) S + (dh/dp) E. The derived
     parameters are functions of p in the variant's equations (Dae.fix), so these are total derivatives.
-    ``_sens_lin_all``: S' for ``columns`` columns at once (S and E n x columns and np x columns, column-major: the
-    columns share J and the states' rates, which one column at a time cost as much as the states' own step) and,
-    for the solver's exponential step of S, its time derivative along the states' own motion, d/dt (J S + f_p E)
-    at fixed S with x' = f and the inputs' rates; ``_sens_rhs_all``: S' alone. ``_sens_rhs``: S' of one column.
-    ``_sens_aug`` (a variant whose states move freely, not a prescribed motion): one column's S', its Jacobian by
-    the states at fixed S (row-major) and its explicit time derivative (the inputs' rates): the solver steps
-    (x, S) together with them where a ringing x would move S faster than a polynomial in time can follow.
+    ``_sens_rhs_all``: S' for ``columns`` columns at once (S and E n x columns and np x columns, column-major: the
+    columns share J, which one column at a time cost as much as the states' own step). For a variant whose states
+    move freely (not a prescribed motion), ``_sens_lin_all``: the same and, for the solver's exponential step of S,
+    its time derivative along the states' own motion, d/dt (J S + f_p E) at fixed S with x' = f and the inputs'
+    rates (under a prescribed motion the solver takes it by a difference of two ``_sens_rhs_all``: there that costs
+    less, and this is half the generated code); ``_sens_rhs`` and ``_sens_aug``: one column's S', and with it its
+    Jacobian by the states at fixed S (row-major) and its explicit time derivative (the inputs' rates): the solver
+    steps (x, S) together with them where a ringing x would move S faster than a polynomial in time can follow.
     ``_sens_out``: the outputs' sensitivities of one column."""
     pre, name = dae.spec.prefix, v.name
     S = ca.SX.sym("S", len(dae.states))
@@ -503,14 +504,15 @@ def sensitivity_functions(dae: Dae, v: Variant, outputs: tuple[str, ...], column
     SK = ca.SX.sym("SK", len(dae.states), columns)
     EK = ca.SX.sym("EK", dae.p.numel(), columns)
     FsK = ca.mtimes(v.J, SK) + ca.jtimes(v.xd, dae.p, EK)
-    vK = ca.vec(FsK)
-    FtsK = ca.reshape(ca.jtimes(vK, dae.t, ca.SX(1)) + ca.jtimes(vK, dae.u, dae.ud) + ca.jtimes(vK, dae.x, v.xd),
-                      FsK.shape)
     insK = [dae.t, dae.x, dae.p, dae.d, dae.u, dae.ud, SK, EK]
-    out = [ca.Function(f"{pre}{name}_sens_lin_all", insK, [ca.densify(FsK), ca.densify(FtsK)], names, ["Fs", "Fts"]),
-           ca.Function(f"{pre}{name}_sens_rhs_all", insK, [ca.densify(FsK)], names, ["Fs"]),
-           ca.Function(f"{pre}{name}_sens_rhs", ins, [ca.densify(Fs)], names, ["Fs"])]
+    out = [ca.Function(f"{pre}{name}_sens_rhs_all", insK, [ca.densify(FsK)], names, ["Fs"])]
     if not v.drive:
+        vK = ca.vec(FsK)
+        FtsK = ca.reshape(ca.jtimes(vK, dae.t, ca.SX(1)) + ca.jtimes(vK, dae.u, dae.ud) + ca.jtimes(vK, dae.x, v.xd),
+                          FsK.shape)
+        out.append(ca.Function(f"{pre}{name}_sens_lin_all", insK, [ca.densify(FsK), ca.densify(FtsK)], names,
+                               ["Fs", "Fts"]))
+        out.append(ca.Function(f"{pre}{name}_sens_rhs", ins, [ca.densify(Fs)], names, ["Fs"]))
         out.append(ca.Function(f"{pre}{name}_sens_aug", ins,
                                [ca.densify(Fs), ca.densify(ca.jacobian(Fs, dae.x).T),
                                 ca.densify(ca.jtimes(Fs, dae.t, ca.SX(1)) + ca.jtimes(Fs, dae.u, dae.ud))],

@@ -249,12 +249,16 @@ static int sens(void *ctx, int col, double t, const double *x, const double *S, 
 typedef char sens_batches_tile_E[(SV_NSENS % SV_NSENS_BATCH == 0) ? 1 : -1];   /* a batch never runs past E */
 
 /* Every column at once, in batches of SV_NSENS_BATCH (S[c], Fs[c], Fts[c]: column c; a batch's unused columns are 0
- * in E and S). */
+ * in E and S); Fts only where the variant has its generated rates (force-driven). */
 static int sens_all(void *ctx, int ns, double t, const double *x, const double (*S)[SOLVER_NMAX],
                     double (*Fs)[SOLVER_NMAX], double (*Fts)[SOLVER_NMAX], char *msg, size_t len)
 {
     ModelInstance *mi = ctx;
     if (domain(t, x, msg, len)) return 1;
+    if (Fts && !mi->f_sens_lin_all) {
+        snprintf(msg, len, "internal error: the sensitivity equations' rates of this variant are not generated");
+        return 1;
+    }
     for (int c0 = 0; c0 < ns; c0 += SV_NSENS_BATCH) {      /* the generated functions take a batch of columns */
         int nb = ns - c0 < SV_NSENS_BATCH ? ns - c0 : SV_NSENS_BATCH;
         double SK[SV_NSENS_BATCH * NX] = {0}, FK[SV_NSENS_BATCH * NX], FtK[SV_NSENS_BATCH * NX];
@@ -434,9 +438,11 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     mi->f_lin = motion ? sv_motion_full_lin : core ? sv_force_core_lin : sv_force_full_lin;
     mi->f_out = motion ? sv_motion_full_out : core ? sv_force_core_out : sv_force_full_out;
     mi->f_drive = motion ? sv_motion_full_drive : NULL;
-    mi->f_sens_rhs = motion ? sv_motion_full_sens_rhs : sv_force_full_sens_rhs;
-    mi->f_sens_aug = motion ? NULL : sv_force_full_sens_aug;   /* a prescribed motion does not ring */
-    mi->f_sens_lin_all = motion ? sv_motion_full_sens_lin_all : sv_force_full_sens_lin_all;
+    /* a prescribed motion does not ring: no column steps with the states, and the sensitivity equations' rates are
+     * the solver's difference (fmu/codegen.py generates neither for it) */
+    mi->f_sens_rhs = motion ? NULL : sv_force_full_sens_rhs;
+    mi->f_sens_aug = motion ? NULL : sv_force_full_sens_aug;
+    mi->f_sens_lin_all = motion ? NULL : sv_force_full_sens_lin_all;
     mi->f_sens_rhs_all = motion ? sv_motion_full_sens_rhs_all : sv_force_full_sens_rhs_all;
     mi->f_sens_out = motion ? sv_motion_full_sens_out : sv_force_full_sens_out;
     mi->f_sens_drive = motion ? sv_motion_full_sens_drive : NULL;
@@ -463,9 +469,10 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     sv->lin = lin;
     sv->breakpoint = next_breakpoint;
     sv->ns = mi->n_sens;
-    sv->sens = sens;
+    sv->sens = mi->f_sens_rhs ? sens : NULL;
     sv->sens_aug = mi->f_sens_aug ? sens_aug : NULL;
     sv->sens_all = sens_all;
+    sv->sens_rates_given = mi->f_sens_lin_all != NULL;
     for (int c = 0; c < mi->n_sens; c++) sv->sens_p[c] = p_abs[c];
     sv->ctx = mi;
     sv->work = mi->work;

@@ -1166,8 +1166,9 @@ static int linear_piece(Solver *s, const Linearization *L, double h, double t_ne
  * the same exponential Rosenbrock scheme (exprb32) with the states' exact Jacobian J at the step's start:
  *     S_U = S + k phi1(kJ) G0 + k^2 phi2(kJ) G_t,  S1 = S_U + 2k phi3(kJ) D,
  *     D = G(t + k, u(t + k), S_U) - G0 - J (S_U - S) - k G_t,
- * with G = J S + f_p and G_t its derivative in time at fixed S along the states' motion (u' = f), so that the
- * change of J and f_p enters as the time dependence of a linear equation. The columns take their sub-steps together
+ * with G = J S + f_p and G_t its derivative in time at fixed S along the states' motion (u' = f; the model's own where
+ * it gives it, else a forward difference: sens_rates), so that the change of J and f_p enters as the time dependence
+ * of a linear equation. The columns take their sub-steps together
  * (one evaluation of the model's sensitivity equations for all, one set of phi functions). A sub-step k of the
  * state's step is accepted when every column's correction 2k phi3 D is within sens_rtol (0: rtol) of the column's
  * scale (each state's largest |S| so far, or its largest |u| divided by |p|, what a change of p by itself moves it).
@@ -1326,6 +1327,55 @@ static int sens_substep_aug(Solver *s, const Linearization *L, int c, double ta,
 /* The columns over the states' accepted step from (t, u0) to (t + h, u1): every column at once (one call of the
  * model's sensitivity equations for all, which share its Jacobian and rates) with one sub-step size; a column whose
  * sub-step misses its tolerance steps with the states (sens_substep_aug) before the sub-step is shortened. */
+/* The time of the forward difference of sens_rates, relative to the sub-step (or the motion's time scale). Measured
+ * with it for both drives against the generated rates (tests/test_sensitivities.py, every effect at rtol 1e-8): every
+ * column's error against central differences the same to three digits; smaller steps lose digits to rounding (the
+ * closed form's d y / d F_max: 2e-16 of its largest value with the generated rates, 1.4e-14 here, 1.5e-13 at 1e-4;
+ * runs fail at 1e-8). Under a force drive the generated rates stay: with the difference a run cost 5-15 % more
+ * (the full model's right-hand side and J^2 a step) where under a prescribed motion it cost 10 % less. */
+#define SENS_RATE_STEP 1e-3
+
+/* The fastest time scale of the states' linearised motion, 1 / sqrt(||J^2||) (the infinity norm, on the states
+ * that move): for the screw on its spring, 1 / omega (||J|| itself would be c / m, omega squared). */
+static double motion_time_scale(const Solver *s, const Linearization *L)
+{
+    int n = s->n, idx[NMAX], m = 0;
+    for (int i = 0; i < n; i++)
+        if (L->active[i]) idx[m++] = i;
+    double worst = 0.0;
+    for (int a = 0; a < m; a++) {
+        double row = 0.0;
+        for (int b = 0; b < m; b++) {
+            double x = 0.0;
+            for (int l = 0; l < m; l++) x += L->Jfull[idx[a] * n + idx[l]] * L->Jfull[idx[l] * n + idx[b]];
+            row += fabs(x);
+        }
+        worst = fmax(worst, row);
+    }
+    return worst > 0.0 ? 1.0 / sqrt(worst) : INFINITY;
+}
+
+/* G_t of every column (see above) at (ta, ua): the rate of G = J S + f_p along the states' own motion (u' = f, the
+ * inputs at their rates) at fixed S, by a forward difference over a time e = SENS_RATE_STEP min(k, T), T the
+ * motion's fastest time scale (a screw ringing at 7 kHz through a sub-step of 30 ms would make a difference over a
+ * fraction of the sub-step meaningless): one evaluation of G for all columns and one of f. Its error, e/2 |G_tt|,
+ * enters S1 as k^2/6 of it, and the error estimate sees twice that; a second-derivative function of the model in its
+ * place cost as much as three evaluations of G and most of the generated code. */
+static int sens_rates(Solver *s, double ta, const double *ua, double k, double T, const double (*G0)[NMAX],
+                      double (*Gt)[NMAX], char *msg, size_t len)
+{
+    int n = s->n;
+    double f[NMAX], up[NMAX];
+    if (s->rhs(s->ctx, ta, ua, f, msg, len)) return 1;
+    /* the time step as represented: never below what ta's last digits can show */
+    double tp = ta + fmax(SENS_RATE_STEP * fmin(k, T), 1024.0 * DBL_EPSILON * fabs(ta)), e = tp - ta;
+    for (int i = 0; i < n; i++) up[i] = ua[i] + e * f[i];
+    if (s->sens_all(s->ctx, s->ns, tp, up, (const double (*)[NMAX])s->S, Gt, NULL, msg, len)) return 1;
+    for (int c = 0; c < s->ns; c++)
+        for (int i = 0; i < n; i++) Gt[c][i] = (Gt[c][i] - G0[c][i]) / e;
+    return 0;
+}
+
 static int sens_step(Solver *s, const Linearization *L, double t, const double *u0, double h, const double *u1,
                      char *msg, size_t len)
 {
@@ -1334,6 +1384,7 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
     double S1[SOLVER_SMAX][NMAX], G0[SOLVER_SMAX][NMAX], Gt[SOLVER_SMAX][NMAX], G1[SOLVER_SMAX][NMAX];
     SensPhis ph;
     ph.valid = 0;
+    double T = s->sens_rates_given ? INFINITY : motion_time_scale(s, L);
     memcpy(ua, u0, sizeof(double) * n);
     while (tau < h) {
         k = fmin(k, h - tau);
@@ -1341,7 +1392,12 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
         if (last) memcpy(ub, u1, sizeof(double) * n);
         else sens_state_at(s, L, u0, tau + k, ub);
         double ta = t + tau;
-        if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, Gt, msg, len)) return 1;
+        if (s->sens_rates_given) {
+            if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, Gt, msg, len)) return 1;
+        } else {
+            if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, NULL, msg, len)) return 1;
+            if (sens_rates(s, ta, ua, k, T, (const double (*)[NMAX])G0, Gt, msg, len)) return 1;
+        }
         int act[NMAX], idx[NMAX], m = 0;
         for (int i = 0; i < n; i++) {
             act[i] = L->active[i];

@@ -21,8 +21,9 @@ typedef int (*solver_lin_fn)(void *ctx, double t, const double *u, double *du, d
 typedef int (*solver_sens_fn)(void *ctx, int col, double t, const double *u, const double *S, double *Fs, char *msg,
                               size_t msglen);
 
-/* The first ns columns at once: Fs[c] as solver_sens_fn's for S[c], and (Fts not NULL) Fts[c], its time derivative
- * at fixed S along the states' motion. Returns as solver_rhs_fn. */
+/* The first ns columns at once: Fs[c] as solver_sens_fn's for S[c], and (Fts not NULL, where the model offers it:
+ * Solver.sens_rates_given) Fts[c], its time derivative at fixed S along the states' motion. Returns as
+ * solver_rhs_fn. */
 typedef int (*solver_sens_all_fn)(void *ctx, int ns, double t, const double *u, const double (*S)[SOLVER_NMAX],
                                   double (*Fs)[SOLVER_NMAX], double (*Fts)[SOLVER_NMAX], char *msg, size_t msglen);
 
@@ -80,8 +81,9 @@ typedef struct {
     double sens_p[SOLVER_SMAX];  /* |p| of each column: S_i is also measured against umax_i / |p| (a state's change
                                   * for a change of p by itself) */
     double sens_rtol;            /* their local error tolerance (0: rtol; a least-squares Jacobian needs a few digits) */
-    solver_sens_fn sens;
-    solver_sens_all_fn sens_all; /* NULL: one column at a time */
+    solver_sens_fn sens;         /* NULL where sens_aug is */
+    solver_sens_all_fn sens_all;
+    int sens_rates_given;        /* sens_all gives Fts; else the solver takes it by a forward difference */
     solver_sens_aug_fn sens_aug; /* NULL: the states' motion enters the columns only as a polynomial in time */
 } Solver;
 

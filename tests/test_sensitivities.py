@@ -61,8 +61,9 @@ def test_axial_sensitivities_match_the_closed_form(fmu_path):
         "d_y": [float((a - b) / (2 * h * d_)) for a, b in zip(y(c_, d_ * (1 + h)), y(c_, d_ * (1 - h)))],
         "F_max": [float(v) / F for v in y(c_, d_)],
     }
-    # measured: 5e-10, 4e-8 and 2e-16 of the largest sensitivity
-    for k, (name, tol) in enumerate((("c_y", 1e-8), ("d_y", 1e-6), ("F_max", 1e-13)), start=1):
+    # measured: 9e-11, 8e-9 and 1.4e-14 of the largest sensitivity (F_max's, exact but for rounding: the solver takes
+    # the sensitivity equations' rate by a forward difference)
+    for k, (name, tol) in enumerate((("c_y", 1e-8), ("d_y", 1e-6), ("F_max", 1e-12)), start=1):
         ex = np.array(exact[name])
         err = np.max(np.abs(res[f"sens_y_meas[{k}]"] - ex)) / np.max(np.abs(ex))
         assert err <= tol, f"d y / d {name}: {err:.2e} of its largest value off the closed form"
