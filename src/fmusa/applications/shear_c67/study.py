@@ -284,8 +284,8 @@ def diagnose_units(unit_exps: dict[str, list], specimens: dict[str, tuple], out:
             {s: lines[s] for s in specimens})
 
 
-#: Specimens diagnosed through the FMU by default (the first of the folder): the per-unit diagnosis costs
-#: about a minute per unit on two cores; the two-line comparison with the authors covers every test.
+#: Specimens diagnosed through the FMU by default (the first of the folder; `make bench` times one unit and all
+#: of them); the two-line comparison with the authors covers every test.
 DEFAULT_DIAGNOSED = 3
 
 
