@@ -225,13 +225,12 @@ def _in_ci(cell: Cell) -> bool:
     tell" cell, every effect on the ramp and under load-unload at one rate, and at two rates every cell whose
     answer the second rate changes (friction under load-unload, the Maxwell branch, the offset on ramps, the
     bend); in the force drive the ramp that hides yield and the load-hold-unload of the effects whose fits
-    are cheapest there (yield, slack, the Maxwell branch). The others run with --run-slow (`make
+    are cheapest there (yield, the Maxwell branch). The others run with --run-slow (`make
     identifiability`): the holds of effects named without them, Coulomb friction where it repeats yield
     (the same Bouc-Wen equations, so the same statements), and the force drive's nonlinear stiffness,
-    friction and offset (the costliest fits, 20-30 s each)."""
+    friction, offset and slack (the costliest fits, 16-30 s each)."""
     if cell.drive == "force":
-        return cell.protocol == "ramp" or cell.effect in ("yield_softening", "backlash_gap",
-                                                          "viscoelastic_relaxation")
+        return cell.protocol == "ramp" or cell.effect in ("yield_softening", "viscoelastic_relaxation")
     if cell.effect == "interface_damage" and cell.protocol not in ("ramp", "load-unload"):
         return False   # the drop names it on a ramp; a hold adds nothing to tell it by (--run-slow)
     if not expected(cell)["identifiable"]:

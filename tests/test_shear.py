@@ -211,7 +211,9 @@ def test_report_on_other_specimens_names_them(fmu_path, tmp_path):
     alone = run_diagnosis(exps, "displacement", tmp_path / "alone", fmu_path=str(fmu_path), workers=1, max_starts=2,
                           candidates=("nonlinear_stiffness", "sensor_offset"), progress=False)
     unit = json.loads((out / "H11_Pos" / "diagnosis.json").read_text())
-    assert unit["effect"] == alone["effect"] and unit["runs"]["total"] == alone["runs"]["total"]
+    # (not the run count: a process times the FMU's sensitivities once, two counted runs, and this one may have)
+    assert unit["effect"] == alone["effect"]
+    assert [r["effect"] for r in unit["ranking"]] == [r["effect"] for r in alone["ranking"]]
     for name, v in alone["baseline"]["params"].items():
         assert unit["baseline"]["params"][name] == pytest.approx(v, rel=1e-12), name
     assert s["data"]["specimens"] == ["H10", "H11"] and s["data"]["tests"] == 6
