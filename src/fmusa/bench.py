@@ -1027,10 +1027,7 @@ def bench_diagnose_runs(fmu_path: Path, workers: int | None = None, slow_workers
                 r = _timed_diagnosis([force], "force", slow, slow_workers)
                 r.update(delay_s_per_run=delay_s, runs_logged_by_fmu=count_logged_runs(log))
                 out["diagnose_slow_fmu"] = r
-    if shear_all:
-        out_all = bench_diagnose_shear_all(fmu_path, workers)
-    else:
-        out_all = {}
+    out_all = bench_diagnose_shear_all(fmu_path, workers) if shear_all else {}
     flat = {}
     for k, r in out.items():
         if "wall_s" in r:
