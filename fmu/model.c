@@ -449,6 +449,7 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
     mi->time = t0;
     mi->t_inputs = t0;
     memset(mi->u, 0, sizeof(mi->u));   /* at rest in the reference configuration (the Modelica's initial equations) */
+    mi->inputs_end_valid = 0;
     Solver *sv = &mi->solver;
     memset(sv, 0, sizeof(*sv));
     sv->n = NX;
@@ -483,8 +484,19 @@ int model_initialize(ModelInstance *mi, double t0, char *msg, size_t len)
 
 int model_do_step(ModelInstance *mi, double t_end, char *msg, size_t len)
 {
+    double u[SV_NU], ud[SV_NU];
+    if (mi->inputs_end_valid) {
+        /* the sensitivities' last sub-step holds at the next step's start (Solver.sh_valid) only where the inputs
+         * go on from the values the last communication step ended with */
+        inputs_at(mi, mi->time, u, ud);
+        for (int i = 0; i < SV_NU; i++)
+            if (fabs(u[i] - mi->inputs_end[i]) > 1e-12 * (fabs(u[i]) + fabs(mi->inputs_end[i])))
+                mi->solver.sh_valid = 0;
+    }
     if (apply_drive(mi, msg, len)) return 1;
     if (solver_advance(&mi->solver, t_end, msg, len)) return 1;
+    inputs_at(mi, t_end, mi->inputs_end, ud);
+    mi->inputs_end_valid = 1;
     memcpy(mi->u, mi->solver.u, sizeof(mi->u));
     mi->time = t_end;
     memset(mi->dv, 0, sizeof(mi->dv));   /* input derivatives hold for one communication step */

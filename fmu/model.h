@@ -42,6 +42,8 @@ typedef struct ModelInstance {
     double v[N_VR];          /* every variable by value reference (Integer and Boolean as 0/1 doubles) */
     double dv[N_VR];         /* first derivatives of the inputs (fmi2SetRealInputDerivatives) */
     double t_inputs;         /* time at which the inputs and their derivatives apply */
+    double inputs_end[SV_NU]; /* the inputs at the end of the last communication step, as they were extrapolated */
+    int inputs_end_valid;
     double time;
     double u[NX];
     double p[SV_NP];         /* the parameters, in the generated functions' order (set at initialisation) */

@@ -1168,7 +1168,9 @@ static int linear_piece(Solver *s, const Linearization *L, double h, double t_ne
  *     D = G(t + k, u(t + k), S_U) - G0 - J (S_U - S) - k G_t,
  * with G = J S + f_p and G_t its derivative in time at fixed S along the states' motion (u' = f; the model's own where
  * it gives it, else a forward difference: sens_rates), so that the change of J and f_p enters as the time dependence
- * of a linear equation. The columns take their sub-steps together
+ * of a linear equation. At a step's start where the columns' last sub-step ended, G0 and G_t come from that sub-step
+ * instead (sens_from_history: G is affine in S with the exact J, G_t the secant along it), so a sub-step calls the
+ * model's sensitivity equations once, at its end. The columns take their sub-steps together
  * (one evaluation of the model's sensitivity equations for all, one set of phi functions). A sub-step k of the
  * state's step is accepted when every column's correction 2k phi3 D is within sens_rtol (0: rtol) of the column's
  * scale (each state's largest |S| so far, or its largest |u| divided by |p|, what a change of p by itself moves it).
@@ -1376,6 +1378,42 @@ static int sens_rates(Solver *s, double ta, const double *ua, double k, double T
     return 0;
 }
 
+/* G0 and G_t of every column at the start of a step of the states, from the columns' last sub-step when it ended
+ * here, without calling the model. G is affine in S with the model's Jacobian J, which the linearisation L holds
+ * exactly at this point, so G(S) = G1 + J (S - S1) for the G1 the last sub-step evaluated at its predicted S1; and
+ * along the last sub-step G moved at fixed S by ((J - J0) S + P - P0) / k0, P = G - J S (its start's P0 and J0
+ * kept): the rate at the middle of the last sub-step rather than here, an error of k0/2 G_tt that the sub-step's
+ * error estimate sees as it sees G_tt itself (a sub-step that misses is taken again with the model's own rates).
+ * A forward sensitivity run costs one call of the model's sensitivity equations per sub-step instead of two
+ * (under a force drive one of them the generated rates, three times the other). Returns 0 where the history does
+ * not apply: no last sub-step ending exactly here (a rejected or an inner sub-step, the inputs jumped: the model
+ * clears it) or one that did not start at a step's start (its J0 unknown). Also P here into P. */
+static int sens_from_history(const Solver *s, const Linearization *L, double t, const double *u0,
+                             double (*G0)[NMAX], double (*Gt)[NMAX], double (*P)[NMAX])
+{
+    int n = s->n;
+    if (!s->sh_valid || L->t != t || !(t > s->sh_t0) || fabs(t - s->sh_t1) > 4.0 * DBL_EPSILON * fmax(1.0, fabs(t))
+        || memcmp(L->u, u0, sizeof(double) * n) != 0 || memcmp(s->sh_u1, u0, sizeof(double) * n) != 0)
+        return 0;
+    double k0 = t - s->sh_t0;
+    const double *J = L->Jfull, *J0 = s->sh_J0;
+    for (int c = 0; c < s->ns; c++) {
+        const double *S = s->S[c], *S1 = s->sh_S1[c], *G1 = s->sh_G1[c], *P0 = s->sh_P0[c];
+        for (int i = 0; i < n; i++) {
+            double g = G1[i], js = 0.0, j0s = 0.0;
+            for (int j = 0; j < n; j++) {
+                g += J[i * n + j] * (S[j] - S1[j]);
+                js += J[i * n + j] * S[j];
+                j0s += J0[i * n + j] * S[j];
+            }
+            G0[c][i] = g;
+            P[c][i] = g - js;
+            Gt[c][i] = (g - j0s - P0[i]) / k0;
+        }
+    }
+    return 1;
+}
+
 static int sens_step(Solver *s, const Linearization *L, double t, const double *u0, double h, const double *u1,
                      char *msg, size_t len)
 {
@@ -1384,7 +1422,9 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
     double S1[SOLVER_SMAX][NMAX], G0[SOLVER_SMAX][NMAX], Gt[SOLVER_SMAX][NMAX], G1[SOLVER_SMAX][NMAX];
     SensPhis ph;
     ph.valid = 0;
-    double T = s->sens_rates_given ? INFINITY : motion_time_scale(s, L);
+    double T = -1.0;   /* the motion's time scale, when the rates are the solver's difference */
+    double P0[SOLVER_SMAX][NMAX], S1p[SOLVER_SMAX][NMAX];
+    int exact = 0;     /* this sub-step takes G0 and G_t from the model, not from the last sub-step */
     memcpy(ua, u0, sizeof(double) * n);
     while (tau < h) {
         k = fmin(k, h - tau);
@@ -1392,11 +1432,27 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
         if (last) memcpy(ub, u1, sizeof(double) * n);
         else sens_state_at(s, L, u0, tau + k, ub);
         double ta = t + tau;
-        if (s->sens_rates_given) {
-            if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, Gt, msg, len)) return 1;
+        /* at the step's start L holds the exact Jacobian: P0 = G0 - J S is known there */
+        int at_start = tau == 0.0 && L->t == t && memcmp(L->u, u0, sizeof(double) * n) == 0;
+        int from_history = tau == 0.0 && !exact && sens_from_history(s, L, t, u0, G0, Gt, P0);
+        if (from_history) {
+            s->n_sens_reused++;
         } else {
-            if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, NULL, msg, len)) return 1;
-            if (sens_rates(s, ta, ua, k, T, (const double (*)[NMAX])G0, Gt, msg, len)) return 1;
+            s->n_sens_eval++;
+            if (s->sens_rates_given) {
+                if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, Gt, msg, len)) return 1;
+            } else {
+                if (T < 0.0) T = motion_time_scale(s, L);
+                if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, NULL, msg, len)) return 1;
+                if (sens_rates(s, ta, ua, k, T, (const double (*)[NMAX])G0, Gt, msg, len)) return 1;
+            }
+            if (at_start)
+                for (int c = 0; c < ns; c++)
+                    for (int i = 0; i < n; i++) {
+                        double js = 0.0;
+                        for (int j = 0; j < n; j++) js += L->Jfull[i * n + j] * s->S[c][j];
+                        P0[c][i] = G0[c][i] - js;
+                    }
         }
         int act[NMAX], idx[NMAX], m = 0;
         for (int i = 0; i < n; i++) {
@@ -1430,6 +1486,7 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
                 matvec(m, ph.P1, g0, y1);
                 matvec(m, ph.P2, gt, y2);
                 for (int a = 0; a < m; a++) S1[c][idx[a]] += k * y1[a] + k * k * y2[a];
+                memcpy(S1p[c], S1[c], sizeof(double) * n);
             }
             if (s->sens_all(s->ctx, ns, ta + k, ub, (const double (*)[NMAX])S1, G1, NULL, msg, len)) return 1;
             for (int c = 0; c < ns; c++) {
@@ -1449,7 +1506,7 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
                                           s->sens_p[c] > 0.0 ? s->umax[i] / s->sens_p[c] : INFINITY);
                     if (sc > 0.0) errc[c] = fmax(errc[c], fabs(cc) / sc);
                 }
-                if (errc[c] > 1.0 && s->sens_aug) {
+                if (errc[c] > 1.0 && s->sens_aug && !from_history) {
                     /* the states' motion inside the sub-step too fast for a polynomial in time (a ringing):
                      * this column steps with the states */
                     double Sa[NMAX], uba[NMAX], erra;
@@ -1469,12 +1526,27 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
                 err = fmax(err, errc[c]);
             }
         }
+        if (from_history && err > 1.0) { exact = 1; continue; }   /* again, with the model's own G0 and G_t */
         double fac = err > 0.0 ? 0.9 * pow(err, -1.0 / 3.0) : 4.0;
         if (err <= 1.0 || k <= h * 1e-3) {
             for (int c = 0; c < ns; c++) {
                 memcpy(s->S[c], S1[c], sizeof(double) * n);
                 for (int i = 0; i < n; i++) s->Smax[c][i] = fmax(s->Smax[c][i], fabs(S1[c][i]));
             }
+            /* the next step's start takes G0 and G_t from this sub-step when it ends there and began at this one's */
+            s->sh_valid = last && at_start && m > 0;
+            if (s->sh_valid) {
+                s->sh_t0 = ta;
+                s->sh_t1 = t + h;
+                memcpy(s->sh_u1, ub, sizeof(double) * n);
+                memcpy(s->sh_J0, L->Jfull, sizeof(double) * n * n);
+                for (int c = 0; c < ns; c++) {
+                    memcpy(s->sh_G1[c], G1[c], sizeof(double) * n);
+                    memcpy(s->sh_S1[c], S1p[c], sizeof(double) * n);
+                    memcpy(s->sh_P0[c], P0[c], sizeof(double) * n);
+                }
+            }
+            exact = 0;
             tau = last ? h : tau + k;
             memcpy(ua, ub, sizeof(double) * n);
             /* never below the smallest sub-step accepted anyway: a huge error there (a column that blows up across
@@ -1482,6 +1554,7 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
             k = fmax(k * fmin(fac, 4.0), h * 1e-3);
         } else {
             k *= fmax(0.1, fmin(fac, 0.5));
+            exact = 1;
         }
     }
     return 0;
@@ -1496,6 +1569,8 @@ int solver_init(Solver *s, double t0, const double *u0, char *msg, size_t msglen
     memcpy(s->u, u0, sizeof(double) * s->n);
     for (int i = 0; i < s->n; i++) s->umax[i] = fabs(u0[i]);
     s->n_steps = s->n_rejected = s->n_rhs = 0;
+    s->sh_valid = 0;
+    s->n_sens_eval = s->n_sens_reused = 0;
     s->fast_off_until = -INFINITY;
     for (int i = 0; i < s->n; i++) s->bal_d[i] = 1.0;
     if (s->h <= 0.0) s->h = 1e-6;

@@ -110,9 +110,9 @@ SENS_TOO_SLOW = 10.0
 #: the local error tolerance of the forward sensitivities (the FMU's parameter ``sens_rtol``, where it has one): a
 #: least-squares Jacobian steers the steps and sizes the intervals, for which three digits are plenty; at the states'
 #: rtol (1e-5) the sensitivities' sub-steps made a run cost 15-90 plain ones (force-driven stiffening test, every
-#: candidate at its starts); at 1e-3, with the columns stepped together, 2.5-5 (k = 2-5). The Jacobian stays
-#: within 4e-4 of central differences of fresh runs there, but the damping's column under backlash, 1.8 %
-#: (fmu/MODEL.md)
+#: candidate at its starts); at 1e-3, with the columns stepped together and each step's start taken from the last
+#: sub-step, 1.5-3 (k = 2-5). The Jacobian stays within 4e-4 of central differences of fresh runs there, but the
+#: damping's column under backlash, 0.22 % (fmu/MODEL.md)
 SENS_RTOL = 1e-3
 SENS_RTOL_VARIABLE = "sens_rtol"
 
