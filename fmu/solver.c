@@ -1381,15 +1381,16 @@ static int sens_rates(Solver *s, double ta, const double *ua, double k, double T
 /* G0 and G_t of every column at the start of a step of the states, from the columns' last sub-step when it ended
  * here, without calling the model. G is affine in S with the model's Jacobian J, which the linearisation L holds
  * exactly at this point, so G(S) = G1 + J (S - S1) for the G1 the last sub-step evaluated at its predicted S1; and
- * along the last sub-step G moved at fixed S by ((J - J0) S + P - P0) / k0, P = G - J S (its start's P0 and J0
- * kept): the rate at the middle of the last sub-step rather than here, an error of k0/2 G_tt that the sub-step's
- * error estimate sees as it sees G_tt itself (a sub-step that misses is taken again with the model's own rates).
- * A forward sensitivity run costs one call of the model's sensitivity equations per sub-step instead of two
- * (under a force drive one of them the generated rates, three times the other). Returns 0 where the history does
- * not apply: no last sub-step ending exactly here (a rejected or an inner sub-step, the inputs jumped: the model
- * clears it) or one that did not start at a step's start (its J0 unknown). Also P here into P. */
+ * along the last sub-step G moved at fixed S by (G(S) - G0(S)) / k0, G0(S) = G0 + J0 (S - S0) at its start (G0, S0
+ * and J0 kept): the rate at the middle of the last sub-step rather than here, an error of k0/2 G_tt that the
+ * sub-step's error estimate sees as it sees G_tt itself (a sub-step that misses is taken again with the model's own
+ * rates). A forward sensitivity run then costs one call of the model's sensitivity equations per sub-step instead
+ * of two (under a force drive one of them the generated rates, three times the other). Returns 0 where the history
+ * does not apply: no last sub-step ending exactly here (a rejected or an inner sub-step; the inputs jumped, which the
+ * model tells by clearing it; a prescribed motion set anew) or one that did not start at a step's start (its J0
+ * unknown). */
 static int sens_from_history(const Solver *s, const Linearization *L, double t, const double *u0,
-                             double (*G0)[NMAX], double (*Gt)[NMAX], double (*P)[NMAX])
+                             double (*G0)[NMAX], double (*Gt)[NMAX])
 {
     int n = s->n;
     if (!s->sh_valid || L->t != t || !(t > s->sh_t0) || fabs(t - s->sh_t1) > 4.0 * DBL_EPSILON * fmax(1.0, fabs(t))
@@ -1398,17 +1399,23 @@ static int sens_from_history(const Solver *s, const Linearization *L, double t, 
     double k0 = t - s->sh_t0;
     const double *J = L->Jfull, *J0 = s->sh_J0;
     for (int c = 0; c < s->ns; c++) {
-        const double *S = s->S[c], *S1 = s->sh_S1[c], *G1 = s->sh_G1[c], *P0 = s->sh_P0[c];
+        const double *S = s->S[c];
+        double d1[NMAX], d0[NMAX];
+        int nz[NMAX], m = 0;
+        for (int j = 0; j < n; j++) {
+            d1[j] = S[j] - s->sh_S1[c][j];
+            d0[j] = S[j] - s->sh_S0[c][j];
+            if (d1[j] != 0.0 || d0[j] != 0.0) nz[m++] = j;
+        }
         for (int i = 0; i < n; i++) {
-            double g = G1[i], js = 0.0, j0s = 0.0;
-            for (int j = 0; j < n; j++) {
-                g += J[i * n + j] * (S[j] - S1[j]);
-                js += J[i * n + j] * S[j];
-                j0s += J0[i * n + j] * S[j];
+            double g = s->sh_G1[c][i], g0 = s->sh_G0[c][i];
+            for (int a = 0; a < m; a++) {
+                int j = nz[a];
+                g += J[i * n + j] * d1[j];
+                g0 += J0[i * n + j] * d0[j];
             }
             G0[c][i] = g;
-            P[c][i] = g - js;
-            Gt[c][i] = (g - j0s - P0[i]) / k0;
+            Gt[c][i] = (g - g0) / k0;
         }
     }
     return 1;
@@ -1423,7 +1430,7 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
     SensPhis ph;
     ph.valid = 0;
     double T = -1.0;   /* the motion's time scale, when the rates are the solver's difference */
-    double P0[SOLVER_SMAX][NMAX], S1p[SOLVER_SMAX][NMAX];
+    double S1p[SOLVER_SMAX][NMAX];
     int exact = 0;     /* this sub-step takes G0 and G_t from the model, not from the last sub-step */
     memcpy(ua, u0, sizeof(double) * n);
     while (tau < h) {
@@ -1432,9 +1439,9 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
         if (last) memcpy(ub, u1, sizeof(double) * n);
         else sens_state_at(s, L, u0, tau + k, ub);
         double ta = t + tau;
-        /* at the step's start L holds the exact Jacobian: P0 = G0 - J S is known there */
+        /* at the step's start L holds the exact Jacobian, which the next step's start needs with this one's G0 */
         int at_start = tau == 0.0 && L->t == t && memcmp(L->u, u0, sizeof(double) * n) == 0;
-        int from_history = tau == 0.0 && !exact && sens_from_history(s, L, t, u0, G0, Gt, P0);
+        int from_history = tau == 0.0 && !exact && sens_from_history(s, L, t, u0, G0, Gt);
         if (from_history) {
             s->n_sens_reused++;
         } else {
@@ -1446,13 +1453,6 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
                 if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, NULL, msg, len)) return 1;
                 if (sens_rates(s, ta, ua, k, T, (const double (*)[NMAX])G0, Gt, msg, len)) return 1;
             }
-            if (at_start)
-                for (int c = 0; c < ns; c++)
-                    for (int i = 0; i < n; i++) {
-                        double js = 0.0;
-                        for (int j = 0; j < n; j++) js += L->Jfull[i * n + j] * s->S[c][j];
-                        P0[c][i] = G0[c][i] - js;
-                    }
         }
         int act[NMAX], idx[NMAX], m = 0;
         for (int i = 0; i < n; i++) {
@@ -1529,10 +1529,6 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
         if (from_history && err > 1.0) { exact = 1; continue; }   /* again, with the model's own G0 and G_t */
         double fac = err > 0.0 ? 0.9 * pow(err, -1.0 / 3.0) : 4.0;
         if (err <= 1.0 || k <= h * 1e-3) {
-            for (int c = 0; c < ns; c++) {
-                memcpy(s->S[c], S1[c], sizeof(double) * n);
-                for (int i = 0; i < n; i++) s->Smax[c][i] = fmax(s->Smax[c][i], fabs(S1[c][i]));
-            }
             /* the next step's start takes G0 and G_t from this sub-step when it ends there and began at this one's */
             s->sh_valid = last && at_start && m > 0;
             if (s->sh_valid) {
@@ -1543,8 +1539,13 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
                 for (int c = 0; c < ns; c++) {
                     memcpy(s->sh_G1[c], G1[c], sizeof(double) * n);
                     memcpy(s->sh_S1[c], S1p[c], sizeof(double) * n);
-                    memcpy(s->sh_P0[c], P0[c], sizeof(double) * n);
+                    memcpy(s->sh_G0[c], G0[c], sizeof(double) * n);
+                    memcpy(s->sh_S0[c], s->S[c], sizeof(double) * n);
                 }
+            }
+            for (int c = 0; c < ns; c++) {
+                memcpy(s->S[c], S1[c], sizeof(double) * n);
+                for (int i = 0; i < n; i++) s->Smax[c][i] = fmax(s->Smax[c][i], fabs(S1[c][i]));
             }
             exact = 0;
             tau = last ? h : tau + k;

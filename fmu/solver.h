@@ -85,13 +85,14 @@ typedef struct {
     solver_sens_all_fn sens_all;
     int sens_rates_given;        /* sens_all gives Fts; else the solver takes it by a forward difference */
     solver_sens_aug_fn sens_aug; /* NULL: the states' motion enters the columns only as a polynomial in time */
-    /* The last sub-step of the columns, for the next one's start (sens_step in solver.c): G = J S + P at its end
-     * for its predicted S, and P and J at its start. Valid only from a step's start to its end; the model clears
+    /* The last sub-step of the columns, for the next one's start (sens_step in solver.c): G = J S + f_p at its end
+     * for its predicted S, and G, S and J at its start. Valid only from a step's start to its end; the model clears
      * sh_valid where the inputs jump between communication steps. */
     int sh_valid;
     double sh_t0, sh_t1;
     double sh_u1[SOLVER_NMAX];
-    double sh_G1[SOLVER_SMAX][SOLVER_NMAX], sh_S1[SOLVER_SMAX][SOLVER_NMAX], sh_P0[SOLVER_SMAX][SOLVER_NMAX];
+    double sh_G1[SOLVER_SMAX][SOLVER_NMAX], sh_S1[SOLVER_SMAX][SOLVER_NMAX];
+    double sh_G0[SOLVER_SMAX][SOLVER_NMAX], sh_S0[SOLVER_SMAX][SOLVER_NMAX];
     double sh_J0[SOLVER_NMAX * SOLVER_NMAX];
     long n_sens_eval, n_sens_reused;   /* sub-steps of the columns that called the model, and that did not */
 } Solver;

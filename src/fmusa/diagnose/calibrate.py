@@ -474,6 +474,11 @@ def parameter_bounds(params: list[Param]) -> tuple[np.ndarray, np.ndarray]:
 
 #: the trust-region loop's stopping tolerances on the cost and the step (scipy's ftol, xtol)
 FTOL = XTOL = 1e-6
+#: the same for the held-out refits, which start at the all-data optimum: their score is a held-out error compared
+#: at 0.9x and 1.1x of another's, and at 1e-6 a refit crawling along a direction its fold does not pin down (a
+#: damping that goes to 0 on a log scale) spent its 40 evaluations there: on the force-driven stiffening test
+#: 230 runs of held-out refits instead of 434, the verdict and every identifiability cell unchanged
+HELDOUT_TOL = 1e-4
 
 
 def _least_squares(fn: Residuals, x0, lo, hi, max_nfev: int, tol: float | None = None) -> optimize.OptimizeResult:
@@ -618,7 +623,7 @@ def heldout_folds(model: ModelRunner, fit: Fit, drive: str, experiments: Sequenc
 
     def refit(runner, held_out) -> dict:
         fn = Residuals(runner, params, experiments, [~m for m in held_out], scale, lo, hi)
-        res = _least_squares(fn, x_full, lo, hi, max_nfev)
+        res = _least_squares(fn, x_full, lo, hi, max_nfev, HELDOUT_TOL)
         preds = runner.predict([p.from_x(x) for p, x in zip(params, res.x)], experiments)
         sq, count = 0.0, 0
         for pr, e, m in zip(preds, experiments, held_out):
