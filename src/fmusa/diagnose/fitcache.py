@@ -227,7 +227,9 @@ def run_fits(jobs: list[FitJob], workers: int, cache_dir: Path | None, key: str,
                     else "left out: the run budget ended" if isinstance(r, rb.LeftOut) else f"failed: {r}")
             print(f"  fitted {name}: {what}", flush=True)
 
-    if workers > 1 and len(todo) > 1:
+    # with workers, even one fit runs on them: in this process an FMU that crashes would end the diagnosis (a
+    # unit's last fit left after its side-by-side run broke did)
+    if workers > 1 and todo:
         _supervised(todo, workers, budget, keep)
     else:
         old = rb.set_current(budget) if budget is not None else None
