@@ -59,7 +59,12 @@ def test_each_in_pool_gives_each_result_when_done_and_what_was_done_when_a_worke
 
 def test_a_lent_budget_counts_the_workers_runs_and_gives_them_back():
     a, b = rb.RunBudget(), rb.RunBudget(100)
-    pool, _ = fitcache._shared_pool(2, 0)
+    with fitcache._pool_in_use(2, 0) as (pool, _):
+        _lend_to(pool, a, b)
+    fitcache._drop_pool()
+
+
+def _lend_to(pool, a, b) -> None:
     with pool.lent(a):
         [f.result() for f in [pool.ex.submit(_take, 3) for _ in range(4)]]
     with pool.lent(b):
@@ -74,6 +79,30 @@ def test_a_lent_budget_counts_the_workers_runs_and_gives_them_back():
             raised = True
     assert raised
     assert b.used == 10
+
+
+def test_kept_workers_end_when_idle_and_not_while_a_call_waits(monkeypatch):
+    """The kept pool ends IDLE_S after its last call (its processes exit), never during a call, however long
+    the call; a call after that starts a new pool."""
+    monkeypatch.setattr(fitcache, "IDLE_S", 0.5)
+    fitcache._drop_pool()
+    assert fitcache.map_in_pool(_square_or_die, [(i, -1) for i in range(3)], 2) == [0, 1, 4]
+    pool = fitcache._POOL
+    procs = list(pool.ex._processes.values())
+    assert procs and all(p.is_alive() for p in procs)
+    with fitcache._pool_in_use(2, 0) as (same, _):       # in use for longer than IDLE_S: kept
+        assert same is pool
+        time.sleep(1.0)
+        assert fitcache._POOL is pool and pool.ex.submit(_square_or_die, 5, -1).result() == 25
+    deadline = time.monotonic() + 10.0
+    while fitcache._POOL is not None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert fitcache._POOL is None
+    while any(p.is_alive() for p in procs) and time.monotonic() < deadline:   # the timer's shutdown joins them
+        time.sleep(0.1)
+    assert not any(p.is_alive() for p in procs)
+    assert fitcache.map_in_pool(_square_or_die, [(2, -1), (3, -1)], 2) == [4, 9]   # a new pool
+    assert fitcache._POOL is not pool
     fitcache._drop_pool()
 
 

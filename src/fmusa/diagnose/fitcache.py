@@ -17,6 +17,7 @@ import hashlib
 import json
 import multiprocessing as mp
 import os
+import threading
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -272,6 +273,8 @@ class _SharedPool:
         self.count, self.limit = ctx.Value("q", 0), ctx.Value("q", -1)
         self.started = ctx.Array("b", self.SLOTS, lock=False)
         self.next = 0
+        self.users = 0                         # calls using the pool now (under _POOL_LOCK)
+        self.timer: threading.Timer | None = None
         self.ex = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_start_worker,
                                       initargs=(self.limit, self.count, self.started))
 
@@ -307,24 +310,56 @@ def _environment() -> int:
 
 
 _POOL: _SharedPool | None = None
+_POOL_LOCK = threading.RLock()
+#: seconds the kept workers wait idle for the next call before they end (a notebook's diagnoses minutes apart keep
+#: them; a session left open does not keep two interpreters with numpy, scipy and an FMU loaded for hours)
+IDLE_S = 300.0
 
 
-def _shared_pool(workers: int, jobs: int) -> tuple[_SharedPool, int]:
+@contextlib.contextmanager
+def _pool_in_use(workers: int, jobs: int) -> Iterator[tuple[_SharedPool, int]]:
     """The kept pool (a new one when there is none, it has another size or environment, or no started flags
-    left) and the first started flag of ``jobs`` jobs."""
+    left) and the first started flag of ``jobs`` jobs, held in use for the block: the idle timer, cancelled
+    while it runs, starts again when the last user leaves."""
     global _POOL
-    if _POOL is not None and (_POOL.workers != workers or _POOL.env != _environment()
-                              or _POOL.next + jobs > _POOL.SLOTS):
-        _drop_pool()
-    if _POOL is None:
-        _POOL = _SharedPool(workers)
-    return _POOL, _POOL.slots(jobs)
+    with _POOL_LOCK:
+        if _POOL is not None and (_POOL.workers != workers or _POOL.env != _environment()
+                                  or _POOL.next + jobs > _POOL.SLOTS):
+            _drop_pool()
+        if _POOL is None:
+            _POOL = _SharedPool(workers)
+        pool = _POOL
+        pool.users += 1
+        if pool.timer is not None:
+            pool.timer.cancel()
+            pool.timer = None
+        first = pool.slots(jobs)
+    try:
+        yield pool, first
+    finally:
+        with _POOL_LOCK:
+            pool.users -= 1
+            if pool.users == 0 and _POOL is pool and IDLE_S > 0:
+                pool.timer = threading.Timer(IDLE_S, _drop_if_idle, args=(pool,))
+                pool.timer.daemon = True
+                pool.timer.start()
+
+
+def _drop_if_idle(pool: _SharedPool) -> None:
+    """The idle timer's end: the pool ends unless a call took it up meanwhile (or it was replaced)."""
+    with _POOL_LOCK:
+        if _POOL is pool and pool.users == 0:
+            _drop_pool()
 
 
 def _drop_pool(kill: bool = False) -> None:
     """Shut the kept pool down (``kill``: at once, as for a broken pool or an interrupt)."""
     global _POOL
-    pool, _POOL = _POOL, None
+    with _POOL_LOCK:
+        pool, _POOL = _POOL, None
+        if pool is not None and pool.timer is not None:
+            pool.timer.cancel()
+            pool.timer = None
     if pool is None:
         return
     if kill:
@@ -347,14 +382,14 @@ def map_in_pool(fn, calls: Sequence[tuple], workers: int) -> list:
     BrokenProcessPool (nothing here supervises: these calls run FMUs a diagnosis has run already)."""
     if workers <= 1 or len(calls) <= 1:
         return [fn(*args) for args in calls]
-    pool, _ = _shared_pool(workers, 0)
-    try:
-        with pool.lent(None), _sigint_ignored():
-            futs = [pool.ex.submit(fn, *args) for args in calls]
-        return [f.result() for f in futs]
-    except BaseException:
-        _drop_pool(kill=True)
-        raise
+    with _pool_in_use(workers, 0) as (pool, _):
+        try:
+            with pool.lent(None), _sigint_ignored():
+                futs = [pool.ex.submit(fn, *args) for args in calls]
+            return [f.result() for f in futs]
+        except BaseException:
+            _drop_pool(kill=True)
+            raise
 
 
 def each_in_pool(fn, calls: Sequence[tuple], workers: int) -> Iterator[tuple[int, Any]]:
@@ -362,21 +397,21 @@ def each_in_pool(fn, calls: Sequence[tuple], workers: int) -> Iterator[tuple[int
     that says, and keeps, what finished). An exception of a call is raised here. A worker that dies breaks the
     pool: it is dropped, the calls done before are yielded, and BrokenProcessPool is raised for the caller to
     run the others its own way (one of them crashed its process)."""
-    pool, _ = _shared_pool(workers, 0)
-    with pool.lent(None), _sigint_ignored():
-        futs = {pool.ex.submit(fn, *args): i for i, args in enumerate(calls)}
     given: set[int] = set()
-    try:
-        for fut in as_completed(futs):
-            if isinstance(fut.exception(), BrokenProcessPool):
-                break
-            given.add(futs[fut])
-            yield futs[fut], fut.result()
-        else:
-            return
-    except BaseException:
-        _drop_pool(kill=True)
-        raise
+    with _pool_in_use(workers, 0) as (pool, _):
+        with pool.lent(None), _sigint_ignored():
+            futs = {pool.ex.submit(fn, *args): i for i, args in enumerate(calls)}
+        try:
+            for fut in as_completed(futs):
+                if isinstance(fut.exception(), BrokenProcessPool):
+                    break
+                given.add(futs[fut])
+                yield futs[fut], fut.result()
+            else:
+                return
+        except BaseException:
+            _drop_pool(kill=True)
+            raise
     done = [(i, f) for f, i in futs.items()
             if i not in given and f.done() and not isinstance(f.exception(), BrokenProcessPool)]
     _drop_pool(kill=True)
@@ -389,10 +424,9 @@ def _supervised(todo: list[FitJob], workers: int, budget: rb.RunBudget | None, k
     """The jobs in the kept pool of ``workers`` processes (:class:`_SharedPool`); when a process dies (an FMU
     that crashes), the fits finished stay, and the jobs not finished run again, each in a process of its own
     (so a second crash is the job's own: it fails with the reason, the others get their fits)."""
-    pool, first = _shared_pool(workers, len(todo))
-    ex, started = pool.ex, pool.started
     broken = False
-    with pool.lent(budget):
+    with _pool_in_use(workers, len(todo)) as (pool, first), pool.lent(budget):
+        ex, started = pool.ex, pool.started
         try:
             with _sigint_ignored():    # the workers start with Ctrl-C ignored (kept across their exec)
                 futs = {ex.submit(_tracked_job, first + i, j): i for i, j in enumerate(todo)}
