@@ -37,7 +37,9 @@ fmi2Status fmi2ExitInitializationMode(fmi2Component comp)
 }
 """
 
-pytestmark = [pytest.mark.skipif(not SV.exists(), reason="needs dist/ScrewVertebra.fmu (make fmu)"),
+# slow (`make slow`): 40 s, half of it building the FMU from its sources
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(not SV.exists(), reason="needs dist/ScrewVertebra.fmu (make fmu)"),
               pytest.mark.skipif(os.name == "nt" or shutil.which("cc") is None, reason="needs a C compiler")]
 
 
