@@ -1388,13 +1388,13 @@ static int sens_rates(Solver *s, double ta, const double *ua, double k, double T
  * of two (under a force drive one of them the generated rates, three times the other). Returns 0 where the history
  * does not apply: no last sub-step ending exactly here (a rejected or an inner sub-step; the inputs jumped, which the
  * model tells by clearing it; a prescribed motion set anew) or one that did not start at a step's start (its J0
- * unknown). */
+ * unknown). The caller has checked that L is the linearisation at (t, u0). */
 static int sens_from_history(const Solver *s, const Linearization *L, double t, const double *u0,
                              double (*G0)[NMAX], double (*Gt)[NMAX])
 {
     int n = s->n;
-    if (!s->sh_valid || L->t != t || !(t > s->sh_t0) || fabs(t - s->sh_t1) > 4.0 * DBL_EPSILON * fmax(1.0, fabs(t))
-        || memcmp(L->u, u0, sizeof(double) * n) != 0 || memcmp(s->sh_u1, u0, sizeof(double) * n) != 0)
+    if (!s->sh_valid || !(t > s->sh_t0) || fabs(t - s->sh_t1) > 4.0 * DBL_EPSILON * fmax(1.0, fabs(t))
+        || memcmp(s->sh_u1, u0, sizeof(double) * n) != 0)
         return 0;
     double k0 = t - s->sh_t0;
     const double *J = L->Jfull, *J0 = s->sh_J0;
@@ -1441,11 +1441,8 @@ static int sens_step(Solver *s, const Linearization *L, double t, const double *
         double ta = t + tau;
         /* at the step's start L holds the exact Jacobian, which the next step's start needs with this one's G0 */
         int at_start = tau == 0.0 && L->t == t && memcmp(L->u, u0, sizeof(double) * n) == 0;
-        int from_history = tau == 0.0 && !exact && sens_from_history(s, L, t, u0, G0, Gt);
-        if (from_history) {
-            s->n_sens_reused++;
-        } else {
-            s->n_sens_eval++;
+        int from_history = at_start && !exact && sens_from_history(s, L, t, u0, G0, Gt);
+        if (!from_history) {
             if (s->sens_rates_given) {
                 if (s->sens_all(s->ctx, ns, ta, ua, (const double (*)[NMAX])s->S, G0, Gt, msg, len)) return 1;
             } else {
@@ -1571,7 +1568,6 @@ int solver_init(Solver *s, double t0, const double *u0, char *msg, size_t msglen
     for (int i = 0; i < s->n; i++) s->umax[i] = fabs(u0[i]);
     s->n_steps = s->n_rejected = s->n_rhs = 0;
     s->sh_valid = 0;
-    s->n_sens_eval = s->n_sens_reused = 0;
     s->fast_off_until = -INFINITY;
     for (int i = 0; i < s->n; i++) s->bal_d[i] = 1.0;
     if (s->h <= 0.0) s->h = 1e-6;

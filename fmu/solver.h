@@ -94,7 +94,6 @@ typedef struct {
     double sh_G1[SOLVER_SMAX][SOLVER_NMAX], sh_S1[SOLVER_SMAX][SOLVER_NMAX];
     double sh_G0[SOLVER_SMAX][SOLVER_NMAX], sh_S0[SOLVER_SMAX][SOLVER_NMAX];
     double sh_J0[SOLVER_NMAX * SOLVER_NMAX];
-    long n_sens_eval, n_sens_reused;   /* sub-steps of the columns that called the model, and that did not */
 } Solver;
 
 /* Bytes of the workspace (Solver.work) the solver uses for the phi functions applied to vectors. */

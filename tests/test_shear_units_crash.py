@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -23,8 +22,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data" / "shear-c67"
 SV = ROOT / "dist" / "ScrewVertebra.fmu"
-
-_DEFINITION = re.compile(r"fmi2Status\s+fmi2ExitInitializationMode\s*\(\s*fmi2Component\s+(\w+)\s*\)\s*\{")
 
 _WRAPPER = """
 #include <stdlib.h>
@@ -44,12 +41,12 @@ pytestmark = [pytest.mark.slow,
 
 
 def crashing_copy(dest: Path) -> Path:
-    """ScrewVertebra, extracted into ``dest`` and rebuilt at -O1 with the wrapper above."""
-    import fmpy
+    """ScrewVertebra, extracted into ``dest`` and rebuilt at -O1 with the wrapper above (the way
+    fmusa.fmi.instrument rebuilds an FMU that logs its runs)."""
     from fmpy import read_model_description
 
     from fmusa.fmi.archive import extract_fmu
-    from fmusa.fmi.info import host_platform, read_fmu_info
+    from fmusa.fmi.instrument import _DEFINITION, _compile_quickly
 
     extract_fmu(SV, dest)
     shutil.rmtree(dest / "binaries")
@@ -60,13 +57,7 @@ def crashing_copy(dest: Path) -> Path:
     text = _DEFINITION.sub(lambda m: f"static fmi2Status inner_exit_initialization_mode(fmi2Component "
                                      f"{m.group(1)}) {{", text, count=1)
     src.write_text(text + _WRAPPER % {"vr": vr}, encoding="utf-8")
-    info = read_fmu_info(dest)
-    target = dest / "binaries" / host_platform() / info.binary_name("co-simulation")
-    target.parent.mkdir(parents=True)
-    subprocess.run([shutil.which("cc"), "-shared", "-fPIC", "-O1", f"-I{dest / 'sources'}",
-                    f"-I{Path(fmpy.__file__).parent / 'c-code'}",
-                    *[str(dest / "sources" / f) for f in info.source_files], "-o", str(target), "-lm"],
-                   check=True, capture_output=True, timeout=600)
+    _compile_quickly(shutil.which("cc"), dest)
     return dest
 
 
